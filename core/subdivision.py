@@ -1,0 +1,296 @@
+"""Subdivision as sparse matrices: Loop surfaces (3D) and cubic B-spline curves (2D).
+
+Subdivision is linear in the control vertices, so ``levels`` rounds of it are
+one sparse matrix ``S``: fine vertices = ``S @ control vertices``. The
+gradient of anything with respect to the control vertices is then ``S.T @``
+the gradient with respect to the fine vertices.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import scipy.sparse as sp
+
+from .mesh import Mesh, Polygon
+
+__all__ = [
+    "loop_subdivision",
+    "curve_subdivision",
+    "icosphere",
+    "SubdivisionSurface",
+    "sphere_surface",
+    "circle_surface",
+]
+
+
+def _loop_once(faces, n_vertices):
+    """One Loop step: (S (n_fine, n) csr, fine faces (4m, 3), edge end points (n_edges, 2))."""
+    f = np.asarray(faces, dtype=np.int64)
+    a, b, c = f[:, 0], f[:, 1], f[:, 2]
+    # half-edges (start, end, opposite vertex), one per face corner
+    hs = np.concatenate([a, b, c])
+    he = np.concatenate([b, c, a])
+    ho = np.concatenate([c, a, b])
+    key = np.minimum(hs, he) * n_vertices + np.maximum(hs, he)
+    uniq, edge_of_half, counts = np.unique(key, return_inverse=True, return_counts=True)
+    if np.any(counts != 2):
+        raise ValueError("Loop subdivision needs a closed manifold mesh (each edge in two faces)")
+    n_edges = counts.size
+    edge_row = n_vertices + edge_of_half
+
+    valence = np.bincount(hs, minlength=n_vertices).astype(float)
+    if np.any(valence == 0):
+        raise ValueError("Loop subdivision needs every vertex to belong to a face")
+    beta = (5.0 / 8.0 - (3.0 / 8.0 + 0.25 * np.cos(2.0 * np.pi / valence)) ** 2) / valence
+
+    rows = np.concatenate([np.arange(n_vertices), hs, edge_row, edge_row, edge_row])
+    cols = np.concatenate([np.arange(n_vertices), he, hs, he, ho])
+    vals = np.concatenate(
+        [1.0 - valence * beta, beta[hs], np.full(hs.size, 3 / 16), np.full(hs.size, 3 / 16), np.full(hs.size, 1 / 8)]
+    )
+    S = sp.csr_matrix((vals, (rows, cols)), shape=(n_vertices + n_edges, n_vertices))
+
+    m = len(f)
+    ab, bc, ca = edge_row[:m], edge_row[m: 2 * m], edge_row[2 * m:]
+    fine = np.concatenate(
+        [np.stack([a, ab, ca], 1), np.stack([b, bc, ab], 1), np.stack([c, ca, bc], 1), np.stack([ab, bc, ca], 1)]
+    )
+    edges = np.stack([uniq // n_vertices, uniq % n_vertices], axis=1)
+    return S, fine, edges
+
+
+def loop_subdivision(faces, n_vertices, levels):
+    """Loop subdivision of a closed triangle mesh as one sparse matrix.
+
+    Parameters
+    ----------
+    faces : (m, 3) int
+        Control mesh triangles.
+    n_vertices : int
+        Number of control vertices.
+    levels : int
+        Rounds of subdivision (0 gives the identity).
+
+    Returns
+    -------
+    S : (n_fine, n_vertices) scipy.sparse.csr_matrix
+        ``fine_vertices = S @ control_vertices``.
+    fine_faces : (m * 4**levels, 3) int
+        Fine triangles, oriented as the control faces.
+    """
+    if levels < 0:
+        raise ValueError(f"levels must be >= 0, got {levels}")
+    f = np.asarray(faces, dtype=np.int64)
+    S = sp.identity(n_vertices, format="csr")
+    n = n_vertices
+    for _ in range(levels):
+        Si, f, _ = _loop_once(f, n)
+        S = Si @ S
+        n = Si.shape[0]
+    return S.tocsr(), f
+
+
+def curve_subdivision(n_vertices, levels):
+    """Cubic B-spline subdivision of a closed polygon (the curve analogue of Loop).
+
+    Each step keeps every corner as ``(p[i-1] + 6 p[i] + p[i+1]) / 8`` and
+    inserts ``(p[i] + p[i+1]) / 2`` after it, doubling the count and keeping
+    the orientation.
+
+    Returns
+    -------
+    S : (n_vertices * 2**levels, n_vertices) scipy.sparse.csr_matrix
+    """
+    if n_vertices < 3:
+        raise ValueError(f"a closed polygon needs at least 3 control points, got {n_vertices}")
+    if levels < 0:
+        raise ValueError(f"levels must be >= 0, got {levels}")
+    S = sp.identity(n_vertices, format="csr")
+    n = n_vertices
+    for _ in range(levels):
+        i = np.arange(n)
+        prev, nxt = (i - 1) % n, (i + 1) % n
+        rows = np.concatenate([2 * i, 2 * i, 2 * i, 2 * i + 1, 2 * i + 1])
+        cols = np.concatenate([prev, i, nxt, i, nxt])
+        vals = np.concatenate([np.full(n, 1 / 8), np.full(n, 6 / 8), np.full(n, 1 / 8), np.full(n, 0.5), np.full(n, 0.5)])
+        S = sp.csr_matrix((vals, (rows, cols)), shape=(2 * n, n)) @ S
+        n *= 2
+    return S.tocsr()
+
+
+@lru_cache(maxsize=8)
+def _icosphere(subdivisions):
+    # Icosahedron, then midpoint splits projected to the sphere.
+    t = (1.0 + 5.0 ** 0.5) / 2.0
+    v = np.array(
+        [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+         [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
+        dtype=float,
+    )
+    f = np.array(
+        [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]],
+        dtype=np.int64,
+    )
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for _ in range(subdivisions):
+        _, f, edges = _loop_once(f, len(v))
+        v = np.vstack([v, 0.5 * (v[edges[:, 0]] + v[edges[:, 1]])])
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v.setflags(write=False)
+    f.setflags(write=False)
+    return v, f
+
+
+def icosphere(subdivisions=1):
+    """Unit-sphere control mesh: 12 vertices (``0``), 42 (``1``), 162 (``2``) ...
+
+    Returns
+    -------
+    vertices : (n, 3) float
+    faces : (m, 3) int, outward oriented
+    """
+    if subdivisions not in range(0, 6):
+        raise ValueError(f"subdivisions must be 0..5, got {subdivisions}")
+    v, f = _icosphere(int(subdivisions))
+    return v.copy(), f.copy()
+
+
+class _Topology:
+    """What every iterate of one subdivision surface shares: S and the fine topology."""
+
+    __slots__ = ("S", "fine_faces", "levels")
+
+    def __init__(self, control, levels):
+        if isinstance(control, Mesh):
+            self.S, faces = loop_subdivision(control.faces, len(control.vertices), levels)
+            # The fine mesh of a valid control mesh is valid; check it once here.
+            self.fine_faces = Mesh(self.S @ control.vertices, faces, control.attenuation).faces
+        else:
+            self.S = curve_subdivision(len(control.vertices), levels)
+            self.fine_faces = None
+        self.levels = levels
+
+
+class SubdivisionSurface:
+    """A bubble surface: a control Mesh (3D) or Polygon (2D) and its subdivision.
+
+    Parameters
+    ----------
+    control : Mesh or Polygon
+        Control mesh / control polygon; its attenuation is the surface's.
+    levels : int
+        Subdivision levels (the paper uses 2).
+
+    Notes
+    -----
+    ``with_vertices`` shares S and the fine topology, so an optimiser can make
+    a new surface every iteration at the cost of a sparse product.
+    """
+
+    __slots__ = ("control", "_topo")
+
+    def __init__(self, control, levels=2, *, _topology=None):
+        if not isinstance(control, (Mesh, Polygon)):
+            raise TypeError(f"control must be a Mesh or a Polygon, got {type(control).__name__}")
+        if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or not 0 <= levels <= 6:
+            raise ValueError(f"levels must be an integer in 0..6, got {levels!r}")
+        self.control = control
+        self._topo = _topology if _topology is not None else _Topology(control, int(levels))
+
+    @property
+    def ndim(self):
+        return 3 if isinstance(self.control, Mesh) else 2
+
+    @property
+    def levels(self):
+        return self._topo.levels
+
+    @property
+    def S(self):
+        """(n_fine, n_control) sparse subdivision matrix."""
+        return self._topo.S
+
+    @property
+    def vertices(self):
+        """Control vertices, (n, 3) or (n, 2)."""
+        return self.control.vertices
+
+    @property
+    def attenuation(self):
+        return self.control.attenuation
+
+    @property
+    def control_faces(self):
+        """Control triangles (3D) or ``None`` (2D)."""
+        return np.asarray(self.control.faces) if self.ndim == 3 else None
+
+    def with_vertices(self, vertices):
+        return SubdivisionSurface(self.control.with_vertices(vertices), _topology=self._topo)
+
+    def with_attenuation(self, attenuation):
+        return SubdivisionSurface(self.control.with_attenuation(attenuation), _topology=self._topo)
+
+    def fine(self):
+        """The subdivided Mesh or Polygon."""
+        v = self._topo.S @ self.control.vertices
+        if self.ndim == 3:
+            return Mesh(v, None, self.attenuation, _checked_faces=self._topo.fine_faces)
+        return Polygon(v, self.attenuation, _checked=True)
+
+    def __repr__(self):
+        return f"SubdivisionSurface({self.control!r}, levels={self.levels})"
+
+
+@lru_cache(maxsize=16)
+def _limit_scale(kind, n, levels):
+    """Factor that makes the subdivided unit sphere/circle have mean radius 1."""
+    if kind == 3:
+        v, f = _icosphere(n)
+        S, _ = loop_subdivision(f, len(v), levels)
+        return 1.0 / np.linalg.norm(S @ v, axis=1).mean()
+    S = curve_subdivision(n, levels)
+    return 1.0 / np.linalg.norm(S @ _unit_circle(n), axis=1).mean()
+
+
+def _unit_circle(n):
+    a = 2 * np.pi * np.arange(n) / n
+    return np.stack([np.cos(a), np.sin(a)], axis=1)
+
+
+_ICO_SIZES = {12: 0, 42: 1, 162: 2}
+
+
+def sphere_surface(centre, radius, attenuation, control=42, levels=2):
+    """A spherical bubble: icosphere control mesh whose subdivision has mean radius ``radius``.
+
+    Parameters
+    ----------
+    centre : (3,) float
+    radius : float, mm
+    attenuation : float, 1/mm
+    control : {12, 42, 162}
+        Number of control vertices.
+    levels : int
+    """
+    if control not in _ICO_SIZES:
+        raise ValueError(f"control must be one of {sorted(_ICO_SIZES)}, got {control!r}")
+    if not radius > 0:
+        raise ValueError(f"radius must be positive, got {radius!r}")
+    v, f = _icosphere(_ICO_SIZES[control])
+    scale = radius * _limit_scale(3, _ICO_SIZES[control], levels)
+    c = np.asarray(centre, dtype=float).reshape(3)
+    return SubdivisionSurface(Mesh(c + scale * v, f, attenuation), levels)
+
+
+def circle_surface(centre, radius, attenuation, control=9, levels=2):
+    """A circular 2D bubble: ``control`` points whose subdivision has mean radius ``radius``."""
+    if not radius > 0:
+        raise ValueError(f"radius must be positive, got {radius!r}")
+    control = int(control)
+    c = np.asarray(centre, dtype=float).reshape(2)
+    scale = radius * _limit_scale(2, control, levels)
+    return SubdivisionSurface(Polygon(c + scale * _unit_circle(control), attenuation), levels)

@@ -1,0 +1,20 @@
+"""``python -m bubsub.bench [projector|remote] [options]``: print benchmark tables."""
+
+import sys
+
+
+def main(argv=None):
+    argv = list(sys.argv[1:] if argv is None else argv)
+    name = argv.pop(0) if argv and not argv[0].startswith("-") else "projector"
+    if name == "projector":
+        from .projector import main as run
+    elif name == "remote":
+        from .remote import main as run
+    else:
+        print(f"unknown benchmark {name!r}; choose 'projector' or 'remote'", file=sys.stderr)
+        return 2
+    return run(argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,215 @@
+"""The BubSub optimiser: BFGS on the control vertices of all bubbles.
+
+It needs only ``projector.objective(surfaces, data)``, so it runs the same
+against a local :class:`bubsub.core.MeshProjector` and a remote job
+(:class:`bubsub.clients.RemoteJob`), whose data lives on the server.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize
+
+from bubsub.core import SubdivisionSurface
+
+__all__ = ["fit", "estimate_radii", "FitResult"]
+
+#: above this many unknowns, dense BFGS (n x n inverse Hessian) gives way to L-BFGS
+DENSE_BFGS_LIMIT = 6000
+
+
+@dataclass
+class FitResult:
+    """Outcome of :func:`fit`.
+
+    Attributes
+    ----------
+    surfaces : list of SubdivisionSurface
+        The fitted bubbles (the best iterate seen).
+    objective : float
+        ``0.5 ||Proj(S x) - d||^2`` at ``surfaces``.
+    iterations : int
+        Optimiser iterations done.
+    evaluations : int
+        Objective evaluations (projections) done.
+    seconds : float
+    history : list of dict
+        Per iteration: ``iteration``, ``objective``, ``seconds``.
+    interrupted : bool
+        True when stopped by Ctrl-C; ``surfaces`` is then the last good iterate.
+    method : str
+    """
+
+    surfaces: list
+    objective: float
+    iterations: int
+    evaluations: int
+    seconds: float
+    history: list = field(default_factory=list)
+    interrupted: bool = False
+    method: str = "bfgs"
+
+
+def _check_surfaces(surfaces):
+    surfaces = list(surfaces)
+    if not surfaces:
+        raise ValueError("fit needs at least one initial surface")
+    for k, s in enumerate(surfaces):
+        if not isinstance(s, SubdivisionSurface):
+            raise TypeError(f"initial surface {k} is a {type(s).__name__}, not a SubdivisionSurface")
+    return surfaces
+
+
+def _objective_call(projector, data):
+    if data is None:
+        if not hasattr(projector, "job_id"):
+            raise ValueError("data is required with a local projector (a remote job holds its own)")
+        return lambda surfaces: projector.objective(surfaces)
+    return lambda surfaces: projector.objective(surfaces, data)
+
+
+def _progress(total, progress, desc):
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="it", leave=True)
+
+
+def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progress=True, callback=None):
+    """Fit bubble surfaces to projections: minimise ``0.5 ||Proj(S x) - d||^2`` over x.
+
+    Parameters
+    ----------
+    projector : MeshProjector or RemoteJob
+        Anything with ``objective(surfaces, data) -> (f, grads)``.
+    surfaces : sequence of SubdivisionSurface
+        Initial bubbles; their topology and attenuation are kept.
+    data : ndarray, optional
+        Projections to fit, ``projector.geometry.shape`` (background already
+        subtracted). Omit for a remote job, which holds its data.
+    iterations : int
+        Maximum optimiser iterations (the paper uses 80).
+    method : {"auto", "bfgs", "lbfgs"}
+        ``auto`` is dense BFGS up to 6000 unknowns (2000 control vertices),
+        L-BFGS beyond, where an n x n inverse Hessian no longer fits.
+    progress : bool
+        Show a progress bar (notebook-aware).
+    callback : callable, optional
+        Called after each iteration with ``(iteration, objective, surfaces)``;
+        return True to stop.
+
+    Returns
+    -------
+    FitResult
+        Ctrl-C stops the fit and returns the best iterate so far, flagged
+        ``interrupted``.
+    """
+    surfaces = _check_surfaces(surfaces)
+    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 0:
+        raise ValueError(f"iterations must be a non-negative integer, got {iterations!r}")
+    evaluate = _objective_call(projector, data)
+    shapes = [s.vertices.shape for s in surfaces]
+    splits = np.cumsum([int(np.prod(sh)) for sh in shapes])[:-1]
+    x0 = np.concatenate([s.vertices.ravel() for s in surfaces])
+    if method == "auto":
+        method = "bfgs" if x0.size <= DENSE_BFGS_LIMIT else "lbfgs"
+    if method not in ("bfgs", "lbfgs"):
+        raise ValueError(f"method must be 'auto', 'bfgs' or 'lbfgs', got {method!r}")
+
+    def unpack(x):
+        return [s.with_vertices(p.reshape(sh)) for s, p, sh in zip(surfaces, np.split(x, splits), shapes)]
+
+    best = {"f": np.inf, "x": x0, "evals": 0}
+    t0 = time.perf_counter()
+
+    def fun(x):
+        f, grads = evaluate(unpack(x))
+        best["evals"] += 1
+        if f < best["f"]:
+            best["f"], best["x"] = f, x.copy()
+        return f, np.concatenate([np.asarray(g).ravel() for g in grads])
+
+    history = []
+    bar = _progress(iterations, progress, "BubSub fit")
+
+    class _Stop(Exception):
+        pass
+
+    def on_iteration(xk):
+        history.append({"iteration": len(history) + 1, "objective": best["f"], "seconds": time.perf_counter() - t0})
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(f=f"{best['f']:.4g}")
+        if callback is not None and callback(len(history), best["f"], unpack(best["x"])):
+            raise _Stop
+
+    interrupted = False
+    try:
+        if iterations > 0:
+            options = {"maxiter": int(iterations), "gtol": 1e-12}
+            scipy_method = "BFGS" if method == "bfgs" else "L-BFGS-B"
+            if method == "lbfgs":
+                options.update(maxcor=20, ftol=1e-15, maxfun=4 * int(iterations) + 20)
+            minimize(fun, x0, jac=True, method=scipy_method, callback=on_iteration, options=options)
+        else:
+            fun(x0)
+    except KeyboardInterrupt:
+        interrupted = True
+    except _Stop:
+        pass
+    finally:
+        if bar is not None:
+            bar.close()
+    if not np.isfinite(best["f"]):
+        raise RuntimeError("the fit was interrupted before the first objective evaluation finished")
+    return FitResult(
+        surfaces=unpack(best["x"]),
+        objective=float(best["f"]),
+        iterations=len(history),
+        evaluations=best["evals"],
+        seconds=time.perf_counter() - t0,
+        history=history,
+        interrupted=interrupted,
+        method=method,
+    )
+
+
+def estimate_radii(projector, surfaces, data=None, iterations=20, *, progress=False):
+    """Improve an initial guess by optimising one radius per bubble (paper eq. 4-5).
+
+    Each bubble keeps its centre (the mean of its control vertices) and its
+    shape; only the scale ``r_k`` of ``x_k(r) = c_k + r_k u_k`` changes, with
+    ``dg/dr_k = sum_i grad_x_ki . u_ki``.
+
+    Returns
+    -------
+    list of SubdivisionSurface
+    """
+    surfaces = _check_surfaces(surfaces)
+    evaluate = _objective_call(projector, data)
+    centres = [s.vertices.mean(axis=0) for s in surfaces]
+    r0 = np.array([np.linalg.norm(s.vertices - c, axis=1).mean() for s, c in zip(surfaces, centres)])
+    units = [(s.vertices - c) / r for s, c, r in zip(surfaces, centres, r0)]
+
+    def build(r):
+        return [s.with_vertices(c + rk * u) for s, c, rk, u in zip(surfaces, centres, r, units)]
+
+    def fun(r):
+        f, grads = evaluate(build(r))
+        return f, np.array([np.sum(np.asarray(g) * u) for g, u in zip(grads, units)])
+
+    bar = _progress(iterations, progress, "radius estimation")
+    try:
+        res = minimize(
+            fun, r0, jac=True, method="L-BFGS-B", bounds=[(1e-3 * r, 10 * r) for r in r0],
+            callback=(lambda _: bar.update(1)) if bar is not None else None,
+            options={"maxiter": int(iterations)},
+        )
+    finally:
+        if bar is not None:
+            bar.close()
+    return build(res.x)

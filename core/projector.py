@@ -126,9 +126,17 @@ class _Scene:
         norm = np.linalg.norm(n, axis=1)
         n[norm > 0] /= norm[norm > 0, None]
         self.normals = n
+        self.normals32 = n.astype(np.float32)
         # per-item bounding boxes (shifted), for culling pixels per projection
-        self.item_lo = np.array([self.vertices[s:e].min(axis=0) for s, e in zip(self.vertex_offset[:-1], self.vertex_offset[1:])])
-        self.item_hi = np.array([self.vertices[s:e].max(axis=0) for s, e in zip(self.vertex_offset[:-1], self.vertex_offset[1:])])
+        # per-item bounding spheres (shifted), for culling pixels per projection
+        starts = self.vertex_offset[:-1]
+        lo_i = np.minimum.reduceat(self.vertices, starts, axis=0)
+        hi_i = np.maximum.reduceat(self.vertices, starts, axis=0)
+        self.item_centre = 0.5 * (lo_i + hi_i)
+        if ndim == 2:
+            self.item_centre[:, 2] = 0.0  # rays run in the plane z = 0
+        dist2 = np.sum((self.vertices[:, :ndim] - np.repeat(self.item_centre, counts, axis=0)[:, :ndim]) ** 2, axis=1)
+        self.item_radius = np.sqrt(np.maximum.reduceat(dist2, starts))
         rtcs, TriangleMesh = _embree()
         self.embree = rtcs.EmbreeScene(robust=True)
         TriangleMesh(self.embree, self.vertices.astype(np.float32), self.faces.astype(np.int32))
@@ -248,10 +256,10 @@ class MeshProjector:
     def trace(self, meshes):
         """Cast all rays once: a :class:`Traversal` holding every valid crossing."""
         scene = meshes if isinstance(meshes, _Scene) else self._scene(meshes)
-        pix = self._frames.candidate_pixels(scene)
+        pix, far = self._frames.candidate_pixels(scene)
         k2 = self._sub.shape[0]
         n_rays = pix.size * k2
-        chunks = self._map(lambda s: self._trace_chunk(scene, pix, s, min(s + _CHUNK, n_rays)), range(0, n_rays, _CHUNK))
+        chunks = self._map(lambda s: self._trace_chunk(scene, pix, far, s, min(s + _CHUNK, n_rays)), range(0, n_rays, _CHUNK))
         values = np.zeros(int(np.prod(self.range_shape)))
         for lo, part, crossings in chunks:
             values[lo: lo + part.size] += part
@@ -282,11 +290,13 @@ class MeshProjector:
         return a.astype(np.float64, copy=False)
 
     def _projection(self, traversal):
-        out = traversal.values / self._sub.shape[0]
+        k2 = self._sub.shape[0]
+        out = traversal.values / k2 if k2 > 1 else traversal.values
         return out.reshape(self.range_shape).astype(np.float32)
 
     def _vertex_vjp(self, scene, traversal, residual):
-        r = residual.ravel() / self._sub.shape[0]
+        k2 = self._sub.shape[0]
+        r = residual.ravel() / k2 if k2 > 1 else residual.ravel()
         mu = scene.mu[scene.face_item]
         nf = len(scene.faces)
 
@@ -304,41 +314,38 @@ class MeshProjector:
             out[:, c] = np.bincount(scene.faces.ravel(), weights=w.ravel(), minlength=nv)
         return out
 
-    def _trace_chunk(self, scene, pix, start, stop):
+    def _trace_chunk(self, scene, pix, far, start, stop):
         """Trace rays ``start:stop``; returns (first pixel, values from it, crossings)."""
         k2 = self._sub.shape[0]
         ray = np.arange(start, stop)
-        pixel = pix[ray // k2]
-        org, dirs = self._frames.rays(pixel, self._sub[ray % k2], scene.centre)
-        # start every ray just before the scene's bounding sphere
+        which = slice(start, stop) if k2 == 1 else ray // k2
+        pixel = pix[which]
+        # every ray starts just before the scene's bounding sphere
         radius = float(np.linalg.norm(scene.half)) + 4 * scene.eps
-        tc = -np.einsum("ij,ij->i", org, dirs)  # distance to the point closest to the centre
-        od = np.empty((len(org), 6), np.float32)  # origin and direction, compacted together
-        od[:, :3] = org + (tc - radius)[:, None] * dirs
-        od[:, 3:] = dirs
-        length = 2 * radius
+        od, length = self._frames.rays(pixel, self._sub[ray % k2], scene.centre, radius, far[which] + 4 * scene.eps)
         idx = np.arange(len(od))  # ray of each still active row
         toff = np.zeros(len(od))
         hit_ray, hit_prim, hit_t, hit_u, hit_v, hit_cos = [], [], [], [], [], []
         eps = scene.eps
+        normals = scene.normals32
         while idx.size:
             res = scene.embree.run(od[:, :3], od[:, 3:], dists=(length - toff).astype(np.float32), output=1)
-            hit = res["primID"] >= 0
-            t = res["tfar"][hit].astype(np.float64)
-            idx, toff, od = idx[hit], toff[hit], od[hit]
-            ng = res["Ng"][hit]
-            # cosine with the unit normal; Embree's Ng is (v1 - v0) x (v2 - v0), unnormalised
-            hit_cos.append(np.einsum("ij,ij->i", ng, od[:, 3:]) / np.linalg.norm(ng, axis=1))
+            h = np.flatnonzero(res["primID"] >= 0)
+            prim = res["primID"][h]
+            t = res["tfar"][h].astype(np.float64)
+            idx, od, length = idx[h], od[h], length[h]
+            toff = toff[h] + t
             hit_ray.append(idx)
-            hit_prim.append(res["primID"][hit])
-            hit_t.append(toff + t)
-            hit_u.append(res["u"][hit])
-            hit_v.append(res["v"][hit])
-            step = t + eps
-            toff += step
-            od[:, :3] += (step[:, None] * od[:, 3:]).astype(np.float32)
+            hit_prim.append(prim)
+            hit_t.append(toff)
+            hit_u.append(res["u"][h])
+            hit_v.append(res["v"][h])
+            hit_cos.append(np.einsum("ij,ij->i", normals[prim], od[:, 3:]))
+            toff = toff + eps  # restart just past the hit
+            od[:, :3] += ((t + eps)[:, None] * od[:, 3:]).astype(np.float32)
             more = toff < length
-            idx, toff, od = idx[more], toff[more], od[more]
+            if not more.all():
+                idx, toff, od, length = idx[more], toff[more], od[more], length[more]
         lo = int(pixel[0]) if pixel.size else 0
         if not hit_ray:
             e = np.empty(0)
@@ -389,53 +396,89 @@ class _Frames:
         self.ndim = g.ndim
         self.n = n
 
-    def rays(self, pixel, sub, shift):
-        """Origins (relative to ``shift``) and unit directions of sub-rays of flat pixels."""
-        p, rem = np.divmod(pixel, self.rows * self.cols)
-        r, c = np.divmod(rem, self.cols)
-        a = c - self.cols / 2 + 0.5 + sub[:, 0]
-        b = r - self.rows / 2 + 0.5 + sub[:, 1]
-        if self.ndim == 2:
-            b = np.zeros_like(b)
-        pts = self.d[p] + a[:, None] * self.u[p] + b[:, None] * self.v[p] - shift
-        if self.cone:
-            org = self.s[p] - shift
-            dirs = pts - org
-        else:
-            org = pts
-            dirs = np.broadcast_to(self.s[p], pts.shape)
-        dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-        return org, dirs
+    def rays(self, pixel, sub, shift, radius, far):
+        """Sub-rays of sorted flat pixels, starting on a sphere around ``shift``.
+
+        Returns
+        -------
+        od : (n, 6) float32
+            The point where each ray enters the sphere of ``radius`` about
+            ``shift`` (relative to ``shift``), and the unit direction; computed
+            in float64 per projection, so a far source loses no precision.
+        length : (n,) float
+            Distance from that point to ``far`` (see :meth:`candidate_pixels`),
+            at most ``2 radius``.
+        """
+        npix = self.rows * self.cols
+        p = pixel // npix
+        r, c = np.divmod(pixel - p * npix, self.cols)
+        a = c + (0.5 - self.cols / 2) + sub[:, 0]
+        b = r + (0.5 - self.rows / 2) + sub[:, 1] if self.ndim == 3 else np.zeros(len(pixel))
+        od = np.empty((len(pixel), 6), np.float32)
+        length = np.empty(len(pixel))
+        cuts = np.concatenate([[0], np.flatnonzero(np.diff(p)) + 1, [len(p)]])
+        for i0, i1 in zip(cuts[:-1], cuts[1:]):
+            q = p[i0]
+            aa, bb = a[i0:i1, None], b[i0:i1, None]
+            if self.cone:
+                src = self.s[q] - shift
+                dirs = (self.d[q] - self.s[q]) + aa * self.u[q] + bb * self.v[q]
+                dirs /= np.sqrt(np.einsum("ij,ij->i", dirs, dirs))[:, None]
+                base = src
+            else:
+                ray = self.s[q] / np.linalg.norm(self.s[q])
+                base = (self.d[q] - shift) + aa * self.u[q] + bb * self.v[q]
+                dirs = np.broadcast_to(ray, base.shape)
+            tc = -(base @ ray) if not self.cone else -(dirs @ src)
+            od[i0:i1, :3] = base + (tc - radius)[:, None] * dirs
+            od[i0:i1, 3:] = dirs
+            # cone: far is a distance from the source; parallel: a depth from the centre
+            length[i0:i1] = far[i0:i1] - (tc - radius) if self.cone else far[i0:i1] + radius
+        np.minimum(length, 2 * radius, out=length)
+        return od, length
 
     def candidate_pixels(self, scene):
-        """Flat indices of pixels whose rays may hit some item's bounding box."""
-        lo, hi = scene.item_lo, scene.item_hi
-        m = len(lo)
-        if self.ndim == 2:
-            lo, hi = lo.copy(), hi.copy()
-            lo[:, 2] = hi[:, 2] = 0.0
-        corners = np.stack(
-            [np.where(np.array([(i >> j) & 1 for j in range(3)], bool), hi, lo) for i in range(8)], axis=1
-        )  # (m, 8, 3) shifted coordinates
-        mask = np.zeros((self.n, self.rows, self.cols), bool)
+        """Pixels whose rays may hit some item's bounding sphere, and how far they need to go.
+
+        Each sphere is enclosed in a cube aligned with the detector, whose
+        projected corners bound the pixels it can shadow. For each such pixel
+        the farthest side of the spheres over it bounds where its last
+        crossing can be, so rays stop there instead of casting a last, long
+        miss through the scene.
+
+        Returns
+        -------
+        pixel : (k,) int64
+            Sorted flat pixel indices.
+        far : (k,) float
+            Cone/fan: distance from the source past which no crossing lies.
+            Parallel: the same as depth along the ray, from the scene centre.
+        """
+        m = len(scene.item_centre)
+        signs = np.array([[(i >> j) & 1 for j in range(3)] for i in range(8)], float) * 2 - 1
+        far = np.full((self.n, self.rows, self.cols), -np.inf)
         shift = scene.centre
+        centre, radius = scene.item_centre, scene.item_radius
         for p in range(self.n):
             d, u, v = self.d[p] - shift, self.u[p], self.v[p]
             nrm = np.cross(u, v)
-            X = corners.reshape(-1, 3)
+            axes = np.stack([u / np.linalg.norm(u), v / np.linalg.norm(v), nrm / np.linalg.norm(nrm)])
+            X = (centre[:, None, :] + radius[:, None, None] * (signs @ axes)).reshape(-1, 3)
             if self.cone:
                 s = self.s[p] - shift
+                item_far = np.linalg.norm(centre - s, axis=1) + radius
                 den = (X - s) @ nrm
                 lam = ((d - s) @ nrm) / np.where(den == 0, np.nan, den)
                 if not np.all(np.isfinite(lam) & (lam > 0)):
-                    mask[p] = True  # a box around or behind the source: cast everything
+                    far[p] = np.inf  # a sphere around or behind the source: cast everything
                     continue
                 P = s + lam[:, None] * (X - s)
             else:
                 ray = self.s[p]
+                item_far = centre @ (ray / np.linalg.norm(ray)) + radius
                 den = ray @ nrm
                 if den == 0:
-                    mask[p] = True
+                    far[p] = np.inf
                     continue
                 P = X + (((d - X) @ nrm) / den)[:, None] * ray
             rel = P - d
@@ -449,6 +492,10 @@ class _Frames:
             r1 = np.clip(np.ceil(row.max(1)) + 2, 0, self.rows).astype(int)
             if self.ndim == 2:
                 r0[:], r1[:] = 0, 1
+            fp = far[p]
             for k in range(m):
-                mask[p, r0[k]:r1[k], c0[k]:c1[k]] = True
-        return np.flatnonzero(mask)
+                view = fp[r0[k]:r1[k], c0[k]:c1[k]]
+                np.maximum(view, item_far[k], out=view)
+        far = far.ravel()
+        pixel = np.flatnonzero(far > -np.inf)
+        return pixel, far[pixel]

@@ -29,3 +29,22 @@ __all__ = [
     "sphere_surface",
     "circle_surface",
 ]
+
+# Data side: phantoms, simulation, scan files, mesh files, metrics.
+from .atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text
+from .meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
+from .metrics import dice_dissimilarity, projection_mse, shapes_dice_dissimilarity
+from .phantoms import BENCHMARK_SEED, FoamPhantom, foam2d, foam3d, foam3d_benchmark, liquid_box, liquid_square, sphere_mesh
+from .raster import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
+from .scanfile import Scan, read_scan, theta_from_geometry, write_scan
+from .simulate import add_poisson_noise, default_geometry_2d, default_geometry_3d, project_image, simulate_2d, simulate_3d
+
+__all__ += [
+    "atomic_open", "atomic_path", "atomic_write_bytes", "atomic_write_text",
+    "bubble_table", "read_ply", "read_polygons_json", "write_csv", "write_ply", "write_polygons_json",
+    "dice_dissimilarity", "projection_mse", "shapes_dice_dissimilarity",
+    "BENCHMARK_SEED", "FoamPhantom", "foam2d", "foam3d", "foam3d_benchmark", "liquid_box", "liquid_square", "sphere_mesh",
+    "bubble_mask", "check_grid", "coverage", "label_image", "pixel_centres", "rasterize",
+    "Scan", "read_scan", "theta_from_geometry", "write_scan",
+    "add_poisson_noise", "default_geometry_2d", "default_geometry_3d", "project_image", "simulate_2d", "simulate_3d",
+]

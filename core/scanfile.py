@@ -1,0 +1,519 @@
+"""HDF5 scan files in the Data Exchange layout.
+
+A scan file holds, for one scan::
+
+    /exchange/data         float32 line integrals, (angle, row, col) in 3D, (angle, col) in 2D
+    /exchange/theta        float64 (angle,), degrees (informative; the geometry is authoritative)
+    /exchange/background   float32, same shape as data, optional: the projection of
+                           everything that is not a bubble (e.g. the liquid container);
+                           fitting uses data - background
+    /geometry/vectors      float64 (angle, 12) or (angle, 6): ASTRA vector rows,
+                           attrs kind (parallel3d_vec | cone_vec | parallel_vec | fanflat_vec),
+                           det_rows and det_cols (3D) or det_count (2D), lengths in mm
+    /implements            "exchange:geometry"
+    root attribute bubble_contrast   float, attenuation of gas minus liquid, 1/mm (e.g. -0.1)
+
+Raw detector counts are accepted too: if ``/exchange/data_white`` exists,
+``/exchange/data`` is read as raw counts, ``/exchange/data_white`` as flat
+fields (``(n_flats, *detector)`` or ``detector`` shaped) and the optional
+``/exchange/data_dark`` as dark fields (default 0); both are averaged over
+their first axis, and the line integrals are
+``-log((data - dark) / (white - dark))``, with the transmission clamped to
+at least ``1e-6`` (so a zero count gives about 13.8, not inf).
+``/exchange/background`` is always line integrals.
+
+Writes are atomic (temporary file in the same directory, then rename), so a
+scan file either exists complete or not at all.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import numbers
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+from .geometry import KINDS, ScanGeometry
+
+__all__ = ["Scan", "read_scan", "write_scan", "theta_from_geometry", "MIN_TRANSMISSION"]
+
+#: Smallest transmission accepted when converting raw counts (larger line integrals are clamped).
+MIN_TRANSMISSION = 1e-6
+
+_RESERVED_ATTRS = {"bubble_contrast", "bubsub_format"}
+
+
+def theta_from_geometry(geometry):
+    """Rotation angle of each projection, degrees, from a circular-scan geometry.
+
+    The angle of the ray direction (parallel beams) or of the source
+    position (cone/fan beams) in the x-y plane, measured as in
+    :meth:`ScanGeometry.parallel` / :meth:`ScanGeometry.cone`
+    (``theta = atan2(x, -y)``), unwrapped so that consecutive angles do not
+    jump by 360 degrees.
+
+    Parameters
+    ----------
+    geometry : ScanGeometry
+
+    Returns
+    -------
+    (n_angles,) float64
+        Degrees.
+    """
+    if not isinstance(geometry, ScanGeometry):
+        raise ValueError(f"geometry must be a ScanGeometry, got {type(geometry).__name__}")
+    v = geometry.vectors
+    th = np.arctan2(v[:, 0], -v[:, 1])
+    return np.degrees(np.unwrap(th))
+
+
+@dataclasses.dataclass(eq=False)
+class Scan:
+    """One scan: projections, geometry and what the fit needs to know.
+
+    Parameters
+    ----------
+    data : ndarray, shape ``geometry.shape``
+        Line integrals (``-log`` of the flat-field-corrected transmission),
+        ``(angle, row, col)`` in 3D or ``(angle, col)`` in 2D; stored float32.
+    geometry : ScanGeometry
+    theta : (n_angles,) float, optional
+        Rotation angles in degrees; derived from the geometry if omitted
+        (:func:`theta_from_geometry`).
+    background : ndarray, shape ``geometry.shape``, optional
+        Projection of everything but the bubbles (e.g. the liquid container),
+        float32. :attr:`bubble_data` is ``data - background``.
+    bubble_contrast : float
+        Attenuation of the gas minus that of the liquid, 1/mm (e.g. -0.1);
+        required and non-zero.
+    path : pathlib.Path, optional
+        File the scan was read from or written to.
+    attrs : dict, optional
+        Extra scalar or string metadata (written as root attributes), e.g.
+        ``photons`` and ``seed`` of a simulation.
+
+    Raises
+    ------
+    ValueError
+        If shapes disagree with the geometry, values are not finite, or
+        ``bubble_contrast`` is missing or zero.
+    """
+
+    data: np.ndarray
+    geometry: ScanGeometry
+    theta: np.ndarray | None = None
+    background: np.ndarray | None = None
+    bubble_contrast: float | None = None
+    path: Path | None = None
+    attrs: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        if not isinstance(self.geometry, ScanGeometry):
+            raise ValueError(f"geometry must be a ScanGeometry, got {type(self.geometry).__name__}")
+        self.data = _projection_array(self.data, "data", self.geometry)
+        if self.background is not None:
+            self.background = _projection_array(self.background, "background", self.geometry)
+        if self.theta is None:
+            self.theta = theta_from_geometry(self.geometry)
+        else:
+            self.theta = _theta_array(self.theta, "theta", self.geometry.n_angles)
+        self.bubble_contrast = _contrast(self.bubble_contrast, "bubble_contrast")
+        if self.path is not None:
+            self.path = Path(self.path)
+        if not isinstance(self.attrs, dict):
+            raise ValueError(f"attrs must be a dict, got {type(self.attrs).__name__}")
+        bad = _RESERVED_ATTRS.intersection(self.attrs)
+        if bad:
+            raise ValueError(f"attrs may not use the reserved names {sorted(bad)}")
+        self.attrs = dict(self.attrs)
+
+    @property
+    def ndim(self):
+        """2 or 3."""
+        return self.geometry.ndim
+
+    @property
+    def n_angles(self):
+        return self.geometry.n_angles
+
+    @property
+    def bubble_data(self):
+        """``data - background`` (or ``data`` without a background), float32, ``geometry.shape``."""
+        if self.background is None:
+            return self.data
+        return (self.data - self.background).astype(np.float32)
+
+    def subset(self, index):
+        """The scan restricted to some projections (``scan.subset(slice(0, None, 2))``).
+
+        Parameters
+        ----------
+        index : slice, int or array of int
+            Projection indices, as for ``geometry[index]``.
+
+        Returns
+        -------
+        Scan
+            With ``path`` None.
+        """
+        idx = np.atleast_1d(np.arange(self.n_angles)[index])
+        if idx.size == 0:
+            raise ValueError("subset selects no projections")
+        return Scan(
+            data=self.data[idx],
+            geometry=self.geometry[idx],
+            theta=self.theta[idx],
+            background=None if self.background is None else self.background[idx],
+            bubble_contrast=self.bubble_contrast,
+            path=None,
+            attrs=dict(self.attrs),
+        )
+
+    def __repr__(self):
+        bg = "yes" if self.background is not None else "no"
+        return (
+            f"Scan({self.geometry.kind}, shape={self.data.shape}, background={bg}, "
+            f"bubble_contrast={self.bubble_contrast!r}, path={str(self.path) if self.path else None!r})"
+        )
+
+
+# -- validation helpers ---------------------------------------------------------------
+def _projection_array(a, name, geometry):
+    try:
+        arr = np.asarray(a)
+    except Exception:  # pragma: no cover - exotic inputs
+        raise ValueError(f"{name} must be a numeric array") from None
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"{name} must be a numeric array, got dtype {arr.dtype}")
+    if arr.shape != geometry.shape:
+        raise ValueError(f"{name} has shape {arr.shape} but the geometry needs {_shape_words(geometry)}")
+    arr = np.ascontiguousarray(arr, dtype=np.float32)
+    _check_finite(arr, name)
+    return arr
+
+
+def _shape_words(geometry):
+    if geometry.ndim == 3:
+        return f"(n_angles, rows, cols) = {geometry.shape}"
+    return f"(n_angles, det_count) = {geometry.shape}"
+
+
+def _check_finite(arr, name):
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        n_nan = int(np.isnan(arr).sum())
+        raise ValueError(
+            f"{name} contains {int(bad.sum())} non-finite values ({n_nan} NaN, {int(bad.sum()) - n_nan} inf)"
+        )
+
+
+def _theta_array(t, name, n_angles):
+    try:
+        arr = np.asarray(t, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a numeric array") from None
+    if arr.ndim != 1 or arr.shape[0] != n_angles:
+        raise ValueError(f"{name} has shape {np.shape(t)} but the geometry has {n_angles} projections")
+    _check_finite(arr, name)
+    return arr
+
+
+def _contrast(value, name):
+    if value is None:
+        raise ValueError(
+            f"{name} is required: attenuation of the gas minus that of the liquid, 1/mm (e.g. -0.1)"
+        )
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not np.isfinite(v) or v == 0:
+        raise ValueError(f"{name} must be finite and non-zero, got {value!r}")
+    return v
+
+
+def _attr_value(key, value):
+    if isinstance(value, (str, bytes, numbers.Number, np.generic)):
+        return value
+    arr = np.asarray(value)
+    if arr.dtype.kind in "biuf" and arr.ndim <= 1:
+        return arr
+    raise ValueError(f"attrs[{key!r}] must be a number, string or 1D numeric array, got {type(value).__name__}")
+
+
+# -- writing -------------------------------------------------------------------------
+def write_scan(path, scan, *, compression=None):
+    """Write a :class:`Scan` to an HDF5 file (Data Exchange layout), atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination; its directory must exist. An existing file is replaced
+        only once the new one is complete.
+    scan : Scan
+    compression : {None, "gzip", "lzf"}
+        HDF5 filter for the projection arrays.
+
+    Returns
+    -------
+    pathlib.Path
+        The destination (``scan.path`` is set to it as well).
+    """
+    import h5py
+
+    if not isinstance(scan, Scan):
+        raise ValueError(f"scan must be a Scan, got {type(scan).__name__}")
+    if compression not in (None, "gzip", "lzf"):
+        raise ValueError(f"compression must be None, 'gzip' or 'lzf', got {compression!r}")
+    attrs = {k: _attr_value(k, v) for k, v in scan.attrs.items()}
+    g = scan.geometry
+    dest = Path(path)
+    with atomic_path(dest) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.create_dataset("implements", data="exchange:geometry")
+            ex = f.create_group("exchange")
+            d = ex.create_dataset("data", data=scan.data, dtype=np.float32, compression=compression)
+            d.attrs["axes"] = "theta:y:x" if g.ndim == 3 else "theta:x"
+            d.attrs["units"] = "line integral"
+            t = ex.create_dataset("theta", data=np.asarray(scan.theta, dtype=np.float64))
+            t.attrs["units"] = "degrees"
+            if scan.background is not None:
+                b = ex.create_dataset("background", data=scan.background, dtype=np.float32, compression=compression)
+                b.attrs["axes"] = d.attrs["axes"]
+                b.attrs["units"] = "line integral"
+            geo = f.create_group("geometry")
+            v = geo.create_dataset("vectors", data=np.asarray(g.vectors, dtype=np.float64))
+            v.attrs["kind"] = g.kind
+            v.attrs["units"] = "mm"
+            if g.ndim == 3:
+                v.attrs["det_rows"] = int(g.det_rows)
+                v.attrs["det_cols"] = int(g.det_cols)
+            else:
+                v.attrs["det_count"] = int(g.det_count)
+            f.attrs["bubble_contrast"] = float(scan.bubble_contrast)
+            f.attrs["bubsub_format"] = 1
+            for k, val in attrs.items():
+                f.attrs[k] = val
+    scan.path = dest
+    return dest
+
+
+# -- reading -------------------------------------------------------------------------
+def read_scan(path, *, bubble_contrast=None):
+    """Read and validate a scan file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    bubble_contrast : float, optional
+        Overrides (or supplies, if the file lacks it) the root attribute
+        ``bubble_contrast``.
+
+    Returns
+    -------
+    Scan
+        ``data`` as line integrals (raw counts are converted, see the module
+        docstring), ``path`` set.
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    ValueError
+        If the file is not HDF5, a required dataset or attribute is missing
+        (naming it), shapes of data, background, theta and geometry disagree
+        (``n_angles``, rows, cols), values are NaN/inf, raw counts are
+        negative, the flat field does not exceed the dark field, or the
+        geometry kind is unknown.
+    """
+    import h5py
+
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"scan file {str(p)!r} does not exist")
+    if p.is_dir():
+        raise ValueError(f"scan file {str(p)!r} is a directory")
+    try:
+        f = h5py.File(p, "r")
+    except OSError as exc:
+        raise ValueError(f"{str(p)!r} is not a readable HDF5 file ({exc})") from None
+    with f:
+        geometry = _read_geometry(f, p)
+        if "exchange/data" not in f or not isinstance(f["exchange/data"], h5py.Dataset):
+            raise ValueError(f"{p.name}: missing dataset '/exchange/data' (the projections)")
+        raw = "exchange/data_white" in f
+        data = _read_dataset(f, "exchange/data", geometry, p)
+        if raw:
+            data = _counts_to_line_integrals(f, data, geometry, p)
+        else:
+            _check_finite_named(data, "/exchange/data", p)
+        background = None
+        if "exchange/background" in f:
+            background = _read_dataset(f, "exchange/background", geometry, p)
+            _check_finite_named(background, "/exchange/background", p)
+        theta = None
+        if "exchange/theta" in f:
+            theta = np.asarray(f["exchange/theta"][()], dtype=np.float64)
+            if theta.ndim != 1 or theta.shape[0] != geometry.n_angles:
+                raise ValueError(
+                    f"{p.name}: '/exchange/theta' has shape {theta.shape} but '/geometry/vectors' "
+                    f"has {geometry.n_angles} projections"
+                )
+            _check_finite_named(theta, "/exchange/theta", p)
+        if bubble_contrast is None:
+            if "bubble_contrast" not in f.attrs:
+                raise ValueError(
+                    f"{p.name}: missing root attribute 'bubble_contrast' (gas minus liquid attenuation, "
+                    f"1/mm); add it to the file or pass bubble_contrast="
+                )
+            bubble_contrast = f.attrs["bubble_contrast"]
+        try:
+            bubble_contrast = _contrast(np.asarray(bubble_contrast).item(), "bubble_contrast")
+        except ValueError as exc:
+            raise ValueError(f"{p.name}: {exc}") from None
+        attrs = {}
+        for k, v in f.attrs.items():
+            if k in _RESERVED_ATTRS:
+                continue
+            attrs[k] = v.decode() if isinstance(v, bytes) else (v.item() if isinstance(v, np.generic) else v)
+    return Scan(
+        data=data,
+        geometry=geometry,
+        theta=theta,
+        background=background,
+        bubble_contrast=bubble_contrast,
+        path=p,
+        attrs=attrs,
+    )
+
+
+def _attr_str(v):
+    if isinstance(v, bytes):
+        return v.decode()
+    if isinstance(v, np.ndarray) and v.shape == ():
+        v = v.item()
+        return v.decode() if isinstance(v, bytes) else str(v)
+    return v if isinstance(v, str) else str(v)
+
+
+def _attr_int(attrs, key, where):
+    if key not in attrs:
+        return None
+    v = attrs[key]
+    try:
+        arr = np.asarray(v)
+        if arr.size != 1 or not (np.issubdtype(arr.dtype, np.integer) or (
+            np.issubdtype(arr.dtype, np.floating) and float(arr) == int(arr)
+        )):
+            raise TypeError
+        n = int(arr.reshape(()))
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: attribute '{key}' must be a positive integer, got {v!r}") from None
+    if n < 1:
+        raise ValueError(f"{where}: attribute '{key}' must be a positive integer, got {n}")
+    return n
+
+
+def _read_geometry(f, p):
+    import h5py
+
+    if "geometry/vectors" not in f or not isinstance(f["geometry/vectors"], h5py.Dataset):
+        raise ValueError(f"{p.name}: missing dataset '/geometry/vectors' (the ASTRA vector geometry)")
+    ds = f["geometry/vectors"]
+    where = f"{p.name}: '/geometry/vectors'"
+    if "kind" not in ds.attrs:
+        raise ValueError(f"{where} has no attribute 'kind' (one of {sorted(KINDS)})")
+    kind = _attr_str(ds.attrs["kind"])
+    if kind not in KINDS:
+        raise ValueError(f"{where} has kind {kind!r}; expected one of {sorted(KINDS)}")
+    ndim, width, _ = KINDS[kind]
+    vectors = np.asarray(ds[()])
+    if vectors.ndim != 2 or vectors.shape[1] != width or vectors.shape[0] == 0:
+        raise ValueError(f"{where} has shape {vectors.shape}; kind {kind} needs (n_angles, {width})")
+    if not np.issubdtype(vectors.dtype, np.number):
+        raise ValueError(f"{where} must be numeric, got dtype {vectors.dtype}")
+    _check_finite_named(vectors.astype(np.float64), "/geometry/vectors", p)
+    if ndim == 3:
+        rows = _attr_int(ds.attrs, "det_rows", where)
+        cols = _attr_int(ds.attrs, "det_cols", where)
+        if rows is None or cols is None:
+            missing = [k for k, v in (("det_rows", rows), ("det_cols", cols)) if v is None]
+            raise ValueError(f"{where} (kind {kind}) is missing attribute(s) {missing}")
+        kw = dict(det_rows=rows, det_cols=cols)
+    else:
+        count = _attr_int(ds.attrs, "det_count", where)
+        if count is None:
+            count = _attr_int(ds.attrs, "det_cols", where)
+        if count is None:
+            raise ValueError(f"{where} (kind {kind}) is missing attribute 'det_count'")
+        kw = dict(det_count=count)
+    try:
+        return ScanGeometry.from_astra(kind, vectors, **kw)
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+
+
+def _read_dataset(f, name, geometry, p):
+    ds = f[name]
+    if ds.shape != geometry.shape:
+        raise ValueError(
+            f"{p.name}: '/{name}' has shape {ds.shape} but '/geometry/vectors' describes "
+            f"{_shape_words(geometry)}"
+        )
+    if not (np.issubdtype(ds.dtype, np.floating) or np.issubdtype(ds.dtype, np.integer)):
+        raise ValueError(f"{p.name}: '/{name}' must be numeric, got dtype {ds.dtype}")
+    return np.asarray(ds[()])
+
+
+def _check_finite_named(arr, name, p):
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        n_nan = int(np.isnan(arr).sum())
+        raise ValueError(
+            f"{p.name}: '{name}' contains {int(bad.sum())} non-finite values "
+            f"({n_nan} NaN, {int(bad.sum()) - n_nan} inf)"
+        )
+
+
+def _read_field(f, name, det_shape, p):
+    """A flat or dark field averaged to the detector shape (float64)."""
+    ds = f[name]
+    arr = np.asarray(ds[()], dtype=np.float64)
+    if arr.shape == det_shape:
+        field = arr
+    elif arr.ndim == len(det_shape) + 1 and arr.shape[1:] == det_shape and arr.shape[0] >= 1:
+        field = None
+    else:
+        raise ValueError(
+            f"{p.name}: '/{name}' has shape {arr.shape}; expected {det_shape} or (n, *{det_shape}) "
+            f"to match the detector of '/exchange/data'"
+        )
+    _check_finite_named(arr, "/" + name, p)
+    if np.any(arr < 0):
+        raise ValueError(f"{p.name}: '/{name}' has {int((arr < 0).sum())} negative counts")
+    return arr.mean(axis=0) if field is None else field
+
+
+def _counts_to_line_integrals(f, counts, geometry, p):
+    counts = counts.astype(np.float64)
+    _check_finite_named(counts, "/exchange/data", p)
+    if np.any(counts < 0):
+        raise ValueError(
+            f"{p.name}: '/exchange/data' holds raw counts (because '/exchange/data_white' exists) "
+            f"but has {int((counts < 0).sum())} negative values"
+        )
+    det = geometry.shape[1:]
+    white = _read_field(f, "exchange/data_white", det, p)
+    dark = _read_field(f, "exchange/data_dark", det, p) if "exchange/data_dark" in f else np.zeros(det)
+    span = white - dark
+    if np.any(span <= 0):
+        raise ValueError(
+            f"{p.name}: '/exchange/data_white' must exceed '/exchange/data_dark' at every detector pixel "
+            f"({int((span <= 0).sum())} pixels do not)"
+        )
+    trans = (counts - dark) / span
+    np.maximum(trans, MIN_TRANSMISSION, out=trans)
+    return (-np.log(trans)).astype(np.float32)

@@ -102,9 +102,10 @@ class _Scene:
             verts = [m.vertices for m in resolved]
             faces = [np.asarray(m.faces) for m in resolved]
         else:
-            lo = np.min([p.vertices.min(axis=0) for p in resolved], axis=0)
-            hi = np.max([p.vertices.max(axis=0) for p in resolved], axis=0)
-            self.half_height = max(float(np.max(hi - lo)), 1.0)
+            # Short walls (about one edge long) keep the triangles well shaped
+            # for Embree's BVH; rays run at z = 0, so any height is exact.
+            edges = np.concatenate([np.linalg.norm(np.diff(p.vertices, axis=0, append=p.vertices[:1]), axis=1) for p in resolved])
+            self.half_height = max(float(np.median(edges)), 1e-6)
             verts, faces = zip(*(_prism(p.vertices, self.half_height) for p in resolved))
         counts = np.array([len(v) for v in verts])
         self.vertex_offset = np.concatenate([[0], np.cumsum(counts)])

@@ -1,0 +1,369 @@
+"""The BubSub reconstruction pipeline: scan file in, one mesh per bubble out.
+
+1. Low-resolution voxel reconstruction of the bubble data (FBP in 2D, FDK in 3D).
+2. Otsu binarisation and local maxima of the distance transform: bubble centres.
+3. One spherical control mesh per bubble with a constant radius, optionally
+   improved by a radius-only fit (paper eq. 4-5), or a user-given initial mesh.
+4. BFGS on all control vertices (:func:`bubsub.clients.fit`).
+5. Outputs, each written atomically: ``bubbles.ply`` (3D) or ``bubbles.json``
+   (2D), ``bubbles.csv``, ``report.json`` and ``overlay.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
+from bubsub.core.atomic import atomic_path
+from bubsub.core.meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
+from bubsub.core.metrics import projection_mse
+from bubsub.core.subdivision import SubdivisionSurface
+
+from .fit import estimate_radii, fit
+
+__all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "initial_surfaces", "voxel_preview"]
+
+
+@dataclass
+class ReconstructionSettings:
+    """What ``bubsub reconstruct`` can be told (defaults follow the paper)."""
+
+    iterations: int = 80
+    control_points: int | None = None  # 42 in 3D, 9 in 2D
+    levels: int = 2
+    radius: float | None = None  # initial radius (mm); default: median from the distance transform
+    estimate_radii: bool = True
+    supersampling: int = 1
+    holdout: str | None = None  # "odd" or "even": projections kept aside for validation
+    voxel_size: float | None = None  # of the initial voxel reconstruction; default: from the field of view
+    min_distance: float | None = None  # between bubble centres (mm)
+    progress: bool = True
+
+
+@dataclass
+class Reconstruction:
+    """Result of :func:`reconstruct`."""
+
+    surfaces: list
+    report: dict
+    preview: np.ndarray | None = None
+    preview_extent: tuple | None = None
+    files: dict = field(default_factory=dict)
+
+
+def field_of_view(geometry):
+    """Half-sizes of the region every projection sees: ``(r_xy, half_z)`` in mm.
+
+    For circular scans this is the radius of the reconstructable disc
+    (detector half-width divided by the magnification) and, in 3D, half the
+    detector height likewise.
+    """
+    g = geometry
+    n = g.ndim
+    vec = g.vectors
+    s, d, u = vec[:, :n], vec[:, n:2 * n], vec[:, 2 * n:3 * n]
+    half_w = 0.5 * g.det_cols * np.linalg.norm(u, axis=1)
+    if g.is_cone:
+        mag = np.linalg.norm(s - d, axis=1) / np.linalg.norm(s, axis=1)
+    else:
+        mag = np.ones(len(vec))
+    r_xy = float(np.min(half_w / mag))
+    if n == 2:
+        return r_xy, 0.0
+    half_h = 0.5 * g.det_rows * np.linalg.norm(vec[:, 9:12], axis=1)
+    return r_xy, float(np.min(half_h / mag))
+
+
+def _grid(geometry, voxel_size):
+    r_xy, half_z = field_of_view(geometry)
+    if voxel_size is None:
+        voxel_size = 2 * r_xy / (192 if geometry.ndim == 3 else 256)
+    n = max(8, int(np.ceil(2 * r_xy / voxel_size)))
+    half = n * voxel_size / 2
+    if geometry.ndim == 2:
+        return (n, n), (-half, half, -half, half)
+    nz = max(4, int(np.ceil(2 * half_z / voxel_size)))
+    hz = nz * voxel_size / 2
+    return (nz, n, n), (-half, half, -half, half, -hz, hz)
+
+
+def voxel_preview(data, geometry, voxel_size=None):
+    """Low-resolution voxel reconstruction (2D FBP, 3D FDK) and its grid.
+
+    Returns
+    -------
+    image : ndarray float32, ``(rows, cols)`` or ``(slices, rows, cols)``
+    extent : tuple
+        ``(xmin, xmax, ymin, ymax[, zmin, zmax])`` in mm.
+    """
+    shape, extent = _grid(geometry, voxel_size)
+    if geometry.ndim == 2:
+        from bubsub.core.voxel2d import fbp_2d
+
+        return fbp_2d(data, geometry, shape, extent), extent
+    from bubsub.core.voxel3d import reconstruct_3d
+
+    return reconstruct_3d("fdk", data, geometry, shape, extent), extent
+
+
+def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, radius=None, min_distance=None):
+    """Spherical bubbles at the distance-transform maxima of the binarised image.
+
+    Parameters
+    ----------
+    image : ndarray
+        Voxel reconstruction of the bubble data (bubbles have the sign of ``contrast``).
+    extent : tuple
+    contrast : float
+        Bubble attenuation (gas minus liquid), 1/mm.
+    control_points : int, optional
+        42 (3D) / 9 (2D) by default.
+    radius : float, optional
+        Constant initial radius, mm; default the median of the distance
+        transform at the centres.
+
+    Returns
+    -------
+    list of SubdivisionSurface
+    """
+    from bubsub.core.segment import binarise, bubble_centres
+
+    ndim = image.ndim
+    # few-view streaks leave speckle inside bubbles: smooth a little, fill holes
+    smooth = ndimage.gaussian_filter(np.sign(contrast) * image, 1.0)
+    mask = binarise(smooth, opening_radius=2, bubbles_are_dark=False, fill_holes=True)
+    voxel = (extent[1] - extent[0]) / image.shape[-1]
+    # maxima thinner than two voxels are noise that survived the opening
+    centres, radii = bubble_centres(mask, extent, min_distance=min_distance, min_radius=2 * voxel)
+    if min_distance is None and len(radii):
+        # one centre per bubble: maxima closer than the typical bubble radius belong together
+        centres, radii = bubble_centres(mask, extent, min_distance=max(3 * voxel, float(np.median(radii))),
+                                        min_radius=2 * voxel)
+    if len(centres) == 0:
+        raise ValueError("no bubbles found in the voxel reconstruction; give an initial mesh with --init")
+    r = float(np.median(radii)) if radius is None else float(radius)
+    if not r > 0:
+        raise ValueError(f"initial radius must be positive, got {r}")
+    if ndim == 3:
+        k = control_points or 42
+        return [sphere_surface(c, r, contrast, control=k, levels=levels) for c in centres]
+    k = control_points or 9
+    return [circle_surface(c, r, contrast, control=k, levels=levels) for c in centres]
+
+
+def load_initial(path, contrast, levels=2):
+    """Initial control meshes from a previous reconstruction (``bubbles.ply`` or ``bubbles.json``)."""
+    path = Path(path)
+    if path.suffix.lower() == ".ply":
+        items = read_ply(path, attenuation=contrast)
+    elif path.suffix.lower() == ".json":
+        items = read_polygons_json(path, attenuation=contrast)
+    else:
+        raise ValueError(f"initial mesh {path} must be a .ply (3D) or .json (2D) file")
+    return [SubdivisionSurface(m, levels) for m in items]
+
+
+def _split(geometry, data, holdout):
+    if holdout is None:
+        return geometry, data, None, None
+    if holdout not in ("odd", "even"):
+        raise ValueError(f"holdout must be 'odd' or 'even', got {holdout!r}")
+    keep = slice(0, None, 2) if holdout == "odd" else slice(1, None, 2)
+    rest = slice(1, None, 2) if holdout == "odd" else slice(0, None, 2)
+    if geometry.n_angles < 2:
+        raise ValueError("holding out projections needs at least two of them")
+    return geometry[keep], data[keep], geometry[rest], data[rest]
+
+
+def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
+    """Reconstruct the bubbles of a scan.
+
+    Parameters
+    ----------
+    scan : bubsub.core.scanfile.Scan
+    settings : ReconstructionSettings, optional
+    init : list of SubdivisionSurface, optional
+        Initial bubbles (e.g. :func:`load_initial` of a previous frame);
+        skips the voxel-based initialisation.
+    projector_factory : callable(geometry, data) -> projector, optional
+        Makes the object :func:`fit` calls; by default a local
+        :class:`MeshProjector`. ``bubsub reconstruct --server`` passes one that
+        creates a remote job.
+
+    Returns
+    -------
+    Reconstruction
+    """
+    s = settings or ReconstructionSettings()
+    t0 = time.perf_counter()
+    contrast = scan.bubble_contrast
+    data = scan.bubble_data
+    geometry = scan.geometry
+    g_fit, d_fit, g_val, d_val = _split(geometry, data, s.holdout)
+
+    image, extent = voxel_preview(d_fit, g_fit, s.voxel_size)
+    if init is None:
+        surfaces = initial_surfaces(image, extent, contrast, control_points=s.control_points, levels=s.levels,
+                                    radius=s.radius, min_distance=s.min_distance)
+    else:
+        surfaces = [x.with_attenuation(contrast) for x in init]
+    if projector_factory is None:
+        projector = MeshProjector(g_fit, supersampling=s.supersampling)
+        fit_data = d_fit
+    else:
+        projector = projector_factory(g_fit, d_fit)
+        fit_data = None
+    t_init = time.perf_counter() - t0
+    if s.estimate_radii and init is None:
+        surfaces = estimate_radii(projector, surfaces, fit_data, progress=s.progress)
+    result = fit(projector, surfaces, fit_data, iterations=s.iterations, progress=s.progress)
+    voxel = (extent[1] - extent[0]) / image.shape[-1]
+    kept, dropped = prune(result.surfaces, min_radius=voxel)
+
+    report = {
+        "bubbles": len(kept),
+        "bubbles_initial": len(surfaces),
+        "bubbles_dropped": dropped,
+        "dimension": geometry.ndim,
+        "iterations": result.iterations,
+        "evaluations": result.evaluations,
+        "final_objective": result.objective,
+        "initial_objective": result.history[0]["objective"] if result.history else result.objective,
+        "method": result.method,
+        "interrupted": result.interrupted,
+        "seconds_total": time.perf_counter() - t0,
+        "seconds_fit": result.seconds,
+        "seconds_initialisation": t_init,
+        "projections_used": g_fit.n_angles,
+        "holdout": s.holdout,
+        "settings": {k: v for k, v in s.__dict__.items() if k != "progress"},
+    }
+    if g_val is not None:
+        pred = MeshProjector(g_val, supersampling=s.supersampling).forward(kept)
+        report["holdout_projections"] = g_val.n_angles
+        report["holdout_mse"] = projection_mse(pred, d_val)
+    return Reconstruction(kept, report, image, extent)
+
+
+def prune(surfaces, min_radius):
+    """Drop bubbles the fit collapsed or turned inside out (spurious initial centres).
+
+    A bubble stays when its subdivided surface encloses a positive area
+    (volume) of at least that of a disc (ball) of ``min_radius``.
+
+    Returns
+    -------
+    kept : list of SubdivisionSurface
+    dropped : int
+    """
+    kept = []
+    for s in surfaces:
+        fine = s.fine()
+        size = fine.volume if s.ndim == 3 else fine.area
+        least = 4 / 3 * np.pi * min_radius**3 if s.ndim == 3 else np.pi * min_radius**2
+        if size >= least:
+            kept.append(s)
+    return kept, len(surfaces) - len(kept)
+
+
+def write_outputs(out_dir, rec, scan_path=None):
+    """Write ``bubbles.ply|json``, ``bubbles.csv``, ``report.json`` and ``overlay.png``.
+
+    Every file goes to a temporary name first and is renamed when complete.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    fine = [s.fine() for s in rec.surfaces]
+    files = {}
+    if rec.report["dimension"] == 3:
+        files["mesh"] = out / "bubbles.ply"
+        write_ply(files["mesh"], [s.fine() for s in rec.surfaces])
+        files["control"] = out / "control.ply"
+        write_ply(files["control"], [s.control for s in rec.surfaces])
+    else:
+        files["mesh"] = out / "bubbles.json"
+        write_polygons_json(files["mesh"], fine)
+        files["control"] = out / "control.json"
+        write_polygons_json(files["control"], [s.control for s in rec.surfaces])
+    files["table"] = out / "bubbles.csv"
+    write_csv(files["table"], bubble_table(fine))
+    report = dict(rec.report)
+    if scan_path is not None:
+        report["scan"] = str(scan_path)
+    report["files"] = {k: v.name for k, v in files.items()}
+    if rec.preview is not None:
+        files["overlay"] = out / "overlay.png"
+        report["files"]["overlay"] = "overlay.png"
+        write_overlay(files["overlay"], rec.preview, rec.preview_extent, fine)
+    files["report"] = out / "report.json"
+    with atomic_path(files["report"]) as tmp:
+        Path(tmp).write_text(json.dumps(report, indent=2, default=_json_default))
+    rec.files = files
+    return files
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def mesh_slice_segments(mesh, z):
+    """Segments (k, 2, 2) where the plane ``z`` cuts a triangle mesh."""
+    v = mesh.vertices
+    tri = v[np.asarray(mesh.faces)]  # (m, 3, 3)
+    dz = tri[:, :, 2] - z
+    above = dz > 0
+    n_above = above.sum(axis=1)
+    cut = (n_above == 1) | (n_above == 2)
+    segs = []
+    for t, a, h in zip(tri[cut], above[cut], dz[cut]):
+        pts = []
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            if a[i] != a[j]:
+                w = h[i] / (h[i] - h[j])
+                pts.append(t[i, :2] + w * (t[j, :2] - t[i, :2]))
+        segs.append(pts[:2])
+    return np.array(segs).reshape(-1, 2, 2)
+
+
+def write_overlay(path, image, extent, fine_items, title="BubSub reconstruction on the voxel preview"):
+    """PNG of a voxel slice with the reconstructed bubble outlines on top."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    fig, ax = plt.subplots(figsize=(7, 7), dpi=110)
+    if image.ndim == 3:
+        zc = image.shape[0] // 2
+        z = extent[4] + (zc + 0.5) * (extent[5] - extent[4]) / image.shape[0]
+        ax.imshow(image[zc], extent=extent[:4], cmap="gray", origin="upper")
+        segs = [mesh_slice_segments(m, z) for m in fine_items]
+        segs = np.concatenate(segs) if segs else np.zeros((0, 2, 2))
+        ax.add_collection(LineCollection(segs, colors="tab:orange", linewidths=1.0))
+        title += f" (slice z = {z:.2f} mm)"
+    else:
+        ax.imshow(image, extent=extent, cmap="gray", origin="upper")
+        for p in fine_items:
+            xy = np.vstack([p.vertices, p.vertices[:1]])
+            ax.plot(xy[:, 0], xy[:, 1], color="tab:orange", lw=1.0)
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(title, fontsize=10)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)

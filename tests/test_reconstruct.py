@@ -1,0 +1,105 @@
+"""End to end: bubsub simulate -> reconstruct -> evaluate, through the CLI."""
+
+import csv
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from bubsub.clients.cli import evaluate_dir, main
+from bubsub.core import MeshProjector
+from bubsub.core.meshio import read_polygons_json
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    rc = main(["simulate", "--phantom", "foam2d", "--bubbles", "12", "--det-count", "400", "--angles", "30",
+               "--photons", "1e4", "--seed", "3", "--out", str(out)])
+    assert rc == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def rec(sim, tmp_path_factory):
+    out = tmp_path_factory.mktemp("rec")
+    rc = main(["reconstruct", str(sim / "scan.h5"), "--out", str(out), "--holdout", "odd", "--iterations", "60", "--quiet"])
+    assert rc == 0
+    return out
+
+
+def test_simulation_folder(sim):
+    meta = json.loads((sim / "phantom.json").read_text())
+    assert meta["bubbles"] == 12 and meta["seed"] == 3
+    with h5py.File(sim / "scan.h5") as f:
+        assert f["exchange/data"].shape == (30, 400)
+        assert f["exchange/data"].dtype == np.float32
+        assert f["geometry/vectors"].attrs["kind"] == "parallel_vec"
+    assert len(read_polygons_json(sim / "truth.json")) == 12
+
+
+def test_reconstruction_matches_the_truth(sim, rec, capsys):
+    report = json.loads((rec / "report.json").read_text())
+    assert report["bubbles"] == 12
+    assert report["projections_used"] == 15 and report["holdout_projections"] == 15
+    assert report["final_objective"] < report["initial_objective"]
+    assert report["holdout_mse"] < 1e-3
+    res = evaluate_dir(rec, sim)
+    assert res["ddi"] < 0.03
+    assert main(["evaluate", str(rec), str(sim)]) == 0
+    assert "ddi" in capsys.readouterr().out
+
+
+def test_outputs_are_readable(rec):
+    polys = read_polygons_json(rec / "bubbles.json")
+    assert all(p.area > 0 for p in polys)
+    with open(rec / "bubbles.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(polys)
+    for r, p in zip(rows, polys):
+        assert float(r["area"]) == pytest.approx(p.area, rel=1e-6)
+    assert (rec / "overlay.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(read_polygons_json(rec / "control.json")) == len(polys)
+
+
+def test_previous_reconstruction_as_initial_mesh(sim, rec, tmp_path):
+    out = tmp_path / "again"
+    rc = main(["reconstruct", str(sim / "scan.h5"), "--out", str(out), "--init", str(rec / "control.json"),
+               "--iterations", "5", "--quiet"])
+    assert rc == 0
+    assert evaluate_dir(out, sim)["ddi"] < 0.03
+    assert json.loads((out / "report.json").read_text())["bubbles_initial"] == 12
+
+
+def test_ctrl_c_leaves_a_usable_partial_result(sim, tmp_path, monkeypatch):
+    calls = {"n": 0}
+    original = MeshProjector.objective
+
+    def interrupted(self, meshes, data):
+        calls["n"] += 1
+        if calls["n"] > 12:
+            raise KeyboardInterrupt
+        return original(self, meshes, data)
+
+    monkeypatch.setattr(MeshProjector, "objective", interrupted)
+    out = tmp_path / "partial"
+    rc = main(["reconstruct", str(sim / "scan.h5"), "--out", str(out), "--quiet", "--no-radius-estimation"])
+    assert rc == 130
+    report = json.loads((out / "report.json").read_text())
+    assert report["interrupted"] is True and report["bubbles"] > 0
+    assert len(read_polygons_json(out / "bubbles.json")) == report["bubbles"]
+
+
+def test_broken_scan_files_give_a_clear_error_and_no_output(sim, tmp_path, capsys):
+    bad = tmp_path / "bad.h5"
+    with h5py.File(sim / "scan.h5") as src, h5py.File(bad, "w") as dst:
+        for k, v in src.attrs.items():
+            dst.attrs[k] = v
+        src.copy("geometry", dst)
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(bad), "--out", str(out), "--quiet"]) == 2
+    assert "exchange/data" in capsys.readouterr().err
+    assert not out.exists()
+    assert main(["reconstruct", str(tmp_path / "missing.h5"), "--out", str(out), "--quiet"]) == 2
+    assert not out.exists()

@@ -48,3 +48,18 @@ __all__ += [
     "Scan", "read_scan", "theta_from_geometry", "write_scan",
     "add_poisson_noise", "default_geometry_2d", "default_geometry_3d", "project_image", "simulate_2d", "simulate_3d",
 ]
+
+# Voxel side: grids, solvers, ASTRA 2D and numpy 3D reconstructions, segmentation.
+from .grid import grid_extent, index_to_world, resolve_grid, voxel_sizes, world_to_index
+from .segment import binarise, bubble_centres, otsu_threshold
+from .solvers import cgls, lsqr, sirt, tv_pdhg
+from .voxel2d import AstraProjector2D, fbp_2d, reconstruct_2d
+from .voxel3d import VoxelProjector, fdk, ramp_filter, reconstruct_3d
+
+__all__ += [
+    "grid_extent", "index_to_world", "resolve_grid", "voxel_sizes", "world_to_index",
+    "binarise", "bubble_centres", "otsu_threshold",
+    "cgls", "lsqr", "sirt", "tv_pdhg",
+    "AstraProjector2D", "fbp_2d", "reconstruct_2d",
+    "VoxelProjector", "fdk", "ramp_filter", "reconstruct_3d",
+]

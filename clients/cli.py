@@ -215,7 +215,7 @@ def cmd_evaluate(args):
 def cmd_experiment(args):
     from .experiments import run_experiment
 
-    run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, progress=not args.quiet)
+    run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values, progress=not args.quiet)
     return 0
 
 
@@ -274,6 +274,7 @@ def build_parser():
     p.add_argument("--out", required=True)
     p.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
     p.add_argument("--seeds", type=_positive_int, help="runs per point (default: 10, quick: 1)")
+    p.add_argument("--values", type=float, nargs="+", help="the settings to sweep instead of the paper's")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_experiment)
 

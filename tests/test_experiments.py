@@ -1,0 +1,43 @@
+import csv
+import json
+
+import pytest
+
+from bubsub.clients.cli import main
+from bubsub.clients.experiments import EXPERIMENTS, format_table, summarise
+
+
+def test_quick_experiment_writes_csv_png_and_summary(tmp_path):
+    rc = main(["experiment", "fig5", "--quick", "--values", "1.0", "--out", str(tmp_path), "--quiet"])
+    assert rc == 0
+    with open(tmp_path / "fig5.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["method"] for r in rows] == ["bubsub"]
+    assert 0 <= float(rows[0]["ddi"]) < 0.05  # a good initial radius gives a good fit
+    summary = json.loads((tmp_path / "fig5.json").read_text())
+    assert summary["methods"]["bubsub"]["1.0"]["n"] == 1
+    assert (tmp_path / "fig5.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_baselines_and_bubsub_are_scored_on_one_grid(tmp_path):
+    from bubsub.clients.experiments import _QUICK_2D, _simulate, run_case
+
+    ph, scan, shape, extent = _simulate(2, 0, 20, 1e4, _QUICK_2D, quick=True)
+    scores = {m: run_case(m, scan, ph, shape, extent, iterations=40)[0] for m in ("fbp", "sirt", "bubsub")}
+    assert all(0 <= v <= 1 for v in scores.values())
+    assert scores["bubsub"] < 0.5 * min(scores["fbp"], scores["sirt"])
+
+
+def test_summary_table():
+    rows = [{"angles": a, "method": m, "ddi": d} for a, m, d in [(10, "fbp", 0.4), (10, "fbp", 0.2), (10, "bubsub", 0.01)]]
+    s = summarise(rows, "angles")
+    assert s["methods"]["fbp"]["10"]["mean"] == pytest.approx(0.3)
+    assert s["methods"]["fbp"]["10"]["std"] == pytest.approx(0.1)
+    assert "0.3000" in format_table(s, "angles")
+    assert set(EXPERIMENTS) == {"fig1a", "fig1b", "fig5", "fig3a"}
+
+
+def test_unknown_experiment_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["experiment", "fig9", "--out", str(tmp_path)])
+    assert "invalid choice" in capsys.readouterr().err

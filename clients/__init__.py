@@ -1,0 +1,21 @@
+"""bubsub.clients: the BFGS optimiser, the reconstruction pipeline, the HTTP client and the CLI.
+
+``fit(projector_or_job, surfaces, data)`` runs locally against a
+:class:`bubsub.core.MeshProjector` or remotely against a :class:`RemoteJob`
+of a projector server; the rest of the pipeline does not know the difference.
+The HTTP client needs ``httpx`` (the ``client`` extra) and is imported lazily.
+"""
+
+from .fit import FitResult, estimate_radii, fit
+
+__all__ = ["fit", "estimate_radii", "FitResult", "ProjectorClient", "RemoteJob", "RemoteError",
+           "RemoteValueError", "UnknownJobError"]
+
+
+def __getattr__(name):
+    # httpx is optional: import the client only when it is used
+    if name in ("ProjectorClient", "RemoteJob", "RemoteError", "RemoteValueError", "UnknownJobError"):
+        from . import client
+
+        return getattr(client, name)
+    raise AttributeError(f"module 'bubsub.clients' has no attribute {name!r}")

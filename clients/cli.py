@@ -133,19 +133,26 @@ def cmd_reconstruct(args):
     init = load_initial(args.init, scan.bubble_contrast, args.levels) if args.init else None
     factory = None
     client = None
+    jobs = []
     if args.server:
         from .client import ProjectorClient
 
         client = ProjectorClient(args.server, token=args.token)
 
-        def factory(geometry, data):
-            surfaces = init or []
-            return client.create_job(geometry, data=data, surfaces=surfaces, supersampling=args.supersampling) \
-                if surfaces else _LazyRemoteJob(client, geometry, data, args.supersampling)
+        def factory(geometry, data, surfaces):
+            job = client.create_job(geometry, data=data, surfaces=surfaces, supersampling=args.supersampling)
+            jobs.append(job)
+            return job
+
     try:
         rec = reconstruct(scan, settings, init=init, projector_factory=factory)
     finally:
         if client is not None:
+            for job in jobs:  # free the server's memory now rather than at expiry
+                try:
+                    job.delete()
+                except Exception as exc:  # noqa: BLE001 - the result matters more than the clean-up
+                    print(f"bubsub reconstruct: could not delete remote job: {exc}", file=sys.stderr)
             client.close()
     files = write_outputs(args.out, rec, scan_path=args.scan)
     r = rec.report
@@ -156,22 +163,6 @@ def cmd_reconstruct(args):
         print(f"held-out projection MSE ({r['holdout_projections']} projections): {r['holdout_mse']:.4g}")
     print("wrote " + ", ".join(str(p) for p in files.values()))
     return 130 if r["interrupted"] else 0
-
-
-class _LazyRemoteJob:
-    """A remote job created on the first call, once the initial surfaces are known."""
-
-    def __init__(self, client, geometry, data, supersampling):
-        self.client, self.geometry, self.data, self.supersampling = client, geometry, data, supersampling
-        self.job = None
-        self.job_id = None
-
-    def objective(self, surfaces, data=None):
-        if self.job is None:
-            self.job = self.client.create_job(self.geometry, data=self.data, surfaces=surfaces,
-                                              supersampling=self.supersampling)
-            self.job_id = self.job.job_id
-        return self.job.objective(surfaces)
 
 
 # -- evaluate -----------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg.blas import dger
 from scipy.optimize import line_search, minimize
+from threadpoolctl import threadpool_limits
 
 from bubsub.core import SubdivisionSurface
 
@@ -234,6 +235,9 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
             raise _Stop
 
     interrupted = False
+    # On few cores, idle BLAS threads spinning after each small matrix product
+    # steal the cores the ray casting runs on: keep BLAS to one thread here.
+    limits = threadpool_limits(1, user_api="blas")
     try:
         if iterations == 0:
             fun(x0)
@@ -248,6 +252,7 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
     except _Stop:
         pass
     finally:
+        limits.restore_original_limits()
         if bar is not None:
             bar.close()
     if not np.isfinite(best["f"]):

@@ -196,10 +196,10 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     init : list of SubdivisionSurface, optional
         Initial bubbles (e.g. :func:`load_initial` of a previous frame);
         skips the voxel-based initialisation.
-    projector_factory : callable(geometry, data) -> projector, optional
-        Makes the object :func:`fit` calls; by default a local
-        :class:`MeshProjector`. ``bubsub reconstruct --server`` passes one that
-        creates a remote job.
+    projector_factory : callable(geometry, data, surfaces) -> projector, optional
+        Makes the object :func:`fit` calls, holding ``data``; by default a
+        local :class:`MeshProjector`. ``bubsub reconstruct --server`` passes
+        one that creates a remote job with the surfaces' topology.
 
     Returns
     -------
@@ -222,7 +222,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         projector = MeshProjector(g_fit, supersampling=s.supersampling)
         fit_data = d_fit
     else:
-        projector = projector_factory(g_fit, d_fit)
+        projector = projector_factory(g_fit, d_fit, surfaces)
         fit_data = None
     t_init = time.perf_counter() - t0
     if s.estimate_radii and init is None:

@@ -287,9 +287,21 @@ def build_parser():
     return ap
 
 
+def _limit_blas():
+    # The projector and the optimiser parallelise themselves; idle BLAS threads
+    # spinning after each small matrix product would only take their cores.
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a dependency, but not a vital one
+        return
+    threadpool_limits(1, user_api="blas")
+
+
 def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command != "serve":  # the server sets its own (BUBSUB_BLAS_THREADS)
+        _limit_blas()
     try:
         return args.func(args)
     except (ValueError, FileNotFoundError, OSError) as exc:

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg.blas import dger
 from scipy.optimize import line_search, minimize
-from threadpoolctl import threadpool_limits
 
 from bubsub.core import SubdivisionSurface
 
@@ -194,6 +193,13 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
     FitResult
         Ctrl-C stops the fit and returns the best iterate so far, flagged
         ``interrupted``.
+
+    Notes
+    -----
+    On few cores, idle BLAS threads spinning after each small matrix product
+    take the cores the ray casting needs; fits run up to twice as fast with
+    ``threadpoolctl.threadpool_limits(1, "blas")`` around them (the ``bubsub``
+    command does this for its whole process).
     """
     surfaces = _check_surfaces(surfaces)
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 0:
@@ -235,9 +241,6 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
             raise _Stop
 
     interrupted = False
-    # On few cores, idle BLAS threads spinning after each small matrix product
-    # steal the cores the ray casting runs on: keep BLAS to one thread here.
-    limits = threadpool_limits(1, user_api="blas")
     try:
         if iterations == 0:
             fun(x0)
@@ -252,7 +255,6 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
     except _Stop:
         pass
     finally:
-        limits.restore_original_limits()
         if bar is not None:
             bar.close()
     if not np.isfinite(best["f"]):

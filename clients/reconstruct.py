@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
 from bubsub.core.atomic import atomic_path
@@ -133,7 +134,8 @@ def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, 
         42 (3D) / 9 (2D) by default.
     radius : float, optional
         Constant initial radius, mm; default the median of the distance
-        transform at the centres.
+        transform at the centres. Each bubble's radius is capped at half the
+        distance to its nearest neighbour, so initial bubbles never overlap.
 
     Returns
     -------
@@ -155,11 +157,17 @@ def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, 
     r = float(np.median(radii)) if radius is None else float(radius)
     if not r > 0:
         raise ValueError(f"initial radius must be positive, got {r}")
+    # Overlapping initial bubbles count their overlap twice and can lock each other
+    # in a poor local minimum: cap each radius at half the distance to the nearest centre.
+    r = np.full(len(centres), r)
+    if len(centres) > 1:
+        nearest, _ = cKDTree(centres).query(centres, k=2)
+        r = np.minimum(r, 0.5 * nearest[:, 1])
     if ndim == 3:
         k = control_points or 42
-        return [sphere_surface(c, r, contrast, control=k, levels=levels) for c in centres]
+        return [sphere_surface(c, rk, contrast, control=k, levels=levels) for c, rk in zip(centres, r)]
     k = control_points or 9
-    return [circle_surface(c, r, contrast, control=k, levels=levels) for c in centres]
+    return [circle_surface(c, rk, contrast, control=k, levels=levels) for c, rk in zip(centres, r)]
 
 
 def load_initial(path, contrast, levels=2):

@@ -103,3 +103,19 @@ def test_broken_scan_files_give_a_clear_error_and_no_output(sim, tmp_path, capsy
     assert not out.exists()
     assert main(["reconstruct", str(tmp_path / "missing.h5"), "--out", str(out), "--quiet"]) == 2
     assert not out.exists()
+
+
+def test_reconstruct_against_a_projector_server(sim, rec, tmp_path):
+    from service_support import ServerThread
+
+    out = tmp_path / "remote"
+    with ServerThread() as server:
+        rc = main(["reconstruct", str(sim / "scan.h5"), "--out", str(out), "--holdout", "odd", "--iterations", "60",
+                   "--quiet", "--server", server.url])
+        assert rc == 0
+        assert len(server.state.store) == 0  # the CLI deleted its job
+    local = json.loads((rec / "report.json").read_text())
+    remote = json.loads((out / "report.json").read_text())
+    assert remote["bubbles"] == local["bubbles"]
+    assert remote["final_objective"] == pytest.approx(local["final_objective"], rel=1e-3)
+    assert evaluate_dir(out, sim)["ddi"] < 0.03

@@ -300,7 +300,8 @@ def estimate_radii(projector, surfaces, data=None, iterations=20, *, progress=Fa
         res = minimize(
             fun, r0, jac=True, method="L-BFGS-B", bounds=[(1e-3 * r, 10 * r) for r in r0],
             callback=(lambda _: bar.update(1)) if bar is not None else None,
-            options={"maxiter": int(iterations)},
+            # each evaluation is a full projection: bound the line-search evaluations too
+            options={"maxiter": int(iterations), "maxfun": int(iterations) + 5},
         )
     finally:
         if bar is not None:

@@ -83,7 +83,7 @@ def field_of_view(geometry):
 def _grid(geometry, voxel_size):
     r_xy, half_z = field_of_view(geometry)
     if voxel_size is None:
-        voxel_size = 2 * r_xy / (128 if geometry.ndim == 3 else 256)
+        voxel_size = 2 * r_xy / (160 if geometry.ndim == 3 else 256)
     n = max(8, int(np.ceil(2 * r_xy / voxel_size)))
     half = n * voxel_size / 2
     if geometry.ndim == 2:

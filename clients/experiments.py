@@ -153,7 +153,8 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, progress=
     t0 = time.perf_counter()
     try:
         for value in values:
-            angles = int(value) if exp.variable == "angles" else exp.angles
+            # quick mode keeps to 25 views, so that the photon sweep stays quick too
+            angles = int(value) if exp.variable == "angles" else (min(exp.angles, 25) if quick else exp.angles)
             photons = float(value) if exp.variable == "photons" else exp.photons
             for seed in range(seeds):
                 ph, scan, shape, extent = _simulate(exp.ndim, seed, angles, photons, cfg, quick)

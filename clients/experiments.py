@@ -70,16 +70,11 @@ _FULL_3D = {"n_bubbles": 60, "det_cols": 512, "voxel": 0.1, "iterations": 80}
 def _simulate(ndim, seed, angles, photons, cfg, quick):
     from bubsub.core import phantoms, simulate
 
-    from .cli import make_geometry
-
     if ndim == 2:
-        ph = phantoms.foam2d(seed, n_bubbles=cfg["n_bubbles"], **({"size": 5.0, "radius_range": (0.25, 0.6)} if quick else {}))
-        g = make_geometry(2, "parallel", angles, cfg["det_count"])
-        if quick:  # a 5 mm square on a detector scaled to it
-            from bubsub.core import ScanGeometry
-
-            g = ScanGeometry.parallel(np.linspace(0, np.pi, angles, endpoint=False), pixel_size=7.2 / cfg["det_count"],
-                                      cols=cfg["det_count"])
+        size = 5.0 if quick else 10.0
+        ph = phantoms.foam2d(seed, n_bubbles=cfg["n_bubbles"], **({"size": size, "radius_range": (0.25, 0.6)} if quick else {}))
+        # a detector 1.44 x the square's side sees the whole square at every angle
+        g = simulate.default_geometry_2d(angles, det_count=cfg["det_count"], pixel_size=1.44 * size / cfg["det_count"])
         scan = simulate.simulate_2d(ph, g, photons=photons, seed=seed, image_size=cfg["image_size"])
         shape, extent = ph.grid(cfg["grid"])
     else:

@@ -64,14 +64,18 @@ def main(argv=None):
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=5, help="timed calls per operation (median reported)")
     ap.add_argument("--threads", type=int, default=None, help="ray-casting threads (default: all usable cores)")
+    ap.add_argument("--backend", choices=["auto", "native", "embreex"], default="auto", help="ray-casting backend (see MeshProjector)")
     ap.add_argument("--no-trimesh", action="store_true", help="skip the trimesh comparison")
+    ap.add_argument("--no-compare", action="store_true", help="skip timing the other backend")
     args = ap.parse_args(argv)
 
     phantom = foam3d_benchmark()
     meshes = list(phantom.bubbles)
     geometry = foam3d_geometry()
-    projector = MeshProjector(geometry, threads=args.threads)
+    projector = MeshProjector(geometry, threads=args.threads, backend=args.backend)
+    t = time.perf_counter()
     data = projector.forward(meshes)
+    t_first = time.perf_counter() - t
     target = data * np.float32(1.01)
     projector.objective(meshes, target)  # warm-up
 
@@ -88,6 +92,8 @@ def main(argv=None):
     rows = [
         ("scene", f"{len(meshes)} bubbles, {sum(len(m.faces) for m in meshes)} triangles"),
         ("scan", f"cone, {geometry.n_angles} x {geometry.det_rows} x {geometry.det_cols}, threads={projector.threads}"),
+        ("backend", projector.backend),
+        ("first forward (compile or cache load)", f"{t_first:.3f} s"),
         ("objective (value+gradient), median", f"{t_obj:.3f} s"),
         ("forward, median", f"{t_fwd:.3f} s"),
         ("valid crossings per call", f"{crossings:,}"),
@@ -95,6 +101,12 @@ def main(argv=None):
         ("peak numpy memory in objective", f"{peak_py / 2**20:.0f} MiB"),
         ("peak process RSS so far", f"{peak_rss:.0f} MiB"),
     ]
+    if not args.no_compare and projector.backend == "native":
+        other = MeshProjector(geometry, threads=args.threads, backend="embreex")
+        t_other = _median_time(lambda: other.objective(meshes, target), args.repeats)
+        diff = np.abs(other.forward(meshes) - data).max()
+        rows += [("objective, embreex backend, median", f"{t_other:.3f} s"),
+                 ("max |forward difference| between backends", f"{diff:.1e}")]
     if not args.no_trimesh:
         t = time.perf_counter()
         ref = trimesh_forward(geometry, meshes)

@@ -1,8 +1,10 @@
 """Exact X-ray projection of closed triangle meshes with Embree, and its gradient.
 
 Each detector pixel's value is the sum over meshes of ``attenuation x (length
-of the ray inside the mesh)``. Rays are cast with Embree (embreex) and every
-surface crossing is collected by re-casting from just past the previous hit.
+of the ray inside the mesh)``. Rays are cast with Embree, through one of two
+backends that find the same crossings: ``native`` (:mod:`.embree_native`: one
+traversal per ray whose filter records every hit) or ``embreex`` (closest-hit
+casts, re-cast from just past the previous hit, bookkeeping in numpy).
 
 Why the crossings are exact and counted once
 -------------------------------------------
@@ -10,7 +12,7 @@ Why the crossings are exact and counted once
   ray starts just before that box. Float32 then resolves positions relative to
   the scene's size, whatever the source distance (300 mm or 50 m) or the
   scene's offset from the world origin.
-* After a hit the ray restarts ``eps = 1e-5 x scene size`` past it. That is far
+* (embreex backend) After a hit the ray restarts ``eps = 1e-5 x scene size`` past it. That is far
   above float32 round-off, so a ray cannot hit the same triangle twice; a ray
   through a shared edge can still report both triangles.
 * Crossings are then paired per ray and per mesh: a closed, outward mesh is
@@ -39,6 +41,7 @@ import numpy as np
 from .geometry import ScanGeometry
 from .mesh import Mesh, Polygon
 from .subdivision import SubdivisionSurface
+from . import embree_native
 
 __all__ = ["MeshProjector", "Traversal"]
 
@@ -83,7 +86,7 @@ class Traversal:
 class _Scene:
     """A triangle soup of all items, shifted to be centred on the origin."""
 
-    def __init__(self, items, ndim):
+    def __init__(self, items, ndim, backend="embreex"):
         self.items = list(items)
         resolved = []
         for k, item in enumerate(self.items):
@@ -138,6 +141,9 @@ class _Scene:
             self.item_centre[:, 2] = 0.0  # rays run in the plane z = 0
         dist2 = np.sum((self.vertices[:, :ndim] - np.repeat(self.item_centre, counts, axis=0)[:, :ndim]) ** 2, axis=1)
         self.item_radius = np.sqrt(np.maximum.reduceat(dist2, starts))
+        if backend == "native":
+            self.native = embree_native.NativeScene(self.vertices, self.faces)
+            return
         rtcs, TriangleMesh = _embree()
         self.embree = rtcs.EmbreeScene(robust=True)
         TriangleMesh(self.embree, self.vertices.astype(np.float32), self.faces.astype(np.int32))
@@ -181,6 +187,14 @@ class MeshProjector:
     threads : int, optional
         Worker threads for ray casting (Embree releases the GIL); defaults
         to the number of usable cores.
+    backend : {"auto", "native", "embreex"}
+        How rays are cast; both give the same crossings. ``"native"`` calls
+        Embree 4 directly from compiled (numba) code and collects all of a
+        ray's crossings in one traversal; ``"embreex"`` casts through
+        embreex's closest-hit interface, once per crossing, in numpy.
+        ``"auto"`` takes the environment variable ``BUBSUB_BACKEND`` when
+        set, else ``"native"`` where it is available
+        (:func:`bubsub.core.embree_native.available`).
 
     Notes
     -----
@@ -190,7 +204,18 @@ class MeshProjector:
     float32 of shape ``geometry.shape``; lengths in mm, attenuation in 1/mm.
     """
 
-    def __init__(self, geometry, supersampling=1, threads=None):
+    def __init__(self, geometry, supersampling=1, threads=None, backend="auto"):
+        if backend == "auto" and os.environ.get("BUBSUB_BACKEND", "auto") != "auto":
+            backend = os.environ["BUBSUB_BACKEND"]
+            if backend not in ("native", "embreex"):
+                raise ValueError(f"BUBSUB_BACKEND must be 'auto', 'native' or 'embreex', got {backend!r}")
+        if backend not in ("auto", "native", "embreex"):
+            raise ValueError(f"backend must be 'auto', 'native' or 'embreex', got {backend!r}")
+        if backend == "native" and not embree_native.available():
+            raise RuntimeError(f"the native backend is unavailable: {embree_native.unavailable_reason()}")
+        if backend == "auto":
+            backend = "native" if embree_native.available() else "embreex"
+        self.backend = backend
         if not isinstance(geometry, ScanGeometry):
             raise TypeError(f"geometry must be a ScanGeometry, got {type(geometry).__name__}")
         if isinstance(supersampling, bool) or not isinstance(supersampling, (int, np.integer)) or not 1 <= supersampling <= 16:
@@ -214,7 +239,7 @@ class MeshProjector:
         return self.geometry.shape
 
     def __repr__(self):
-        return f"MeshProjector({self.geometry!r}, supersampling={self.supersampling})"
+        return f"MeshProjector({self.geometry!r}, supersampling={self.supersampling}, backend={self.backend!r})"
 
     # -- public operators -----------------------------------------------------------
     def forward(self, meshes):
@@ -258,6 +283,7 @@ class MeshProjector:
         """Cast all rays once: a :class:`Traversal` holding every valid crossing."""
         scene = meshes if isinstance(meshes, _Scene) else self._scene(meshes)
         pix, far = self._frames.candidate_pixels(scene)
+        far += 4 * scene.eps
         k2 = self._sub.shape[0]
         n_rays = pix.size * k2
         chunks = self._map(lambda s: self._trace_chunk(scene, pix, far, s, min(s + _CHUNK, n_rays)), range(0, n_rays, _CHUNK))
@@ -277,7 +303,7 @@ class MeshProjector:
     def _scene(self, meshes):
         if isinstance(meshes, (Mesh, Polygon, SubdivisionSurface)):
             meshes = [meshes]
-        return _Scene(meshes, self.geometry.ndim)
+        return _Scene(meshes, self.geometry.ndim, self.backend)
 
     def _check_array(self, a, name):
         if not isinstance(a, np.ndarray):
@@ -317,13 +343,18 @@ class MeshProjector:
 
     def _trace_chunk(self, scene, pix, far, start, stop):
         """Trace rays ``start:stop``; returns (first pixel, values from it, crossings)."""
+        # every ray starts just before the scene's bounding sphere
+        radius = float(np.linalg.norm(scene.half)) + 4 * scene.eps
+        if self.backend == "native":
+            f = self._frames
+            return embree_native.trace_rays(scene.native, pix, far, start, stop, self._sub,
+                                            (f.s, f.d, f.u, f.v, f.cone, f.rows, f.cols), scene.centre, radius,
+                                            scene.face_item, scene.mu, scene.normals)
         k2 = self._sub.shape[0]
         ray = np.arange(start, stop)
         which = slice(start, stop) if k2 == 1 else ray // k2
         pixel = pix[which]
-        # every ray starts just before the scene's bounding sphere
-        radius = float(np.linalg.norm(scene.half)) + 4 * scene.eps
-        od, length = self._frames.rays(pixel, self._sub[ray % k2], scene.centre, radius, far[which] + 4 * scene.eps)
+        od, length = self._frames.rays(pixel, self._sub[ray % k2], scene.centre, radius, far[which])
         idx = np.arange(len(od))  # ray of each still active row
         toff = np.zeros(len(od))
         hit_ray, hit_prim, hit_t, hit_u, hit_v, hit_cos = [], [], [], [], [], []

@@ -55,6 +55,15 @@ async def _sweep(state: ServiceState):
             log.info("expired %d idle job(s)", n)
 
 
+def _ray_casting_backend():
+    """Project a tiny sphere once, so the first request does not compile the kernel."""
+    from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
+
+    projector = MeshProjector(ScanGeometry.parallel([0.0], pixel_size=1.0, cols=2, rows=2))
+    projector.forward([sphere_surface([0.0, 0.0, 0.0], 1.0, 0.1)])
+    return projector.backend
+
+
 def _limit_blas(threads):
     """Limit the process's BLAS thread pools; returns an object to restore them, or None."""
     if not threads:
@@ -124,9 +133,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         blas = _limit_blas(state.settings.blas_threads)
         sweeper = asyncio.create_task(_sweep(state), name="bubsub-sweeper")
         previous = _chain_signals(state, loop)
+        # load (or compile) the ray-casting kernel before declaring readiness
+        backend = await loop.run_in_executor(None, _ray_casting_backend)
         state.ready = True
-        log.info("bubsub projection server ready (%d compute workers, queue %d, auth %s)",
-                 state.pool.workers, state.pool.max_queue, "on" if state.auth.enabled else "off")
+        log.info("bubsub projection server ready (%d compute workers, queue %d, auth %s, %s ray casting)",
+                 state.pool.workers, state.pool.max_queue, "on" if state.auth.enabled else "off", backend)
         try:
             yield
         finally:

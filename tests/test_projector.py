@@ -5,7 +5,19 @@ import numpy as np
 import pytest
 
 from bubsub.core import Mesh, MeshProjector, Polygon, ScanGeometry, circle_surface, icosphere, sphere_surface
+from bubsub.core import embree_native
 from conftest import convex_chords, convex_mesh, sphere_chords
+
+BACKENDS = ["native", "embreex"]
+
+
+@pytest.fixture(autouse=True, params=BACKENDS)
+def backend(request, monkeypatch):
+    """Every test of this module runs on both ray-casting backends."""
+    if request.param == "native" and not embree_native.available():
+        pytest.fail(f"the native backend should be available in the test environment: {embree_native.unavailable_reason()}")
+    monkeypatch.setenv("BUBSUB_BACKEND", request.param)
+    return request.param
 
 
 def random_geometry(rng, kind, n_angles=4, rows=24, cols=32, source=300.0, pixel=0.12):
@@ -57,7 +69,9 @@ def test_convex_chords_exact_for_non_circular_vector_geometry(rng):
     mesh = convex_mesh(rng.normal(size=(30, 3)), attenuation=1.0)
     g = random_vector_geometry(rng)
     o, d = first_rays(g)
-    np.testing.assert_allclose(MeshProjector(g).forward(mesh), convex_chords(mesh, o[..., 0, :], d[..., 0, :]), atol=2e-5)
+    p, truth = MeshProjector(g).forward(mesh), convex_chords(mesh, o[..., 0, :], d[..., 0, :])
+    np.testing.assert_allclose(p, truth, atol=1e-4)  # float32 rays on grazing faces, as above
+    assert np.median(np.abs(p - truth)[truth > 0]) < 2e-6
 
 
 @pytest.mark.parametrize("kind", ["parallel3d", "cone"])
@@ -169,8 +183,9 @@ def test_vjp_matches_central_finite_differences(rng, kind):
     grads = P.vjp(items, r)
     dirs = [smooth_field(rng, s.vertices) for s in items]
     analytic = sum(np.vdot(gr, dv) for gr, dv in zip(grads, dirs))
-    # the chord is only piecewise smooth (silhouette rays): a small step
-    h = 1e-4
+    # the chord is only piecewise smooth (silhouette rays) and the projection
+    # float32: a step between those two noise floors
+    h = 3e-4
 
     def value(sign):
         moved = [s.with_vertices(s.vertices + sign * h * dv) for s, dv in zip(items, dirs)]
@@ -180,7 +195,8 @@ def test_vjp_matches_central_finite_differences(rng, kind):
     # the scale of the sum, so a cancelling sum is not judged by its tiny remainder
     scale = sum(np.abs(gr * dv).sum() for gr, dv in zip(grads, dirs))
     assert scale > 1e-2
-    assert abs(numeric - analytic) < 1e-2 * scale
+    # silhouette kinks leave about 1 % of the scale; a wrong factor or sign leaves far more
+    assert abs(numeric - analytic) < 2e-2 * scale
 
 
 def test_objective_shares_one_traversal_and_agrees_with_forward_and_vjp(rng):
@@ -262,3 +278,47 @@ def test_bad_input_is_refused_clearly(rng):
         MeshProjector(g, supersampling=0)
     with pytest.raises(TypeError, match="ScanGeometry"):
         MeshProjector("cone")
+
+
+def test_backend_is_the_one_asked_for(backend, rng):
+    g = random_geometry(rng, "cone", rows=4, cols=5)
+    assert MeshProjector(g).backend == backend
+    assert f"backend={backend!r}" in repr(MeshProjector(g))
+    with pytest.raises(ValueError, match="backend must be"):
+        MeshProjector(g, backend="optix")
+
+
+def test_backends_agree_on_a_foam(rng):
+    """Cross-backend consistency on a many-bubble scene: projections and gradients."""
+    g = random_geometry(rng, "cone", rows=48, cols=64, pixel=0.08, n_angles=6)
+    spheres = []
+    while len(spheres) < 12:
+        c, r = rng.uniform(-1.6, 1.6, 3), rng.uniform(0.2, 0.45)
+        if all(np.linalg.norm(c - c2) > r + r2 + 0.05 for c2, r2 in spheres):
+            spheres.append((c, r))
+    items = []
+    for c, r in spheres:
+        s = sphere_surface(c, r, -0.1)
+        items.append(s.with_vertices(s.vertices + 0.03 * r * rng.normal(size=s.vertices.shape)))
+    a, b = MeshProjector(g, backend="native"), MeshProjector(g, backend="embreex")
+    pa, pb = a.forward(items), b.forward(items)
+    assert np.abs(pa).max() > 0.05
+    np.testing.assert_allclose(pa, pb, atol=2e-5)
+    data = pb + np.float32(0.01) * rng.normal(size=g.shape).astype(np.float32)
+    (fa, ga), (fb, gb) = a.objective(items, data), b.objective(items, data)
+    assert fa == pytest.approx(fb, rel=1e-4)
+    for x, y in zip(ga, gb):
+        np.testing.assert_allclose(x, y, rtol=1e-3, atol=1e-4 * np.abs(y).max())
+
+
+def test_a_ray_through_hundreds_of_meshes_keeps_every_crossing():
+    """260 crossings on one ray: more than the native backend's first hit buffer holds."""
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * 0.1 - 0.05
+    cubes = [convex_mesh(corners + [0.2 * k, 0.0, 0.0], attenuation=0.5) for k in range(130)]
+    vec = np.array([[1.0, 0, 0, 0, 0, 0, 0, 0.025, 0, 0, 0, 0.025]])  # rays along x, 0.025 mm pixels
+    g = ScanGeometry.from_astra("parallel3d_vec", vec, det_rows=8, det_cols=8)
+    p = MeshProjector(g).forward(cubes)
+    inside = np.zeros((8, 8), bool)
+    inside[2:6, 2:6] = True  # pixel centres within |y|, |z| < 0.05
+    np.testing.assert_allclose(p[0][inside], 130 * 0.1 * 0.5, rtol=1e-5)
+    np.testing.assert_array_equal(p[0][~inside], 0)

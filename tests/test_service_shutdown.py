@@ -21,7 +21,8 @@ def test_sigterm_not_ready_first_then_drains():
     sock = free_socket()
     port = sock.getsockname()[1]
     sock.close()
-    env = {**os.environ, "BUBSUB_SHUTDOWN_GRACE_SECONDS": "1.0", "BUBSUB_WORKERS": "1", "BUBSUB_LOG_LEVEL": "warning"}
+    # the slower ray-casting backend and 6 x 6 sub-rays keep one call busy past the grace period
+    env = {**os.environ, "BUBSUB_BACKEND": "embreex", "BUBSUB_SHUTDOWN_GRACE_SECONDS": "1.0", "BUBSUB_WORKERS": "1", "BUBSUB_LOG_LEVEL": "warning"}
     proc = subprocess.Popen([sys.executable, "-m", "bubsub.service", "--host", "127.0.0.1", "--port", str(port)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
@@ -31,8 +32,8 @@ def test_sigterm_not_ready_first_then_drains():
             g = ScanGeometry.cone(np.linspace(0, 2 * np.pi, 96, endpoint=False), source_origin=150.0,
                                   origin_detector=50.0, pixel_size=0.3, cols=96, rows=96)
             s = [sphere_surface((-3.0, 0.0, 1.0), 4.0, 1.0), sphere_surface((4.0, 2.0, -1.0), 3.0, 1.0)]
-            job = c.create_job(g, data=np.zeros(g.shape, np.float32), surfaces=s, supersampling=4)
-            expected = MeshProjector(g, supersampling=4).objective(s, np.zeros(g.shape, np.float32))[0]
+            job = c.create_job(g, data=np.zeros(g.shape, np.float32), surfaces=s, supersampling=6)
+            expected = MeshProjector(g, supersampling=6, backend="embreex").objective(s, np.zeros(g.shape, np.float32))[0]
 
             result = {}
 

@@ -206,7 +206,8 @@ def cmd_evaluate(args):
 def cmd_experiment(args):
     from .experiments import run_experiment
 
-    run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values, progress=not args.quiet)
+    run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values, methods=args.methods,
+                   resume=args.resume, progress=not args.quiet)
     return 0
 
 
@@ -266,6 +267,9 @@ def build_parser():
     p.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
     p.add_argument("--seeds", type=_positive_int, help="runs per point (default: 10, quick: 1)")
     p.add_argument("--values", type=float, nargs="+", help="the settings to sweep instead of the paper's")
+    p.add_argument("--methods", nargs="+", help="run only these methods (e.g. bubsub tv)")
+    p.add_argument("--resume", action="store_true",
+                   help="keep the runs already in OUT/NAME.csv and run only the missing ones")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_experiment)
 

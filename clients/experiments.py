@@ -57,7 +57,7 @@ EXPERIMENTS = {
     "fig5": Experiment("fig5", 2, "radius", (0.25, 0.5, 0.75, 1.0, 1.5, 2.0), (0.5, 1.0, 2.0), ("bubsub",),
                        title="2D: BubSub vs initial radius (x mean bubble radius; 25 projections, I0 = 1e4)"),
     "fig3a": Experiment("fig3a", 3, "angles", (10, 25, 50, 100), (10, 25),
-                        ("fdk", "sirt", "cgls", "bubsub"), title="3D: Dice dissimilarity vs projections (I0 = 1e4)"),
+                        ("fdk", "sirt", "cgls", "tv", "bubsub"), title="3D: Dice dissimilarity vs projections (I0 = 1e4)"),
 }
 
 # quick mode shrinks the problems so a whole experiment runs in about a minute
@@ -127,24 +127,40 @@ def run_case(method, scan, phantom, shape, extent, *, iterations=80, radius=None
     return dice_dissimilarity(mask, truth), time.perf_counter() - t
 
 
-def run_experiment(name, out, *, quick=False, seeds=None, values=None, progress=True):
+def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=None, resume=False, progress=True):
     """Run one experiment; write ``NAME.csv``, ``NAME.png`` and ``NAME.json`` (summary) into ``out``.
 
-    ``values`` overrides the settings swept (projections, photon counts or radius factors).
+    Parameters
+    ----------
+    values : sequence of float, optional
+        The settings swept (projections, photon counts or radius factors)
+        instead of the paper's.
+    methods : sequence of str, optional
+        A subset of the experiment's methods.
+    resume : bool
+        Keep the runs already in ``out/NAME.csv`` (same mode) and run only the
+        missing (value, seed, method) cases; the CSV, summary and plot then
+        cover all of them. Lets a long experiment continue after Ctrl-C.
     """
     if name not in EXPERIMENTS:
         raise ValueError(f"unknown experiment {name!r}; choose one of {sorted(EXPERIMENTS)}")
     exp = EXPERIMENTS[name]
+    methods = tuple(methods) if methods else exp.methods
+    unknown = sorted(set(methods) - set(exp.methods))
+    if unknown:
+        raise ValueError(f"{name} has no method(s) {unknown}; choose from {list(exp.methods)}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    values = tuple(values) if values else (exp.quick_values if quick else exp.values)
+    # floats throughout, so resumed and new runs of one setting share a key
+    values = tuple(float(v) for v in (values or (exp.quick_values if quick else exp.values)))
     seeds = seeds or (1 if quick else 10)
     cfg = (_QUICK_2D if quick else _FULL_2D) if exp.ndim == 2 else (_QUICK_3D if quick else _FULL_3D)
-    rows = []
+    rows = _read_runs(out / f"{name}.csv", exp.variable, quick) if resume else []
+    done = {(r[exp.variable], r["seed"], r["method"]) for r in rows}
+    todo = [(v, s, m) for v in values for s in range(seeds) for m in methods if (v, s, m) not in done]
     from tqdm.auto import tqdm
 
-    total = len(values) * seeds * len(exp.methods)
-    bar = tqdm(total=total, desc=name, disable=not progress)
+    bar = tqdm(total=len(todo), desc=name, disable=not progress)
     t0 = time.perf_counter()
     try:
         for value in values:
@@ -152,14 +168,17 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, progress=
             angles = int(value) if exp.variable == "angles" else (min(exp.angles, 25) if quick else exp.angles)
             photons = float(value) if exp.variable == "photons" else exp.photons
             for seed in range(seeds):
+                missing = [m for m in methods if (value, seed, m) in todo]
+                if not missing:
+                    continue
                 ph, scan, shape, extent = _simulate(exp.ndim, seed, angles, photons, cfg, quick)
-                for method in exp.methods:
+                for method in missing:
                     kw = {"iterations": cfg["iterations"]}
                     if exp.variable == "radius":
                         kw.update(radius=float(value) * float(np.mean(ph.radii)), estimate_radii=False)
                     ddi, sec = run_case(method, scan, ph, shape, extent, **kw)
                     rows.append({"experiment": name, exp.variable: value, "method": method, "seed": seed,
-                                 "ddi": ddi, "seconds": sec})
+                                 "ddi": ddi, "seconds": sec, "quick": quick})
                     bar.update(1)
                     bar.set_postfix(method=method, ddi=f"{ddi:.3f}")
     except KeyboardInterrupt:
@@ -177,10 +196,28 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, progress=
     return summary
 
 
+def _read_runs(path, variable, quick):
+    """The runs of an earlier CSV, for ``resume``; refuses a CSV of the other mode."""
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        missing = {variable, "method", "seed", "ddi"} - set(r)
+        if missing:
+            raise ValueError(f"{path} is not a results CSV of this experiment (no column(s) {sorted(missing)})")
+        was_quick = r.get("quick", "False") == "True"
+        if was_quick != quick:
+            raise ValueError(f"{path} holds {'quick' if was_quick else 'full'}-mode runs; resume it in the same mode")
+        r.update({variable: float(r[variable]), "seed": int(r["seed"]), "ddi": float(r["ddi"]),
+                  "seconds": float(r.get("seconds") or "nan"), "quick": was_quick})
+    return rows
+
+
 def summarise(rows, variable):
     """Mean and standard deviation of the DDI per (method, value)."""
     table = {}
-    for r in rows:
+    for r in sorted(rows, key=lambda r: float(r[variable])):
         table.setdefault(r["method"], {}).setdefault(r[variable], []).append(r["ddi"])
     return {
         "variable": variable,

@@ -41,3 +41,29 @@ def test_unknown_experiment_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["experiment", "fig9", "--out", str(tmp_path)])
     assert "invalid choice" in capsys.readouterr().err
+
+
+def _fake_runs(path, quick):
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["experiment", "radius", "method", "seed", "ddi", "seconds", "quick"])
+        w.writeheader()
+        w.writerow({"experiment": "fig5", "radius": 1.0, "method": "bubsub", "seed": 0, "ddi": 0.0123, "seconds": 1.0, "quick": quick})
+
+
+def test_resume_keeps_finished_runs_and_runs_only_missing_ones(tmp_path):
+    _fake_runs(tmp_path / "fig5.csv", True)
+    # everything asked for is already there: nothing is recomputed, the summary covers it
+    rc = main(["experiment", "fig5", "--quick", "--values", "1.0", "--out", str(tmp_path), "--quiet", "--resume"])
+    assert rc == 0
+    summary = json.loads((tmp_path / "fig5.json").read_text())
+    assert summary["methods"]["bubsub"]["1.0"] == {"mean": 0.0123, "std": 0.0, "n": 1}
+    with open(tmp_path / "fig5.csv") as f:
+        assert len(list(csv.DictReader(f))) == 1
+
+
+def test_resume_refuses_runs_of_the_other_mode_and_unknown_methods(tmp_path, capsys):
+    _fake_runs(tmp_path / "fig5.csv", True)
+    assert main(["experiment", "fig5", "--values", "1.0", "--out", str(tmp_path), "--quiet", "--resume"]) != 0
+    assert "quick-mode runs" in capsys.readouterr().err
+    assert main(["experiment", "fig5", "--quick", "--methods", "sirt", "--out", str(tmp_path), "--quiet"]) != 0
+    assert "no method(s) ['sirt']" in capsys.readouterr().err

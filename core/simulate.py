@@ -141,14 +141,13 @@ def project_image(image, extent, geometry, projector="auto"):
     (n_angles, det_count) float32
         Line integrals.
     """
-    try:
-        import astra
-    except ImportError:  # pragma: no cover - depends on the environment
+    from .voxel2d import AstraProjector2D, _have_astra
+
+    if not _have_astra():  # pragma: no cover - depends on the environment
         raise ImportError(
             "voxel projection needs the ASTRA toolbox (pip install astra-toolbox, or bubsub[astra]); "
             "simulate_2d(..., method='mesh') works without it"
-        ) from None
-
+        )
     if not isinstance(geometry, ScanGeometry) or geometry.ndim != 2:
         raise ValueError("project_image needs a 2D ScanGeometry (parallel_vec or fanflat_vec)")
     img = np.asarray(image)
@@ -160,24 +159,14 @@ def project_image(image, extent, geometry, projector="auto"):
     px, py = (ext[1] - ext[0]) / cols, (ext[3] - ext[2]) / rows
     if not np.isclose(px, py, rtol=1e-9, atol=0):
         raise ValueError(f"image pixels must be square for ASTRA, got {px} x {py} mm")
-    img = np.ascontiguousarray(img, dtype=np.float32)
     if not np.all(np.isfinite(img)):
         raise ValueError("image contains NaN or inf")
     allowed = ASTRA_PROJECTORS[geometry.kind]
     ptype = allowed[0] if projector == "auto" else projector
     if ptype not in allowed:
         raise ValueError(f"projector {projector!r} does not support {geometry.kind}; use one of {allowed}")
-    vol_geom = astra.create_vol_geom(rows, cols, ext[0], ext[1], ext[2], ext[3])
-    proj_geom = geometry.to_astra()
-    pid = astra.create_projector(ptype, proj_geom, vol_geom)
-    sid = None
-    try:
-        sid, sino = astra.create_sino(img, pid)
-    finally:
-        if sid is not None:
-            astra.data2d.delete(sid)
-        astra.projector.delete(pid)
-    return np.asarray(sino, dtype=np.float32).reshape(geometry.shape)
+    with AstraProjector2D(geometry, (rows, cols), ext, projector=ptype) as op:
+        return op.forward(img).reshape(geometry.shape)
 
 
 def add_poisson_noise(projections, photons, seed=0):

@@ -186,9 +186,10 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
     finally:
         bar.close()
     summary = summarise(rows, exp.variable)
-    summary["seconds"] = time.perf_counter() - t0
+    summary["seconds_runs"] = float(np.nansum([float(r["seconds"]) for r in rows]))  # all runs, resumed ones too
+    summary["seconds_this_call"] = time.perf_counter() - t0
     summary["quick"] = quick
-    summary["seeds"] = seeds
+    summary["seeds"] = sorted({int(r["seed"]) for r in rows})
     _write_csv(out / f"{name}.csv", rows)
     atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2))
     plot(out / f"{name}.png", summary, exp)
@@ -261,7 +262,13 @@ def plot(path, summary, exp):
         e = np.array([vals[v]["std"] for v in vals])
         ax.errorbar(x, y, yerr=e, marker="o", capsize=3, label=m.upper() if m != "bubsub" else "BubSub")
     if exp.variable in ("angles", "photons"):
+        # DDIs span two decades: log axes keep BubSub's curve readable
         ax.set_xscale("log")
+        ax.set_yscale("log")
+        ticks = sorted({float(v) for vals in summary["methods"].values() for v in vals})
+        ax.set_xticks(ticks)
+        ax.set_xticklabels([f"{t:g}" for t in ticks])
+        ax.minorticks_off()
     ax.set_xlabel({"angles": "number of projections", "photons": "photon count I0",
                    "radius": "initial radius / mean bubble radius"}[exp.variable])
     ax.set_ylabel("Dice dissimilarity")

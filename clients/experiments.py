@@ -249,6 +249,10 @@ def _write_csv(path, rows):
                 w.writerows(rows)
 
 
+#: one colour per method in every plot
+_COLOURS = {"fbp": "C0", "fdk": "C0", "sirt": "C1", "cgls": "C2", "tv": "C3", "bubsub": "C4"}
+
+
 def plot(path, summary, exp):
     import matplotlib
 
@@ -260,7 +264,7 @@ def plot(path, summary, exp):
         x = np.array([float(v) for v in vals])
         y = np.array([vals[v]["mean"] for v in vals])
         e = np.array([vals[v]["std"] for v in vals])
-        ax.errorbar(x, y, yerr=e, marker="o", capsize=3, label=m.upper() if m != "bubsub" else "BubSub")
+        ax.errorbar(x, y, yerr=e, marker="o", capsize=3, color=_COLOURS.get(m), label=m.upper() if m != "bubsub" else "BubSub")
     if exp.variable in ("angles", "photons"):
         # DDIs span two decades: log axes keep BubSub's curve readable
         ax.set_xscale("log")

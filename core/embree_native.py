@@ -191,6 +191,25 @@ def trace_rays(scene, pixel, far, start, stop, sub, frames, shift, radius, face_
                             int(rows), int(cols), np.asarray(shift, float), float(radius), face_item, mu, normals)
 
 
+def cached(decorator, **options):
+    """``decorator(cache=True, **options)``, or without the cache where numba has nowhere to write it.
+
+    numba refuses ``cache=True`` when neither the source folder nor a user
+    cache folder is writable (a read-only install); compiling in memory then
+    costs a few seconds per process instead of failing.
+    """
+
+    def wrap(fn):
+        try:
+            return decorator(cache=True, **options)(fn)
+        except RuntimeError as exc:
+            if "cannot cache" not in str(exc):
+                raise
+            return decorator(**options)(fn)
+
+    return wrap
+
+
 def _compile(lib):
     import numba
     from numba import carray, cfunc, types
@@ -215,7 +234,7 @@ def _compile(lib):
     # Our context is the RTCRayQueryContext header (16 bytes) followed by
     # int64 [buffer address, hit count, capacity]. Each recorded hit is
     # (float t, uint primID, float u, float v).
-    @cfunc(types.void(types.CPointer(types.int64)), nopython=True, cache=True)
+    @cached(cfunc, sig=types.void(types.CPointer(types.int64)), nopython=True)
     def record_and_reject(args):
         n = args[5] & 0xFFFFFFFF
         valid = carray(i32p(args[0]), (n,))
@@ -239,13 +258,13 @@ def _compile(lib):
 
     intersect1 = ctypes.CFUNCTYPE(None, ctypes.c_size_t, ctypes.c_size_t, ctypes.c_size_t)(("rtcIntersect1", lib))
 
-    @numba.njit(nogil=True, cache=True)
+    @cached(numba.njit, nogil=True)
     def hit_buffers(cap):
         """The filter's record (t, primID, u, v per hit) and the per-ray work arrays."""
         return (np.zeros(4 * cap, np.float32), np.empty(cap), np.empty(cap, np.int64), np.empty(cap), np.empty(cap),
                 np.empty(cap), np.empty(cap, np.int64), np.zeros(cap, np.bool_))
 
-    @numba.njit(nogil=True, cache=True)
+    @cached(numba.njit, nogil=True)
     def kernel(intersect1, handle, args_template, pixel, far, start, stop, sub, S, D, U, V, cone, rows, cols, shift, radius, face_item, mu, normals):
         k2 = sub.shape[0]
         npix = rows * cols

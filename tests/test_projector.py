@@ -322,3 +322,14 @@ def test_a_ray_through_hundreds_of_meshes_keeps_every_crossing():
     inside[2:6, 2:6] = True  # pixel centres within |y|, |z| < 0.05
     np.testing.assert_allclose(p[0][inside], 130 * 0.1 * 0.5, rtol=1e-5)
     np.testing.assert_array_equal(p[0][~inside], 0)
+
+
+def test_compiled_code_falls_back_to_memory_when_no_cache_folder_is_writable(monkeypatch):
+    numba = pytest.importorskip("numba")
+    from numba.core import caching
+
+    monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])  # a read-only install: nowhere to cache
+    with pytest.raises(RuntimeError, match="cannot cache"):
+        numba.njit(cache=True)(lambda x: x + 1)
+    twice = embree_native.cached(numba.njit, nogil=True)(lambda x: 2 * x)
+    assert twice(21) == 42

@@ -130,7 +130,6 @@ class _Scene:
         norm = np.linalg.norm(n, axis=1)
         n[norm > 0] /= norm[norm > 0, None]
         self.normals = n
-        self.normals32 = n.astype(np.float32)
         # per-item bounding boxes (shifted), for culling pixels per projection
         # per-item bounding spheres (shifted), for culling pixels per projection
         starts = self.vertex_offset[:-1]
@@ -144,6 +143,7 @@ class _Scene:
         if backend == "native":
             self.native = embree_native.NativeScene(self.vertices, self.faces)
             return
+        self.normals32 = n.astype(np.float32)  # the embreex path's cosines are float32 like its rays
         rtcs, TriangleMesh = _embree()
         self.embree = rtcs.EmbreeScene(robust=True)
         TriangleMesh(self.embree, self.vertices.astype(np.float32), self.faces.astype(np.int32))
@@ -205,12 +205,11 @@ class MeshProjector:
     """
 
     def __init__(self, geometry, supersampling=1, threads=None, backend="auto"):
+        source = "backend"
         if backend == "auto" and os.environ.get("BUBSUB_BACKEND", "auto") != "auto":
-            backend = os.environ["BUBSUB_BACKEND"]
-            if backend not in ("native", "embreex"):
-                raise ValueError(f"BUBSUB_BACKEND must be 'auto', 'native' or 'embreex', got {backend!r}")
+            backend, source = os.environ["BUBSUB_BACKEND"], "BUBSUB_BACKEND"
         if backend not in ("auto", "native", "embreex"):
-            raise ValueError(f"backend must be 'auto', 'native' or 'embreex', got {backend!r}")
+            raise ValueError(f"{source} must be 'auto', 'native' or 'embreex', got {backend!r}")
         if backend == "native" and not embree_native.available():
             raise RuntimeError(f"the native backend is unavailable: {embree_native.unavailable_reason()}")
         if backend == "auto":

@@ -19,7 +19,7 @@ import tracemalloc
 import numpy as np
 
 from bubsub.core import MeshProjector, ScanGeometry
-from bubsub.core.phantoms import foam3d_benchmark
+from bubsub.core.foam.phantoms import foam3d_benchmark
 
 
 def foam3d_geometry(n_angles=25, rows=256, cols=512, pixel_size=0.06):

@@ -4,9 +4,9 @@
 
 Two simulated foams (a 2D one and a 3D one, liquid container as the
 stationary background) are fitted from the same initial guess with
-:func:`bubsub.clients.fit.fit`, once with a local
+:func:`bubsub.clients.optimise.fit.fit`, once with a local
 :class:`~bubsub.core.MeshProjector` and once with a
-:class:`~bubsub.clients.client.RemoteJob` on a server over loopback (started
+:class:`~bubsub.clients.remote.client.RemoteJob` on a server over loopback (started
 here in a subprocess, ``python -m bubsub.service``, unless ``--url`` names
 one). Prints one table: fit wall times (median of the repeats, local and
 remote runs interleaved) and the remote overhead; single objective
@@ -29,11 +29,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bubsub.clients.client import ProjectorClient
-from bubsub.clients.fit import fit
+from bubsub.clients.remote.client import ProjectorClient
+from bubsub.clients.optimise.fit import fit
 from bubsub.core import MeshProjector, circle_surface, sphere_surface
-from bubsub.core.phantoms import foam2d, foam3d
-from bubsub.core.simulate import default_geometry_2d, default_geometry_3d, simulate_2d, simulate_3d
+from bubsub.core.foam.phantoms import foam2d, foam3d
+from bubsub.core.foam.simulate import default_geometry_2d, default_geometry_3d, simulate_2d, simulate_3d
 
 TARGET_OVERHEAD = 0.10
 

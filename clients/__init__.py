@@ -6,7 +6,7 @@ of a projector server; the rest of the pipeline does not know the difference.
 The HTTP client needs ``httpx`` (the ``client`` extra) and is imported lazily.
 """
 
-from .fit import FitResult, estimate_radii, fit
+from .optimise.fit import FitResult, estimate_radii, fit
 
 __all__ = ["fit", "estimate_radii", "FitResult", "ProjectorClient", "RemoteJob", "RemoteError",
            "RemoteValueError", "UnknownJobError"]

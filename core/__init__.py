@@ -4,10 +4,10 @@ Units are millimetres and 1/mm; projections are float32 arrays with axes
 ``(angle, row, col)`` (3D) or ``(angle, col)`` (2D).
 """
 
-from .geometry import ScanGeometry
-from .mesh import Mesh, Polygon
-from .projector import MeshProjector, Traversal
-from .subdivision import (
+from .projection.geometry import ScanGeometry
+from .projection.mesh import Mesh, Polygon
+from .projection.projector import MeshProjector, Traversal
+from .projection.subdivision import (
     SubdivisionSurface,
     circle_surface,
     curve_subdivision,
@@ -31,13 +31,13 @@ __all__ = [
 ]
 
 # Data side: phantoms, simulation, scan files, mesh files, metrics.
-from .atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text
-from .meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
+from .io.atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text
+from .io.meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
 from .metrics import dice_dissimilarity, projection_mse, shapes_dice_dissimilarity
-from .phantoms import BENCHMARK_SEED, FoamPhantom, foam2d, foam3d, foam3d_benchmark, liquid_box, liquid_square, sphere_mesh
-from .raster import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
-from .scanfile import Scan, read_scan, theta_from_geometry, write_scan
-from .simulate import add_poisson_noise, default_geometry_2d, default_geometry_3d, project_image, simulate_2d, simulate_3d
+from .foam.phantoms import BENCHMARK_SEED, FoamPhantom, foam2d, foam3d, foam3d_benchmark, liquid_box, liquid_square, sphere_mesh
+from .voxel.raster import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
+from .io.scanfile import Scan, read_scan, theta_from_geometry, write_scan
+from .foam.simulate import add_poisson_noise, default_geometry_2d, default_geometry_3d, project_image, simulate_2d, simulate_3d
 
 __all__ += [
     "atomic_open", "atomic_path", "atomic_write_bytes", "atomic_write_text",
@@ -50,11 +50,11 @@ __all__ += [
 ]
 
 # Voxel side: grids, solvers, ASTRA 2D and numpy 3D reconstructions, segmentation.
-from .grid import grid_extent, index_to_world, resolve_grid, voxel_sizes, world_to_index
-from .segment import binarise, bubble_centres, otsu_threshold
-from .solvers import cgls, lsqr, sirt, tv_pdhg
-from .voxel2d import AstraProjector2D, fbp_2d, reconstruct_2d
-from .voxel3d import VoxelProjector, fdk, ramp_filter, reconstruct_3d
+from .voxel.grid import grid_extent, index_to_world, resolve_grid, voxel_sizes, world_to_index
+from .voxel.segment import binarise, bubble_centres, otsu_threshold
+from .voxel.solvers import cgls, lsqr, sirt, tv_pdhg
+from .voxel.astra2d import AstraProjector2D, fbp_2d, reconstruct_2d
+from .voxel.projector3d import VoxelProjector, fdk, ramp_filter, reconstruct_3d
 
 __all__ += [
     "grid_extent", "index_to_world", "resolve_grid", "voxel_sizes", "world_to_index",

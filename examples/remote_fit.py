@@ -21,11 +21,11 @@ import time
 
 import numpy as np
 
-from bubsub.clients.client import ProjectorClient
-from bubsub.clients.fit import fit
+from bubsub.clients.remote.client import ProjectorClient
+from bubsub.clients.optimise.fit import fit
 from bubsub.core import circle_surface
-from bubsub.core.phantoms import foam2d
-from bubsub.core.simulate import default_geometry_2d, simulate_2d
+from bubsub.core.foam.phantoms import foam2d
+from bubsub.core.foam.simulate import default_geometry_2d, simulate_2d
 
 ap = argparse.ArgumentParser(description="Fit a small simulated 2D foam on a bubsub projection server.")
 ap.add_argument("--server", default=os.environ.get("BUBSUB_SERVER"), help="server URL (default: $BUBSUB_SERVER)")

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import uvicorn
 
-from bubsub.clients.client import ProjectorClient
+from bubsub.clients.remote.client import ProjectorClient
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
 from bubsub.service.app import create_app
 from bubsub.service.config import Settings

@@ -6,8 +6,8 @@ import time
 import numpy as np
 import pytest
 
-from bubsub.clients.client import ProjectorClient, RemoteError, UnknownJobError
-from bubsub.clients.fit import fit
+from bubsub.clients.remote.client import ProjectorClient, RemoteError, UnknownJobError
+from bubsub.clients.optimise.fit import fit
 from service_support import ServerThread, client, p2d, phantom_2d, server  # noqa: F401 - fixtures
 
 ITER = 25

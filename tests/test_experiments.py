@@ -3,8 +3,8 @@ import json
 
 import pytest
 
-from bubsub.clients.cli import main
-from bubsub.clients.experiments import EXPERIMENTS, format_table, summarise
+from bubsub.clients.cli.main import main
+from bubsub.clients.experiments.runner import EXPERIMENTS, format_table, summarise
 
 
 def test_quick_experiment_writes_csv_png_and_summary(tmp_path):
@@ -20,7 +20,7 @@ def test_quick_experiment_writes_csv_png_and_summary(tmp_path):
 
 
 def test_baselines_and_bubsub_are_scored_on_one_grid(tmp_path):
-    from bubsub.clients.experiments import _QUICK_2D, _simulate, run_case
+    from bubsub.clients.experiments.runner import _QUICK_2D, _simulate, run_case
 
     ph, scan, shape, extent = _simulate(2, 0, 20, 1e4, _QUICK_2D, quick=True)
     scores = {m: run_case(m, scan, ph, shape, extent, iterations=40)[0] for m in ("fbp", "sirt", "bubsub")}

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from bubsub.clients.fit import estimate_radii, fit
+from bubsub.clients.optimise.fit import estimate_radii, fit
 from bubsub.core import MeshProjector, Polygon, ScanGeometry, circle_surface, sphere_surface
 
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from bubsub.core.mesh import Polygon
-from bubsub.core.meshio import (
+from bubsub.core.projection.mesh import Polygon
+from bubsub.core.io.meshio import (
     BUBBLE_COLUMNS_2D,
     BUBBLE_COLUMNS_3D,
     bubble_table,
@@ -19,8 +19,8 @@ from bubsub.core.meshio import (
     write_ply,
     write_polygons_json,
 )
-from bubsub.core.phantoms import foam2d, sphere_mesh
-from bubsub.core.subdivision import circle_surface, sphere_surface
+from bubsub.core.foam.phantoms import foam2d, sphere_mesh
+from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 
 
 @pytest.fixture(scope="module")

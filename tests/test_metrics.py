@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from bubsub.core.mesh import Polygon
+from bubsub.core.projection.mesh import Polygon
 from bubsub.core.metrics import bubble_mask, dice_dissimilarity, projection_mse, shapes_dice_dissimilarity
-from bubsub.core.phantoms import foam3d_benchmark, sphere_mesh
+from bubsub.core.foam.phantoms import foam3d_benchmark, sphere_mesh
 
 
 def disk(centre, r, n=1024):

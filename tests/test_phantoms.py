@@ -7,8 +7,8 @@ import pytest
 import trimesh
 from matplotlib.path import Path as MplPath
 
-from bubsub.core.mesh import Mesh, Polygon
-from bubsub.core.phantoms import (
+from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.foam.phantoms import (
     BENCHMARK_SEED,
     FoamPhantom,
     foam2d,
@@ -18,7 +18,7 @@ from bubsub.core.phantoms import (
     liquid_square,
     sphere_mesh,
 )
-from bubsub.core.raster import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
+from bubsub.core.voxel.raster import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
 
 
 def regular_polygon(centre, radius, n=256, attenuation=1.0):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bubsub.core import Mesh, MeshProjector, Polygon, ScanGeometry, circle_surface, icosphere, sphere_surface
-from bubsub.core import embree_native
+from bubsub.core.projection.backends import embree_native
 from conftest import convex_chords, convex_mesh, sphere_chords
 
 BACKENDS = ["native", "embreex"]

@@ -7,9 +7,9 @@ import h5py
 import numpy as np
 import pytest
 
-from bubsub.clients.cli import evaluate_dir, main
+from bubsub.clients.cli.main import evaluate_dir, main
 from bubsub.core import MeshProjector
-from bubsub.core.meshio import read_polygons_json
+from bubsub.core.io.meshio import read_polygons_json
 
 
 @pytest.fixture(scope="module")

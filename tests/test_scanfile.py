@@ -6,9 +6,9 @@ import h5py
 import numpy as np
 import pytest
 
-from bubsub.core.atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text
-from bubsub.core.geometry import ScanGeometry
-from bubsub.core.scanfile import MIN_TRANSMISSION, Scan, read_scan, theta_from_geometry, write_scan
+from bubsub.core.io.atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.io.scanfile import MIN_TRANSMISSION, Scan, read_scan, theta_from_geometry, write_scan
 
 
 def geom2d(n=5, cols=16):

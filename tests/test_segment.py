@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from bubsub.core.geometry import ScanGeometry
-from bubsub.core.segment import binarise, bubble_centres, otsu_threshold
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.voxel.segment import binarise, bubble_centres, otsu_threshold
 
 N = 200
 EXT = (-5.0, 5.0, -5.0, 5.0)
@@ -131,7 +131,7 @@ def test_bubble_centres_3d_and_anisotropic_grid():
 
 def test_fbp_binarise_centres_end_to_end():
     """Analytic sinogram of the foam (container disk minus bubble disks) -> FBP -> Otsu -> EDT."""
-    from bubsub.core.voxel2d import reconstruct_2d  # ASTRA's FBP if installed, else numpy
+    from bubsub.core.voxel.astra2d import reconstruct_2d  # ASTRA's FBP if installed, else numpy
 
     g = ScanGeometry.parallel(np.linspace(0, np.pi, 100, endpoint=False), pixel_size=0.05, cols=220)
     o, d = g.rays(2)

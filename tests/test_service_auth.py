@@ -3,7 +3,7 @@
 import httpx
 import pytest
 
-from bubsub.clients.client import ProjectorClient
+from bubsub.clients.remote.client import ProjectorClient
 from service_support import ServerThread, p2d  # noqa: F401 - fixture
 
 

@@ -72,7 +72,7 @@ def test_load_data_from_the_scan_directory(tmp_path, p2d):  # noqa: F811
     np.savez(tmp_path / "scans.npz", sino=p2d.data, other=p2d.data[:2])
     (tmp_path / "sub").mkdir()
     with ServerThread(scan_dir=tmp_path) as s:
-        from bubsub.clients.client import ProjectorClient
+        from bubsub.clients.remote.client import ProjectorClient
 
         with ProjectorClient(s.url) as c:
             job = c.create_job(p2d.geometry, surfaces=p2d.init)

@@ -112,7 +112,7 @@ def test_wheel_installs_in_a_fresh_venv_and_serves(tmp_path):
     wheel = next(dist.glob("bubsub-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
     for needed in ("bubsub/service/app.py", "bubsub/service/routes/compute.py", "bubsub/service/cli.py",
-                   "bubsub/clients/client.py", "bubsub/core/projector.py"):
+                   "bubsub/clients/remote/client.py", "bubsub/core/projection/projector.py"):
         assert needed in names, needed
     assert not any(n.startswith(("core/", "service/", "tests/")) for n in names)  # only under bubsub/
 

@@ -9,7 +9,7 @@ import httpx
 import numpy as np
 import pytest
 
-from bubsub.clients.client import ProjectorClient
+from bubsub.clients.remote.client import ProjectorClient
 from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
 from service_support import ServerThread, p2d  # noqa: F401 - fixture
 

@@ -4,7 +4,7 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, settings
 
-from bubsub.clients.client import ProjectorClient
+from bubsub.clients.remote.client import ProjectorClient
 from service_support import phantom_2d, server  # noqa: F401 - fixture
 
 

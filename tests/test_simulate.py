@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from bubsub.core.geometry import ScanGeometry
-from bubsub.core.mesh import Polygon
-from bubsub.core.phantoms import foam2d, foam3d, liquid_box
-from bubsub.core.projector import MeshProjector
-from bubsub.core.raster import rasterize
-from bubsub.core.simulate import (
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.projection.mesh import Polygon
+from bubsub.core.foam.phantoms import foam2d, foam3d, liquid_box
+from bubsub.core.projection.projector import MeshProjector
+from bubsub.core.voxel.raster import rasterize
+from bubsub.core.foam.simulate import (
     add_poisson_noise,
     default_geometry_2d,
     default_geometry_3d,

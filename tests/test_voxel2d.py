@@ -5,10 +5,10 @@ import importlib.util
 import numpy as np
 import pytest
 
-from bubsub.core.geometry import ScanGeometry
-from bubsub.core.grid import index_to_world, world_to_index
-from bubsub.core.voxel2d import AstraProjector2D, fbp_2d, reconstruct_2d
-from bubsub.core.voxel3d import VoxelProjector
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.voxel.grid import index_to_world, world_to_index
+from bubsub.core.voxel.astra2d import AstraProjector2D, fbp_2d, reconstruct_2d
+from bubsub.core.voxel.projector3d import VoxelProjector
 
 needs_astra = pytest.mark.skipif(importlib.util.find_spec("astra") is None, reason="ASTRA toolbox not installed")
 

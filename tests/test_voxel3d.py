@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from bubsub.core.geometry import ScanGeometry
-from bubsub.core.grid import grid_extent, index_to_world, world_to_index
-from bubsub.core.voxel3d import VoxelProjector, fdk, ramp_filter, reconstruct_3d
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.voxel.grid import grid_extent, index_to_world, world_to_index
+from bubsub.core.voxel.projector3d import VoxelProjector, fdk, ramp_filter, reconstruct_3d
 
 SHAPE = (32, 48, 48)  # (z, y, x)
 H = 0.2
@@ -184,7 +184,7 @@ def test_cgls_residual_decreases(cone):
     g, truth = cone
     P = VoxelProjector(g, SHAPE, EXT)
     res = []
-    from bubsub.core.solvers import cgls
+    from bubsub.core.voxel.solvers import cgls
 
     cgls(P, truth, 6, callback=lambda k, x: res.append(np.linalg.norm(P.forward(x) - truth)))
     assert len(res) == 6

@@ -34,7 +34,7 @@ import numbers
 
 import numpy as np
 
-from .mesh import Mesh, Polygon
+from bubsub.core.projection.mesh import Mesh, Polygon
 
 __all__ = ["check_grid", "pixel_centres", "rasterize", "label_image", "bubble_mask", "coverage"]
 

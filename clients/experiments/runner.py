@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bubsub.core.atomic import atomic_path, atomic_write_text
+from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.metrics import dice_dissimilarity
-from bubsub.core.raster import bubble_mask
+from bubsub.core.voxel.raster import bubble_mask
 
 __all__ = ["EXPERIMENTS", "run_experiment", "run_case", "demo"]
 
@@ -68,7 +68,7 @@ _FULL_3D = {"n_bubbles": 60, "det_cols": 512, "voxel": 0.1, "iterations": 80}
 
 
 def _simulate(ndim, seed, angles, photons, cfg, quick):
-    from bubsub.core import phantoms, simulate
+    from bubsub.core.foam import phantoms, simulate
 
     if ndim == 2:
         size = 5.0 if quick else 10.0
@@ -93,16 +93,16 @@ def _simulate(ndim, seed, angles, photons, cfg, quick):
 
 
 def _baseline_mask(method, scan, shape, extent, ndim, tv_weight=None):
-    from bubsub.core.segment import binarise
+    from bubsub.core.voxel.segment import binarise
 
     data = scan.bubble_data
     kw = {"tv_weight": tv_weight} if method == "tv" else {}
     if ndim == 2:
-        from bubsub.core.voxel2d import reconstruct_2d
+        from bubsub.core.voxel.astra2d import reconstruct_2d
 
         img = reconstruct_2d(method, data, scan.geometry, shape, extent, **kw)
     else:
-        from bubsub.core.voxel3d import reconstruct_3d
+        from bubsub.core.voxel.projector3d import reconstruct_3d
 
         img = reconstruct_3d(method, data, scan.geometry, shape, extent, **kw)
     # bubbles carry the sign of the contrast in the bubble data
@@ -114,7 +114,7 @@ def run_case(method, scan, phantom, shape, extent, *, iterations=80, radius=None
     t = time.perf_counter()
     truth = bubble_mask(phantom.bubbles, shape, extent)
     if method == "bubsub":
-        from .reconstruct import ReconstructionSettings, reconstruct
+        from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 
         rec = reconstruct(scan, ReconstructionSettings(iterations=iterations, radius=radius,
                                                        estimate_radii=estimate_radii, progress=False))
@@ -286,10 +286,10 @@ def plot(path, summary, exp):
 
 def demo(out="demo-output", progress=True):
     """Simulate a small 2D foam, reconstruct it, evaluate against FBP; print the DDI table."""
-    from bubsub.core.scanfile import read_scan
+    from bubsub.core.io.scanfile import read_scan
 
-    from .cli import simulate_to_dir
-    from .reconstruct import ReconstructionSettings, reconstruct, write_outputs
+    from bubsub.clients.cli.main import simulate_to_dir
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, write_outputs
 
     out = Path(out)
     sim = out / "simulation"
@@ -297,7 +297,7 @@ def demo(out="demo-output", progress=True):
     scan = read_scan(scan_path)
     rec = reconstruct(scan, ReconstructionSettings(progress=progress))
     write_outputs(out / "bubsub", rec, scan_path=scan_path)
-    from bubsub.core.phantoms import foam2d
+    from bubsub.core.foam.phantoms import foam2d
 
     ph = foam2d(0, n_bubbles=30)
     shape, extent = ph.grid(500)  # every method on one 0.02 mm grid

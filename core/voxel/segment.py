@@ -20,7 +20,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from .grid import index_to_world, voxel_sizes
+from bubsub.core.voxel.grid import index_to_world, voxel_sizes
 
 __all__ = ["otsu_threshold", "binarise", "bubble_centres"]
 
@@ -135,7 +135,7 @@ def bubble_centres(mask, extent, *, min_distance=None, min_radius=0.0, border_is
     mask : (rows, cols) or (slices, rows, cols) bool
         Bubble mask (e.g. from :func:`binarise`).
     extent : (xmin, xmax, ymin, ymax[, zmin, zmax])
-        The grid (see :mod:`bubsub.core.grid`); pixels may be non-square.
+        The grid (see :mod:`bubsub.core.voxel.grid`); pixels may be non-square.
     min_distance : float, optional
         Minimum distance between two centres, mm (default: 3 pixels). Of two
         maxima closer than this, the one with the larger EDT value is kept.

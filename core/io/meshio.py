@@ -19,7 +19,7 @@ CSV
     area | volume, perimeter | surface, equivalent_diameter`` (mm, mm^2,
     mm^3); see :func:`bubble_table`.
 
-All writers are atomic (:mod:`bubsub.core.atomic`).
+All writers are atomic (:mod:`bubsub.core.io.atomic`).
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_open
-from .mesh import Mesh, Polygon
+from bubsub.core.io.atomic import atomic_open
+from bubsub.core.projection.mesh import Mesh, Polygon
 
 __all__ = [
     "write_ply",

@@ -6,8 +6,8 @@ The solvers take an *operator*: any object with
 * ``proj_shape`` -- the projection array shape,
 * ``forward(x) -> y`` (``A x``) and ``adjoint(y) -> x`` (``A^T y``), float32 arrays.
 
-:class:`bubsub.core.voxel2d.AstraProjector2D` (ASTRA CPU, 2D) and
-:class:`bubsub.core.voxel3d.VoxelProjector` (numpy, 2D and 3D) are such
+:class:`bubsub.core.voxel.astra2d.AstraProjector2D` (ASTRA CPU, 2D) and
+:class:`bubsub.core.voxel.projector3d.VoxelProjector` (numpy, 2D and 3D) are such
 operators; both have exact adjoints, which CGLS and LSQR rely on.
 """
 

@@ -13,7 +13,7 @@ from functools import lru_cache
 import numpy as np
 import scipy.sparse as sp
 
-from .mesh import Mesh, Polygon
+from bubsub.core.projection.mesh import Mesh, Polygon
 
 __all__ = [
     "loop_subdivision",

@@ -4,7 +4,7 @@
 2. Otsu binarisation and local maxima of the distance transform: bubble centres.
 3. One spherical control mesh per bubble with a constant radius, optionally
    improved by a radius-only fit (paper eq. 4-5), or a user-given initial mesh.
-4. BFGS on all control vertices (:func:`bubsub.clients.fit`).
+4. BFGS on all control vertices (:func:`bubsub.clients.optimise.fit`).
 5. Outputs, each written atomically: ``bubbles.ply`` (3D) or ``bubbles.json``
    (2D), ``bubbles.csv``, ``report.json`` and ``overlay.png``.
 """
@@ -20,12 +20,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
-from bubsub.core.atomic import atomic_path
-from bubsub.core.meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
+from bubsub.core.io.atomic import atomic_path
+from bubsub.core.io.meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
 from bubsub.core.metrics import projection_mse
-from bubsub.core.subdivision import SubdivisionSurface
+from bubsub.core.projection.subdivision import SubdivisionSurface
 
-from .fit import estimate_radii, fit
+from bubsub.clients.optimise.fit import estimate_radii, fit
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "initial_surfaces", "voxel_preview"]
 
@@ -110,11 +110,11 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None):
     shape, extent = _grid(geometry, voxel_size)
     positive = np.sign(contrast) * np.asarray(data, dtype=np.float32)
     if geometry.ndim == 2:
-        from bubsub.core.voxel2d import reconstruct_2d
+        from bubsub.core.voxel.astra2d import reconstruct_2d
 
         image = reconstruct_2d("sirt", positive, geometry, shape, extent, iterations=iterations or 100, nonneg=True)
     else:
-        from bubsub.core.voxel3d import reconstruct_3d
+        from bubsub.core.voxel.projector3d import reconstruct_3d
 
         image = reconstruct_3d("sirt", positive, geometry, shape, extent, iterations=iterations or 15, nonneg=True)
     return image, extent
@@ -141,7 +141,7 @@ def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, 
     -------
     list of SubdivisionSurface
     """
-    from bubsub.core.segment import binarise, bubble_centres
+    from bubsub.core.voxel.segment import binarise, bubble_centres
 
     ndim = image.ndim
     mask = binarise(image, opening_radius=2, bubbles_are_dark=False, fill_holes=True)
@@ -199,7 +199,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
 
     Parameters
     ----------
-    scan : bubsub.core.scanfile.Scan
+    scan : bubsub.core.io.scanfile.Scan
     settings : ReconstructionSettings, optional
     init : list of SubdivisionSurface, optional
         Initial bubbles (e.g. :func:`load_initial` of a previous frame);

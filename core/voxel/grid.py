@@ -1,6 +1,6 @@
 """Voxel grids: world <-> index conversion for images and volumes.
 
-A grid is ``(shape, extent)``, the convention of :mod:`bubsub.core.raster`:
+A grid is ``(shape, extent)``, the convention of :mod:`bubsub.core.voxel.raster`:
 
 * 2D: ``img[row, col]``, ``shape = (rows, cols)``, ``extent = (xmin, xmax,
   ymin, ymax)``; pixel centre ``x = xmin + (col + 0.5) * dx``,
@@ -24,7 +24,7 @@ import numbers
 
 import numpy as np
 
-from .raster import check_grid
+from bubsub.core.voxel.raster import check_grid
 
 __all__ = ["grid_extent", "resolve_grid", "voxel_sizes", "world_to_index", "index_to_world"]
 

@@ -56,9 +56,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy import sparse
 
-from . import solvers
-from .geometry import KINDS, ScanGeometry
-from .grid import resolve_grid, voxel_sizes
+from bubsub.core.voxel import solvers
+from bubsub.core.projection.geometry import KINDS, ScanGeometry
+from bubsub.core.voxel.grid import resolve_grid, voxel_sizes
 
 __all__ = ["VoxelProjector", "fdk", "reconstruct_3d", "as_scan_geometry", "ramp_filter", "FILTERS", "METHODS_3D"]
 
@@ -418,7 +418,7 @@ class VoxelProjector:
     shape : (slices, rows, cols) or, for 2D geometries, (rows, cols)
         Volume ``vol[z, y, x]`` / image ``img[row, col]`` shape.
     extent : (xmin, xmax, ymin, ymax[, zmin, zmax]), optional
-        Grid extent in mm (see :mod:`bubsub.core.grid`).
+        Grid extent in mm (see :mod:`bubsub.core.voxel.grid`).
     pixel_size : float, optional
         Instead of ``extent``: cubic voxel size, mm, with ``centre``.
     centre : (ndim,) float, optional
@@ -713,7 +713,7 @@ def fdk(
         ``parallel_vec``: rays perpendicular to z (180 or 360 degrees).
     shape : (slices, rows, cols) or (rows, cols)
     extent, pixel_size, centre
-        The grid (see :func:`bubsub.core.grid.resolve_grid`).
+        The grid (see :func:`bubsub.core.voxel.grid.resolve_grid`).
     filter : str
         One of :data:`FILTERS`.
     threads : int, optional
@@ -770,8 +770,8 @@ def reconstruct_3d(
     ----------
     method : {'fdk', 'fbp', 'sirt', 'cgls', 'lsqr', 'tv'}
         ``fdk``/``fbp``: :func:`fdk`; ``sirt``, ``cgls``, ``lsqr``: the
-        solvers of :mod:`bubsub.core.solvers` on :class:`VoxelProjector`;
-        ``tv``: :func:`bubsub.core.solvers.tv_pdhg`.
+        solvers of :mod:`bubsub.core.voxel.solvers` on :class:`VoxelProjector`;
+        ``tv``: :func:`bubsub.core.voxel.solvers.tv_pdhg`.
     projections : ndarray float, ``(angle, row, col)`` (or ``(angle, col)``)
     geometry : ScanGeometry or ASTRA proj_geom dict
     shape : (slices, rows, cols) (or (rows, cols) for 2D)
@@ -780,7 +780,7 @@ def reconstruct_3d(
     iterations : int, optional
         Defaults from :data:`METHODS_3D`.
     tv_weight : float
-        Required for ``tv`` (see :func:`bubsub.core.solvers.tv_pdhg`).
+        Required for ``tv`` (see :func:`bubsub.core.voxel.solvers.tv_pdhg`).
     nonneg : bool
         Non-negativity constraint for ``sirt`` and ``tv`` (ignored by ``cgls``/``lsqr``).
     filter : str

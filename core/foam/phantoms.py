@@ -25,9 +25,9 @@ import numbers
 
 import numpy as np
 
-from .mesh import Mesh, Polygon
-from .raster import bubble_mask, label_image, rasterize
-from .subdivision import icosphere
+from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.voxel.raster import bubble_mask, label_image, rasterize
+from bubsub.core.projection.subdivision import icosphere
 
 __all__ = [
     "FoamPhantom",
@@ -155,7 +155,7 @@ class FoamPhantom:
         Returns
         -------
         ndarray, shape ``shape``
-            1/mm; row 0 at y max (see :mod:`bubsub.core.raster`).
+            1/mm; row 0 at y max (see :mod:`bubsub.core.voxel.raster`).
         """
         shp, ext = self.grid(shape, extent)
         return rasterize(self.items, shp, ext, supersample=supersample, dtype=dtype)

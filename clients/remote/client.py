@@ -3,7 +3,7 @@
 >>> with ProjectorClient("http://127.0.0.1:8000") as client:      # doctest: +SKIP
 ...     job = client.create_job(geometry, data=sino, surfaces=surfaces)
 ...     f, grads = job.objective(surfaces)          # same as MeshProjector(geometry).objective(surfaces, sino)
-...     result = fit(job, surfaces)                 # bubsub.clients.fit runs locally, projects remotely
+...     result = fit(job, surfaces)                 # bubsub.clients.optimise.fit runs locally, projects remotely
 
 A :class:`RemoteJob` keeps everything it was created from (geometry, data,
 background, surface topology, initial control vertices), so when the server

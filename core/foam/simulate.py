@@ -23,10 +23,10 @@ import numbers
 
 import numpy as np
 
-from .geometry import ScanGeometry
-from .phantoms import FoamPhantom
-from .raster import check_grid
-from .scanfile import Scan
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.foam.phantoms import FoamPhantom
+from bubsub.core.voxel.raster import check_grid
+from bubsub.core.io.scanfile import Scan
 
 __all__ = [
     "project_image",
@@ -141,7 +141,7 @@ def project_image(image, extent, geometry, projector="auto"):
     (n_angles, det_count) float32
         Line integrals.
     """
-    from .voxel2d import AstraProjector2D, _have_astra
+    from bubsub.core.voxel.astra2d import AstraProjector2D, _have_astra
 
     if not _have_astra():  # pragma: no cover - depends on the environment
         raise ImportError(
@@ -216,7 +216,7 @@ def simulate_2d(
     Parameters
     ----------
     phantom : FoamPhantom
-        A 2D phantom (:func:`bubsub.core.phantoms.foam2d`).
+        A 2D phantom (:func:`bubsub.core.foam.phantoms.foam2d`).
     geometry : ScanGeometry
         ``parallel_vec`` or ``fanflat_vec``, e.g. :func:`default_geometry_2d`.
     photons : float, optional
@@ -253,7 +253,7 @@ def simulate_2d(
         info = {"image_rows": shape[0], "image_cols": shape[1], "supersample": supersample,
                 "projector": projector if projector != "auto" else ASTRA_PROJECTORS[geometry.kind][0]}
     elif method == "mesh":
-        from .projector import MeshProjector
+        from bubsub.core.projection.projector import MeshProjector
 
         proj = MeshProjector(geometry)
         clean = proj.forward(phantom.items)
@@ -270,7 +270,7 @@ def simulate_3d(phantom, geometry, *, photons=None, seed=0, supersampling=1, thr
     Parameters
     ----------
     phantom : FoamPhantom
-        A 3D phantom (:func:`bubsub.core.phantoms.foam3d`, :func:`foam3d_benchmark`).
+        A 3D phantom (:func:`bubsub.core.foam.phantoms.foam3d`, :func:`foam3d_benchmark`).
     geometry : ScanGeometry
         ``cone_vec`` or ``parallel3d_vec``, e.g. :func:`default_geometry_3d`.
     photons : float, optional
@@ -287,7 +287,7 @@ def simulate_3d(phantom, geometry, *, photons=None, seed=0, supersampling=1, thr
     Scan
         As :func:`simulate_2d`; shapes ``(n_angles, rows, cols)``.
     """
-    from .projector import MeshProjector
+    from bubsub.core.projection.projector import MeshProjector
 
     _check_phantom(phantom, 3)
     if not isinstance(geometry, ScanGeometry) or geometry.ndim != 3:

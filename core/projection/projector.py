@@ -38,10 +38,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import ScanGeometry
-from .mesh import Mesh, Polygon
-from .subdivision import SubdivisionSurface
-from . import embree_native
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.projection.subdivision import SubdivisionSurface
+from bubsub.core.projection.backends import embree_native
 
 __all__ = ["MeshProjector", "Traversal"]
 
@@ -194,7 +194,7 @@ class MeshProjector:
         embreex's closest-hit interface, once per crossing, in numpy.
         ``"auto"`` takes the environment variable ``BUBSUB_BACKEND`` when
         set, else ``"native"`` where it is available
-        (:func:`bubsub.core.embree_native.available`).
+        (:func:`bubsub.core.projection.backends.embree_native.available`).
 
     Notes
     -----

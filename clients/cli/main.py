@@ -35,7 +35,7 @@ PHANTOMS = ("foam2d", "foam3d", "foam3d-benchmark")
 
 
 def make_phantom(name, seed, n_bubbles=None):
-    from bubsub.core import phantoms
+    from bubsub.core.foam import phantoms
 
     if name == "foam2d":
         return phantoms.foam2d(seed, **({"n_bubbles": n_bubbles} if n_bubbles else {}))
@@ -49,7 +49,7 @@ def make_phantom(name, seed, n_bubbles=None):
 def make_geometry(ndim, beam, n_angles, det_count=None, rows=None):
     """The scans of the paper: 2D parallel over [0, pi), 3D cone over [0, 2 pi)."""
     from bubsub.core import ScanGeometry
-    from bubsub.core.simulate import default_geometry_2d
+    from bubsub.core.foam.simulate import default_geometry_2d
 
     if ndim == 2:
         # a 14.4 mm detector sees the whole 10 mm square at every angle
@@ -81,10 +81,10 @@ def truth_grid(phantom, resolution=None):
 def simulate_to_dir(out, phantom_name="foam2d", *, angles=25, photons=1e4, seed=0, beam=None,
                     det_count=None, n_bubbles=None, method="voxel"):
     """Simulate a scan and write ``scan.h5``, ``truth.json|ply`` and ``phantom.json`` to ``out``."""
-    from bubsub.core.atomic import atomic_write_text
-    from bubsub.core.meshio import write_ply, write_polygons_json
-    from bubsub.core.scanfile import write_scan
-    from bubsub.core.simulate import simulate_2d, simulate_3d
+    from bubsub.core.io.atomic import atomic_write_text
+    from bubsub.core.io.meshio import write_ply, write_polygons_json
+    from bubsub.core.io.scanfile import write_scan
+    from bubsub.core.foam.simulate import simulate_2d, simulate_3d
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -120,9 +120,9 @@ def cmd_simulate(args):
 
 # -- reconstruct -----------------------------------------------------------------------------
 def cmd_reconstruct(args):
-    from bubsub.core.scanfile import read_scan
+    from bubsub.core.io.scanfile import read_scan
 
-    from .reconstruct import ReconstructionSettings, load_initial, reconstruct, write_outputs
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, load_initial, reconstruct, write_outputs
 
     scan = read_scan(args.scan)
     settings = ReconstructionSettings(
@@ -135,7 +135,7 @@ def cmd_reconstruct(args):
     client = None
     jobs = []
     if args.server:
-        from .client import ProjectorClient
+        from bubsub.clients.remote.client import ProjectorClient
 
         client = ProjectorClient(args.server, token=args.token)
 
@@ -168,7 +168,7 @@ def cmd_reconstruct(args):
 # -- evaluate -----------------------------------------------------------------------------------
 def evaluate_dir(recon_dir, truth_dir):
     """DDI of a reconstruction against the simulated ground truth (and held-out MSE if any)."""
-    from bubsub.core.meshio import read_ply, read_polygons_json
+    from bubsub.core.io.meshio import read_ply, read_polygons_json
     from bubsub.core.metrics import shapes_dice_dissimilarity
 
     recon_dir, truth_dir = Path(recon_dir), Path(truth_dir)
@@ -204,7 +204,7 @@ def cmd_evaluate(args):
 
 # -- experiment / demo ------------------------------------------------------------------------------
 def cmd_experiment(args):
-    from .experiments import run_experiment
+    from bubsub.clients.experiments.runner import run_experiment
 
     run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values, methods=args.methods,
                    resume=args.resume, progress=not args.quiet)
@@ -212,7 +212,7 @@ def cmd_experiment(args):
 
 
 def cmd_demo(args):
-    from .experiments import demo
+    from bubsub.clients.experiments.runner import demo
 
     demo(args.out, progress=not args.quiet)
     return 0

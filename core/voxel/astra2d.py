@@ -1,26 +1,26 @@
 """2D voxel (pixel) reconstruction with ASTRA's CPU projectors: FBP, SIRT, CGLS, LSQR, TV.
 
-Images follow the convention of :mod:`bubsub.core.grid`: ``img[row, col]``,
+Images follow the convention of :mod:`bubsub.core.voxel.grid`: ``img[row, col]``,
 row 0 at y max, ``extent = (xmin, xmax, ymin, ymax)`` (ASTRA's 2D volume
 geometry). Sinograms are ``(angle, col)``.
 
 ASTRA (``astra-toolbox``, an optional dependency) provides the projector
 for ``backend='astra'``; ``backend='numpy'`` uses
-:class:`bubsub.core.voxel3d.VoxelProjector` instead and needs no ASTRA.
+:class:`bubsub.core.voxel.projector3d.VoxelProjector` instead and needs no ASTRA.
 ASTRA's CPU ``FBP`` only handles plain ``parallel`` geometries, so FBP runs
 through ASTRA only for a parallel-beam vector geometry that is one (rays
 perpendicular to a centred detector); every other case (fan beams, shifted
 or tilted detectors) uses the numpy FBP/FDK of
-:func:`bubsub.core.voxel3d.fdk`.
+:func:`bubsub.core.voxel.projector3d.fdk`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from . import solvers
-from .grid import resolve_grid
-from .voxel3d import FILTERS, VoxelProjector, _iterate, as_scan_geometry, fdk
+from bubsub.core.voxel import solvers
+from bubsub.core.voxel.grid import resolve_grid
+from bubsub.core.voxel.projector3d import FILTERS, VoxelProjector, _iterate, as_scan_geometry, fdk
 
 __all__ = ["AstraProjector2D", "fbp_2d", "reconstruct_2d", "astra_vol_geom", "METHODS_2D"]
 
@@ -89,7 +89,7 @@ class AstraProjector2D:
     shape : (rows, cols)
     extent : (xmin, xmax, ymin, ymax), optional
     pixel_size, centre : optional
-        Instead of ``extent`` (see :func:`bubsub.core.grid.resolve_grid`).
+        Instead of ``extent`` (see :func:`bubsub.core.voxel.grid.resolve_grid`).
     projector : str, optional
         ASTRA CPU projector type: ``linear`` (default), ``line``, ``strip`` or
         ``distance_driven`` for parallel beams; ``line_fanflat`` (default)
@@ -242,10 +242,10 @@ def fbp_2d(sinogram, geometry, shape, extent=None, *, pixel_size=None, centre=No
     extent, pixel_size, centre
         The grid.
     filter : str
-        One of :data:`bubsub.core.voxel3d.FILTERS`.
+        One of :data:`bubsub.core.voxel.projector3d.FILTERS`.
     backend : {'auto', 'astra', 'numpy'}
         ``astra``: ASTRA's CPU ``FBP`` (plain parallel geometries only, else
-        ValueError); ``numpy``: :func:`bubsub.core.voxel3d.fdk` (any 2D
+        ValueError); ``numpy``: :func:`bubsub.core.voxel.projector3d.fdk` (any 2D
         geometry; full 360 degree orbit for fan beams); ``auto``: ASTRA where
         it applies and is installed, else numpy.
 
@@ -330,9 +330,9 @@ def reconstruct_2d(
     method : {'fbp', 'sirt', 'cgls', 'lsqr', 'tv'}
         ``fbp``: :func:`fbp_2d`; ``sirt`` / ``cgls``: ASTRA's CPU algorithms
         (``backend='astra'``; CGLS with ``x0`` or a callback, and SIRT with a
-        callback, use :mod:`bubsub.core.solvers` on the ASTRA projector) or
-        :mod:`bubsub.core.solvers` (``backend='numpy'``); ``lsqr``: scipy
-        LSQR; ``tv``: :func:`bubsub.core.solvers.tv_pdhg` (total variation
+        callback, use :mod:`bubsub.core.voxel.solvers` on the ASTRA projector) or
+        :mod:`bubsub.core.voxel.solvers` (``backend='numpy'``); ``lsqr``: scipy
+        LSQR; ``tv``: :func:`bubsub.core.voxel.solvers.tv_pdhg` (total variation
         by preconditioned Chambolle-Pock).
     sinogram : (n_angles, det_count) float
         Line integrals (dimensionless), ``geometry.shape``.
@@ -345,18 +345,18 @@ def reconstruct_2d(
     iterations : int, optional
         Defaults from :data:`METHODS_2D`.
     tv_weight : float
-        Required for ``tv``: weight of ``int |grad f|`` (see :func:`bubsub.core.solvers.tv_pdhg`).
+        Required for ``tv``: weight of ``int |grad f|`` (see :func:`bubsub.core.voxel.solvers.tv_pdhg`).
     nonneg : bool
         Non-negativity for ``sirt`` (ASTRA ``MinConstraint``) and ``tv``.
     filter : str
-        FBP filter (:data:`bubsub.core.voxel3d.FILTERS`).
+        FBP filter (:data:`bubsub.core.voxel.projector3d.FILTERS`).
     isotropic : bool
         Isotropic (True) or anisotropic (l1) TV.
     projector : str, optional
         ASTRA projector type (see :class:`AstraProjector2D`).
     backend : {'auto', 'astra', 'numpy'}
         Projector for the iterative methods: ASTRA's CPU projector or
-        :class:`bubsub.core.voxel3d.VoxelProjector`; ``auto`` is ASTRA when
+        :class:`bubsub.core.voxel.projector3d.VoxelProjector`; ``auto`` is ASTRA when
         it is installed. FBP uses ASTRA when it can (see :func:`fbp_2d`)
         unless ``backend='numpy'``.
     x0 : (rows, cols), optional
@@ -394,6 +394,6 @@ def reconstruct_2d(
             return op.run_algorithm("SIRT", sino, it, x0=x0, options={"MinConstraint": 0.0} if nonneg else None)
         if method == "cgls" and callback is None and x0 is None:
             # ASTRA 2.5's CPU CGLS mishandles a non-zero initial image (its error grows), so
-            # a warm start goes through bubsub.core.solvers.cgls on the same projector.
+            # a warm start goes through bubsub.core.voxel.solvers.cgls on the same projector.
             return op.run_algorithm("CGLS", sino, it)
         return _iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D)

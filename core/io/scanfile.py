@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
-from .geometry import KINDS, ScanGeometry
+from bubsub.core.io.atomic import atomic_path
+from bubsub.core.projection.geometry import KINDS, ScanGeometry
 
 __all__ = ["Scan", "read_scan", "write_scan", "theta_from_geometry", "MIN_TRANSMISSION"]
 

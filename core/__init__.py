@@ -54,7 +54,9 @@ from .voxel.grid import grid_extent, index_to_world, resolve_grid, voxel_sizes, 
 from .voxel.segment import binarise, bubble_centres, otsu_threshold
 from .voxel.solvers import cgls, lsqr, sirt, tv_pdhg
 from .voxel.astra2d import AstraProjector2D, fbp_2d, reconstruct_2d
-from .voxel.projector3d import VoxelProjector, fdk, ramp_filter, reconstruct_3d
+from .voxel.fdk import fdk, ramp_filter
+from .voxel.projector3d import VoxelProjector
+from .voxel.reconstruct3d import reconstruct_3d
 
 __all__ += [
     "grid_extent", "index_to_world", "resolve_grid", "voxel_sizes", "world_to_index",

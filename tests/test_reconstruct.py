@@ -7,7 +7,8 @@ import h5py
 import numpy as np
 import pytest
 
-from bubsub.clients.cli.main import evaluate_dir, main
+from bubsub.clients.cli import main
+from bubsub.clients.pipeline.evaluate import evaluate_dir
 from bubsub.core import MeshProjector
 from bubsub.core.io.meshio import read_polygons_json
 

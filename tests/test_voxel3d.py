@@ -5,7 +5,9 @@ import pytest
 
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.voxel.grid import grid_extent, index_to_world, world_to_index
-from bubsub.core.voxel.projector3d import VoxelProjector, fdk, ramp_filter, reconstruct_3d
+from bubsub.core.voxel.fdk import fdk, ramp_filter
+from bubsub.core.voxel.projector3d import VoxelProjector
+from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 
 SHAPE = (32, 48, 48)  # (z, y, x)
 H = 0.2

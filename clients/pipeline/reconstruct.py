@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
+from bubsub.core import MeshProjector, circle_surface, sphere_surface
 from bubsub.core.io.atomic import atomic_path
 from bubsub.core.io.meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
 from bubsub.core.metrics import projection_mse
@@ -114,7 +114,7 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None):
 
         image = reconstruct_2d("sirt", positive, geometry, shape, extent, iterations=iterations or 100, nonneg=True)
     else:
-        from bubsub.core.voxel.projector3d import reconstruct_3d
+        from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 
         image = reconstruct_3d("sirt", positive, geometry, shape, extent, iterations=iterations or 15, nonneg=True)
     return image, extent

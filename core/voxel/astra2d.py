@@ -20,7 +20,9 @@ import numpy as np
 
 from bubsub.core.voxel import solvers
 from bubsub.core.voxel.grid import resolve_grid
-from bubsub.core.voxel.projector3d import FILTERS, VoxelProjector, _iterate, as_scan_geometry, fdk
+from bubsub.core.voxel.fdk import FILTERS, fdk
+from bubsub.core.voxel.projector3d import VoxelProjector, as_scan_geometry
+from bubsub.core.voxel.reconstruct3d import iterate
 
 __all__ = ["AstraProjector2D", "fbp_2d", "reconstruct_2d", "astra_vol_geom", "METHODS_2D"]
 
@@ -388,7 +390,7 @@ def reconstruct_2d(
     it = METHODS_2D[method] if iterations is None else solvers._iterations(iterations)
     if backend == "numpy":
         op = VoxelProjector(geom, shape, extent, pixel_size=pixel_size, centre=centre)
-        return _iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D)
+        return iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D)
     with AstraProjector2D(geom, shape, extent, pixel_size=pixel_size, centre=centre, projector=projector) as op:
         if method == "sirt" and callback is None:
             return op.run_algorithm("SIRT", sino, it, x0=x0, options={"MinConstraint": 0.0} if nonneg else None)
@@ -396,4 +398,4 @@ def reconstruct_2d(
             # ASTRA 2.5's CPU CGLS mishandles a non-zero initial image (its error grows), so
             # a warm start goes through bubsub.core.voxel.solvers.cgls on the same projector.
             return op.run_algorithm("CGLS", sino, it)
-        return _iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D)
+        return iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D)

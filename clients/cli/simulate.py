@@ -1,0 +1,28 @@
+"""``bubsub simulate``: a simulated scan and its ground truth."""
+
+from __future__ import annotations
+
+from bubsub.clients.cli.args import positive_float, positive_int
+from bubsub.clients.pipeline.simulation import PHANTOMS, simulate_to_dir
+
+def cmd_simulate(args):
+    scan, truth, meta = simulate_to_dir(args.out, args.phantom, angles=args.angles, photons=args.photons,
+                                        seed=args.seed, beam=args.beam, det_count=args.det_count,
+                                        n_bubbles=args.bubbles)
+    print(f"wrote {scan} ({meta['angles']} projections, I0={meta['photons']:g}, seed {meta['seed']}), "
+          f"ground truth {truth} ({meta['bubbles']} bubbles)")
+    return 0
+
+
+def register(sub):
+    """Add the command's parser to ``sub`` (argparse subparsers)."""
+    p = sub.add_parser("simulate", help="simulate a foam scan (scan.h5) and its ground truth")
+    p.add_argument("--phantom", choices=PHANTOMS, default="foam2d")
+    p.add_argument("--angles", type=positive_int, default=25, help="number of projections (default 25)")
+    p.add_argument("--photons", type=positive_float, default=1e4, help="flat-field photon count I0 (default 1e4)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the phantom and the noise (default 0)")
+    p.add_argument("--beam", choices=("parallel", "cone"), help="default: parallel in 2D, cone in 3D")
+    p.add_argument("--det-count", type=positive_int, help="detector columns (2D default 2400, 3D 512)")
+    p.add_argument("--bubbles", type=positive_int, help="number of bubbles (random phantoms)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.set_defaults(func=cmd_simulate)

@@ -118,6 +118,11 @@ class _Faces(np.ndarray):
     def __array_finalize__(self, obj):
         self.n_vertices = getattr(obj, "n_vertices", None)
 
+    def __reduce__(self):
+        # ndarray's own reduce drops Python attributes: without this a mesh
+        # shipped to a worker process forgets how many vertices its faces fit.
+        return _Faces, (np.asarray(self), self.n_vertices)
+
 
 def _faces(faces, n_vertices):
     f = np.asarray(faces)

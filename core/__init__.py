@@ -34,7 +34,8 @@ __all__ = [
 from .io.atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text
 from .io.meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
 from .metrics import dice_dissimilarity, projection_mse, shapes_dice_dissimilarity
-from .foam.phantoms import BENCHMARK_SEED, FoamPhantom, foam2d, foam3d, foam3d_benchmark, liquid_box, liquid_square, sphere_mesh
+from .foam.containers import liquid_box, liquid_square, sphere_mesh
+from .foam.phantoms import BENCHMARK_SEED, FoamPhantom, foam2d, foam3d, foam3d_benchmark
 from .voxel.raster import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
 from .io.scanfile import Scan, read_scan, theta_from_geometry, write_scan
 from .foam.simulate import add_poisson_noise, default_geometry_2d, default_geometry_3d, project_image, simulate_2d, simulate_3d

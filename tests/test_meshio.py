@@ -19,7 +19,8 @@ from bubsub.core.io.meshio import (
     write_ply,
     write_polygons_json,
 )
-from bubsub.core.foam.phantoms import foam2d, sphere_mesh
+from bubsub.core.foam.containers import sphere_mesh
+from bubsub.core.foam.phantoms import foam2d
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 
 

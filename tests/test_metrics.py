@@ -5,7 +5,8 @@ import pytest
 
 from bubsub.core.projection.mesh import Polygon
 from bubsub.core.metrics import bubble_mask, dice_dissimilarity, projection_mse, shapes_dice_dissimilarity
-from bubsub.core.foam.phantoms import foam3d_benchmark, sphere_mesh
+from bubsub.core.foam.containers import sphere_mesh
+from bubsub.core.foam.phantoms import foam3d_benchmark
 
 
 def disk(centre, r, n=1024):

@@ -5,7 +5,8 @@ import pytest
 
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Polygon
-from bubsub.core.foam.phantoms import foam2d, foam3d, liquid_box
+from bubsub.core.foam.containers import liquid_box
+from bubsub.core.foam.phantoms import foam2d, foam3d
 from bubsub.core.projection.projector import MeshProjector
 from bubsub.core.voxel.raster import rasterize
 from bubsub.core.foam.simulate import (

@@ -25,18 +25,17 @@ import numbers
 
 import numpy as np
 
+from bubsub.core.foam.checks import unit_icosphere, rng_from_seed, count, finite, positive, nonneg, fraction, value_range, size_vector, frozen
+from bubsub.core.foam.containers import liquid_box, liquid_square
+from bubsub.core.foam.packing import fourier_perturbation, smooth_sphere_perturbation, place
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.voxel.raster import bubble_mask, label_image, rasterize
-from bubsub.core.projection.subdivision import icosphere
 
 __all__ = [
     "FoamPhantom",
     "foam2d",
     "foam3d",
     "foam3d_benchmark",
-    "liquid_square",
-    "liquid_box",
-    "sphere_mesh",
     "BENCHMARK_SEED",
 ]
 
@@ -176,86 +175,6 @@ class FoamPhantom:
         return bubble_mask(self.bubbles, shp, ext)
 
 
-# -- containers -----------------------------------------------------------------
-def liquid_square(size=10.0, attenuation=0.1):
-    """Square liquid container centred at the origin.
-
-    Parameters
-    ----------
-    size : float
-        Side length, mm.
-    attenuation : float
-        1/mm.
-
-    Returns
-    -------
-    Polygon
-        4 vertices, counter-clockwise.
-    """
-    h = _positive("size", size) / 2.0
-    return Polygon([[-h, -h], [h, -h], [h, h], [-h, h]], attenuation)
-
-
-_BOX_FACES = np.array(
-    [
-        [0, 2, 1], [0, 3, 2],  # z min (normal -z)
-        [4, 5, 6], [4, 6, 7],  # z max (+z)
-        [0, 1, 5], [0, 5, 4],  # y min (-y)
-        [3, 7, 6], [3, 6, 2],  # y max (+y)
-        [0, 4, 7], [0, 7, 3],  # x min (-x)
-        [1, 2, 6], [1, 6, 5],  # x max (+x)
-    ]
-)
-
-
-def liquid_box(size=(20.0, 20.0, 10.0), attenuation=0.1):
-    """Box-shaped liquid container centred at the origin.
-
-    Parameters
-    ----------
-    size : (3,) float
-        Side lengths (x, y, z), mm.
-    attenuation : float
-        1/mm.
-
-    Returns
-    -------
-    Mesh
-        8 vertices, 12 outward-oriented triangles.
-    """
-    s = _size(size, 3)
-    hx, hy, hz = (v / 2.0 for v in s)
-    verts = np.array(
-        [
-            [-hx, -hy, -hz], [hx, -hy, -hz], [hx, hy, -hz], [-hx, hy, -hz],
-            [-hx, -hy, hz], [hx, -hy, hz], [hx, hy, hz], [-hx, hy, hz],
-        ]
-    )
-    return Mesh(verts, _BOX_FACES, attenuation)
-
-
-def sphere_mesh(centre, radius, attenuation, subdivisions=2):
-    """Icosphere mesh of a sphere (``20 * 4**subdivisions`` triangles).
-
-    Parameters
-    ----------
-    centre : (3,) float
-    radius : float
-    attenuation : float
-    subdivisions : int
-        2 gives 162 vertices and 320 triangles.
-
-    Returns
-    -------
-    Mesh
-    """
-    unit_v, faces = _unit_icosphere(subdivisions)
-    c = np.asarray(centre, dtype=float)
-    if c.shape != (3,):
-        raise ValueError(f"centre must have shape (3,), got {c.shape}")
-    return Mesh(c + _positive("radius", radius) * unit_v, faces, attenuation)
-
-
 # -- 2D foam ----------------------------------------------------------------------
 def foam2d(
     seed,
@@ -326,16 +245,16 @@ def foam2d(
     ValueError
         On bad parameters, or when the bubbles do not fit.
     """
-    rng = _rng(seed)
-    n = _count("n_bubbles", n_bubbles)
-    side = _positive("size", size)
-    r_lo, r_hi = _range("radius_range", radius_range)
-    nv = _count("n_vertices", n_vertices, minimum=8)
-    amp = _fraction("perturbation", perturbation)
-    kmax = _count("max_mode", max_mode, minimum=2)
-    gap, margin = _nonneg("gap", gap), _nonneg("margin", margin)
-    liquid_attenuation = _finite("liquid_attenuation", liquid_attenuation)
-    gas_attenuation = _finite("gas_attenuation", gas_attenuation)
+    rng = rng_from_seed(seed)
+    n = count("n_bubbles", n_bubbles)
+    side = positive("size", size)
+    r_lo, r_hi = value_range("radius_range", radius_range)
+    nv = count("n_vertices", n_vertices, minimum=8)
+    amp = fraction("perturbation", perturbation)
+    kmax = count("max_mode", max_mode, minimum=2)
+    gap, margin = nonneg("gap", gap), nonneg("margin", margin)
+    liquid_attenuation = finite("liquid_attenuation", liquid_attenuation)
+    gas_attenuation = finite("gas_attenuation", gas_attenuation)
     contrast = gas_attenuation - liquid_attenuation
 
     radii = np.sort(rng.uniform(r_lo, r_hi, n))[::-1]
@@ -343,10 +262,10 @@ def foam2d(
     t = 2.0 * np.pi * np.arange(nv) / nv
     shapes = np.empty((n, nv))
     for b in range(n):
-        shapes[b] = 1.0 + _fourier_perturbation(rng, t, kmax, amp)
+        shapes[b] = 1.0 + fourier_perturbation(rng, t, kmax, amp)
     bound = radii * shapes.max(axis=1)
     half = side / 2.0 - margin
-    centres = _place(rng, bound, np.array([half, half]), gap, max_attempts, "square", side, packing)
+    centres = place(rng, bound, np.array([half, half]), gap, max_attempts, "square", side, packing)
 
     bubbles = []
     for b in range(n):
@@ -359,8 +278,8 @@ def foam2d(
         size=(side, side),
         liquid_attenuation=liquid_attenuation,
         gas_attenuation=gas_attenuation,
-        centres=_frozen(centres),
-        radii=_frozen(radii),
+        centres=frozen(centres),
+        radii=frozen(radii),
         seed=seed,
     )
 
@@ -446,26 +365,26 @@ def foam3d(
     ValueError
         On bad parameters, or when the bubbles do not fit.
     """
-    rng = _rng(seed)
-    n = _count("n_bubbles", n_bubbles)
-    box = _size(size, 3)
-    r_lo, r_hi = _range("radius_range", radius_range)
-    amp = _fraction("perturbation", perturbation)
-    smooth = _positive("smoothness", smoothness)
-    gap, margin = _nonneg("gap", gap), _nonneg("margin", margin)
-    liquid_attenuation = _finite("liquid_attenuation", liquid_attenuation)
-    gas_attenuation = _finite("gas_attenuation", gas_attenuation)
+    rng = rng_from_seed(seed)
+    n = count("n_bubbles", n_bubbles)
+    box = size_vector(size, 3)
+    r_lo, r_hi = value_range("radius_range", radius_range)
+    amp = fraction("perturbation", perturbation)
+    smooth = positive("smoothness", smoothness)
+    gap, margin = nonneg("gap", gap), nonneg("margin", margin)
+    liquid_attenuation = finite("liquid_attenuation", liquid_attenuation)
+    gas_attenuation = finite("gas_attenuation", gas_attenuation)
     contrast = gas_attenuation - liquid_attenuation
-    unit_v, faces = _unit_icosphere(subdivisions)
+    unit_v, faces = unit_icosphere(subdivisions)
 
     radii = np.sort(rng.uniform(r_lo, r_hi, n))[::-1]
     shapes = np.ones((n, len(unit_v)))
     if amp > 0:
         for b in range(n):
-            shapes[b] = 1.0 + _smooth_sphere_perturbation(rng, unit_v, smooth, amp)
+            shapes[b] = 1.0 + smooth_sphere_perturbation(rng, unit_v, smooth, amp)
     bound = radii * shapes.max(axis=1)
     half = np.array(box) / 2.0 - margin
-    centres = _place(rng, bound, half, gap, max_attempts, "box", box, packing)
+    centres = place(rng, bound, half, gap, max_attempts, "box", box, packing)
 
     bubbles = tuple(
         Mesh(centres[b] + (radii[b] * shapes[b])[:, None] * unit_v, faces, contrast) for b in range(n)
@@ -476,208 +395,7 @@ def foam3d(
         size=tuple(box),
         liquid_attenuation=liquid_attenuation,
         gas_attenuation=gas_attenuation,
-        centres=_frozen(centres),
-        radii=_frozen(radii),
+        centres=frozen(centres),
+        radii=frozen(radii),
         seed=seed,
     )
-
-
-# -- helpers ------------------------------------------------------------------------
-def _fourier_perturbation(rng, t, kmax, amp):
-    """Random zero-mean outline perturbation with modes 2..kmax, max |.| in [amp/2, amp]."""
-    if amp == 0:
-        return np.zeros_like(t)
-    k = np.arange(2, kmax + 1)
-    coef = rng.normal(size=k.size) / k  # smoother: high modes weaker
-    phase = rng.uniform(0, 2 * np.pi, k.size)
-    f = (coef[:, None] * np.cos(k[:, None] * t[None, :] + phase[:, None])).sum(axis=0)
-    peak = np.abs(f).max()
-    scale = rng.uniform(0.5, 1.0) * amp
-    return f * (scale / peak) if peak > 0 else f
-
-
-def _smooth_sphere_perturbation(rng, u, wavenumber, amp, n_waves=6):
-    """Random smooth function on unit vectors ``u`` (m, 3), zero-mean-ish, max |.| in [amp/2, amp]."""
-    k = rng.normal(size=(n_waves, 3))
-    k *= wavenumber / np.linalg.norm(k, axis=1, keepdims=True)
-    phase = rng.uniform(0, 2 * np.pi, n_waves)
-    weight = rng.normal(size=n_waves)
-    f = (weight[:, None] * np.cos(k @ u.T + phase[:, None])).sum(axis=0)
-    f -= f.mean()
-    peak = np.abs(f).max()
-    scale = rng.uniform(0.5, 1.0) * amp
-    return f * (scale / peak) if peak > 0 else f
-
-
-def _place(rng, bound, half, gap, max_attempts, what, size, packing="random"):
-    """Disjoint centres for disks/balls of radius ``bound`` in the box ``|x_i| <= half_i``.
-
-    ``packing="random"``: random sequential addition, largest first; each
-    bubble takes the first free one of up to ``max_attempts`` uniformly
-    random centres or, if none is free, a random free node of a fine
-    lattice over the allowed region. ``packing="dense"``: all centres start
-    uniformly random and overlapping pairs are pushed apart (and pulled back
-    inside the walls) until none overlaps (collective rearrangement); this
-    reaches gas fractions of about 0.5-0.6.
-    """
-    if packing not in ("random", "dense"):
-        raise ValueError(f"packing must be 'random' or 'dense', got {packing!r}")
-    d = len(half)
-    n = len(bound)
-    attempts = _count("max_attempts", max_attempts)
-    room = half[None, :] - bound[:, None]  # (n, d) allowed |centre| per bubble
-    if np.any(room < 0):
-        b = int(np.argmax(np.any(room < 0, axis=1)))
-        raise ValueError(
-            f"a bubble of radius {bound[b]:.3g} mm does not fit in the {what} of size {size} "
-            f"with the margin; reduce radius_range or margin"
-        )
-    if packing == "dense":
-        return _relax(rng, bound, room, gap, attempts, n, what)
-    centres = np.empty((n, d))
-
-    def free(cand, b):
-        if b == 0:
-            return np.ones(len(cand), dtype=bool)
-        ok = np.ones(len(cand), dtype=bool)
-        for start in range(0, len(cand), 4096):
-            c = cand[start: start + 4096]
-            dist = np.linalg.norm(c[:, None, :] - centres[None, :b, :], axis=2)
-            ok[start: start + 4096] = np.all(dist >= bound[None, :b] + bound[b] + gap, axis=1)
-        return ok
-
-    for b in range(n):
-        best = None
-        done = 0
-        while done < attempts and best is None:
-            m = min(256, attempts - done)
-            cand = rng.uniform(-room[b], room[b], size=(m, d))
-            done += m
-            ok = free(cand, b)
-            if ok.any():
-                best = cand[np.argmax(ok)]
-        if best is None:
-            # lattice of about 200k nodes over the allowed region, randomly shifted
-            step = max(float(np.prod(2 * room[b] + 1e-12) / 2e5) ** (1.0 / d), 1e-3 * float(bound[b]))
-            axes = [np.arange(-r, r + 1e-12, step) + rng.uniform(0, step) for r in room[b]]
-            axes = [a[a <= r] if a.size > 1 else np.zeros(1) for a, r in zip(axes, room[b])]
-            grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, d)
-            idx = np.nonzero(free(grid, b))[0]
-            if idx.size:
-                best = grid[idx[rng.integers(idx.size)]]
-        if best is None:
-            raise ValueError(
-                f"could not place bubble {b + 1} of {n} (radius {bound[b]:.3g} mm) without overlap; "
-                f"ask for fewer bubbles, smaller radii or a smaller gap, or use packing='dense'"
-            )
-        centres[b] = best
-    return centres
-
-
-def _relax(rng, bound, room, gap, iterations, n, what):
-    """Collective rearrangement: push overlapping pairs apart until all are disjoint."""
-    d = room.shape[1]
-    x = rng.uniform(-room, room)
-    need = bound[:, None] + bound[None, :] + gap  # required centre distances
-    np.fill_diagonal(need, 0.0)
-    aim = need * 1.002 + 1e-9  # push a little further, so jammed clusters settle in finite time
-    mass = bound**d
-    w = mass[None, :] / (mass[:, None] + mass[None, :])  # share of a push taken by i
-    for _ in range(iterations):
-        diff = x[:, None, :] - x[None, :, :]
-        dist = np.linalg.norm(diff, axis=2)
-        np.fill_diagonal(dist, np.inf)
-        if np.all(dist >= need):
-            return x
-        overlap = aim - dist
-        hit = overlap > 0
-        direction = diff / np.where(np.isfinite(dist) & (dist > 0), dist, 1.0)[..., None]
-        same = hit & (dist == 0)
-        if same.any():  # coincident centres: push apart along a random direction
-            direction[same] = rng.normal(size=(int(same.sum()), d))
-        push = np.where(hit, overlap * w, 0.0)
-        x += (push[..., None] * direction).sum(axis=1)
-        np.clip(x, -room, room, out=x)
-    raise ValueError(
-        f"could not pack {n} bubbles without overlap in the {what} after {iterations} relaxation "
-        f"steps; ask for fewer bubbles, smaller radii or a smaller gap"
-    )
-
-
-def _unit_icosphere(subdivisions):
-    """(vertices (n, 3) on the unit sphere, faces (m, 3) outward) of an icosphere (0..5 subdivisions)."""
-    s = _count("subdivisions", subdivisions, minimum=0)
-    if s > 5:
-        raise ValueError(f"subdivisions must be at most 5, got {s}")
-    return icosphere(s)
-
-
-def _rng(seed):
-    if isinstance(seed, np.random.Generator):
-        raise ValueError("seed must be an int (phantoms are reproducible from their seed), got a Generator")
-    if seed is None or isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    return np.random.default_rng(int(seed))
-
-
-def _count(name, value, minimum=1):
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
-
-
-def _finite(name, value):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not np.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return v
-
-
-def _positive(name, value):
-    v = _finite(name, value)
-    if v <= 0:
-        raise ValueError(f"{name} must be positive, got {value!r}")
-    return v
-
-
-def _nonneg(name, value):
-    v = _finite(name, value)
-    if v < 0:
-        raise ValueError(f"{name} must be non-negative, got {value!r}")
-    return v
-
-
-def _fraction(name, value):
-    v = _finite(name, value)
-    if not 0 <= v < 0.5:
-        raise ValueError(f"{name} must be in [0, 0.5), got {value!r}")
-    return v
-
-
-def _range(name, value):
-    try:
-        lo, hi = (float(x) for x in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a pair (min, max), got {value!r}") from None
-    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
-        raise ValueError(f"{name} must satisfy 0 < min <= max, got {value!r}")
-    return lo, hi
-
-
-def _size(value, d):
-    try:
-        s = tuple(float(x) for x in np.broadcast_to(np.asarray(value, dtype=float), (d,)))
-    except (TypeError, ValueError):
-        raise ValueError(f"size must be a number or {d} numbers, got {value!r}") from None
-    if not all(np.isfinite(x) and x > 0 for x in s):
-        raise ValueError(f"size must be positive and finite, got {value!r}")
-    return s
-
-
-def _frozen(a):
-    a = np.array(a, dtype=float)
-    a.setflags(write=False)
-    return a

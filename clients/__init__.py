@@ -15,7 +15,7 @@ __all__ = ["fit", "estimate_radii", "FitResult", "ProjectorClient", "RemoteJob",
 def __getattr__(name):
     # httpx is optional: import the client only when it is used
     if name in ("ProjectorClient", "RemoteJob", "RemoteError", "RemoteValueError", "UnknownJobError"):
-        from . import client
+        from .remote import client
 
         return getattr(client, name)
     raise AttributeError(f"module 'bubsub.clients' has no attribute {name!r}")

@@ -126,7 +126,7 @@ def project_image(image, extent, geometry, projector="auto"):
     Parameters
     ----------
     image : (rows, cols) float
-        Attenuation, 1/mm, laid out as in ``docs/design.md`` (row 0 at y max).
+        Attenuation, 1/mm, laid out as in ``docs/architecture.md`` (row 0 at y max).
     extent : (xmin, xmax, ymin, ymax)
         Image extent, mm; pixels must be square.
     geometry : ScanGeometry

@@ -4,7 +4,7 @@ This is the one place where bubsub turns shapes into pixels: the phantoms'
 attenuation images, ground-truth masks and the binarised reconstructions
 compared with the Dice dissimilarity all come from here.
 
-Grids follow the image convention of ``docs/design.md``:
+Grids follow the image convention of ``docs/architecture.md``:
 
 * 2D: ``img[row, col]`` of shape ``(rows, cols)`` on ``extent = (xmin, xmax,
   ymin, ymax)``; pixel centre ``x = xmin + (col + 0.5) * dx``,

@@ -1,6 +1,6 @@
 """The ``bubsub`` command line.
 
-``bubsub simulate``, ``reconstruct``, ``evaluate``, ``experiment``, ``demo``,
+``bubsub simulate``, ``reconstruct``, ``reconstruct4d``, ``evaluate``, ``experiment``, ``demo``,
 ``serve`` and ``bench``; ``bubsub COMMAND --help`` explains each.
 """
 
@@ -12,7 +12,7 @@ import sys
 __all__ = ["main", "build_parser"]
 
 #: The command modules, in the order ``bubsub --help`` lists them; each has ``register(sub)``.
-COMMANDS = ("simulate", "reconstruct", "evaluate", "experiment", "bench")
+COMMANDS = ("simulate", "reconstruct", "reconstruct4d", "evaluate", "experiment", "bench")
 
 
 def build_parser():

@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 from bubsub.clients.cli.args import positive_float, positive_int
-from bubsub.clients.pipeline.simulation import PHANTOMS, simulate_to_dir
+from bubsub.clients.pipeline.simulation import DYNAMIC_PHANTOMS, PHANTOMS, simulate_dynamic_to_dir, simulate_to_dir
+
 
 def cmd_simulate(args):
-    scan, truth, meta = simulate_to_dir(args.out, args.phantom, angles=args.angles, photons=args.photons,
+    if args.phantom in DYNAMIC_PHANTOMS:
+        return _simulate_dynamic(args)
+    if args.subscans is not None or args.projections_per_subscan is not None:
+        raise ValueError(f"--subscans and --projections-per-subscan need a dynamic phantom ({', '.join(DYNAMIC_PHANTOMS)})")
+    scan, truth, meta = simulate_to_dir(args.out, args.phantom, angles=args.angles or 25, photons=args.photons,
                                         seed=args.seed, beam=args.beam, det_count=args.det_count,
                                         n_bubbles=args.bubbles)
     print(f"wrote {scan} ({meta['angles']} projections, I0={meta['photons']:g}, seed {meta['seed']}), "
@@ -14,11 +19,27 @@ def cmd_simulate(args):
     return 0
 
 
+def _simulate_dynamic(args):
+    if args.angles is not None:
+        raise ValueError("a dynamic phantom takes --subscans and --projections-per-subscan, not --angles")
+    scan, truth, meta = simulate_dynamic_to_dir(
+        args.out, args.phantom, subscans=args.subscans or 8, projections_per_subscan=args.projections_per_subscan or 50,
+        photons=args.photons, seed=args.seed, beam=args.beam, det_count=args.det_count, n_bubbles=args.bubbles)
+    print(f"wrote {scan} ({meta['subscans']} subscans of {meta['projections_per_subscan']} projections, "
+          f"I0={meta['photons']:g}, seed {meta['seed']}), ground truth per subscan in {truth} "
+          f"({meta['bubbles']} bubbles)")
+    return 0
+
+
 def register(sub):
     """Add the command's parser to ``sub`` (argparse subparsers)."""
     p = sub.add_parser("simulate", help="simulate a foam scan (scan.h5) and its ground truth")
-    p.add_argument("--phantom", choices=PHANTOMS, default="foam2d")
-    p.add_argument("--angles", type=positive_int, default=25, help="number of projections (default 25)")
+    p.add_argument("--phantom", choices=PHANTOMS + DYNAMIC_PHANTOMS, default="foam2d",
+                   help="static foam, or an expanding foam for a dynamic scan (expanding2d, expanding3d)")
+    p.add_argument("--angles", type=positive_int, help="number of projections (default 25; static phantoms)")
+    p.add_argument("--subscans", type=positive_int, help="dynamic phantoms: number of subscans (default 8)")
+    p.add_argument("--projections-per-subscan", type=positive_int,
+                   help="dynamic phantoms: projections per subscan, one rotation each (default 50)")
     p.add_argument("--photons", type=positive_float, default=1e4, help="flat-field photon count I0 (default 1e4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the phantom and the noise (default 0)")
     p.add_argument("--beam", choices=("parallel", "cone"), help="default: parallel in 2D, cone in 3D")

@@ -55,6 +55,7 @@ class Reconstruction:
     preview: np.ndarray | None = None
     preview_extent: tuple | None = None
     files: dict = field(default_factory=dict)
+    ids: list | None = None  # bubble ids written to the outputs (default 0..n-1); track ids in 4D
 
 
 def field_of_view(geometry):
@@ -80,10 +81,15 @@ def field_of_view(geometry):
     return r_xy, float(np.min(half_h / mag))
 
 
+def preview_voxel_size(geometry):
+    """Default voxel size of the preview (mm): the field of view over 256 (2D) or 160 (3D) voxels."""
+    return 2 * field_of_view(geometry)[0] / (160 if geometry.ndim == 3 else 256)
+
+
 def _grid(geometry, voxel_size):
     r_xy, half_z = field_of_view(geometry)
     if voxel_size is None:
-        voxel_size = 2 * r_xy / (160 if geometry.ndim == 3 else 256)
+        voxel_size = preview_voxel_size(geometry)
     n = max(8, int(np.ceil(2 * r_xy / voxel_size)))
     half = n * voxel_size / 2
     if geometry.ndim == 2:
@@ -296,16 +302,16 @@ def write_outputs(out_dir, rec, scan_path=None):
     files = {}
     if rec.report["dimension"] == 3:
         files["mesh"] = out / "bubbles.ply"
-        write_ply(files["mesh"], [s.fine() for s in rec.surfaces])
+        write_ply(files["mesh"], [s.fine() for s in rec.surfaces], rec.ids)
         files["control"] = out / "control.ply"
-        write_ply(files["control"], [s.control for s in rec.surfaces])
+        write_ply(files["control"], [s.control for s in rec.surfaces], rec.ids)
     else:
         files["mesh"] = out / "bubbles.json"
-        write_polygons_json(files["mesh"], fine)
+        write_polygons_json(files["mesh"], fine, rec.ids)
         files["control"] = out / "control.json"
-        write_polygons_json(files["control"], [s.control for s in rec.surfaces])
+        write_polygons_json(files["control"], [s.control for s in rec.surfaces], rec.ids)
     files["table"] = out / "bubbles.csv"
-    write_csv(files["table"], bubble_table(fine))
+    write_csv(files["table"], bubble_table(fine, rec.ids))
     report = dict(rec.report)
     if scan_path is not None:
         report["scan"] = str(scan_path)

@@ -7,9 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PHANTOMS", "make_phantom", "make_geometry", "truth_grid", "simulate_to_dir"]
+__all__ = ["PHANTOMS", "DYNAMIC_PHANTOMS", "make_phantom", "make_geometry", "truth_grid", "simulate_to_dir",
+           "simulate_dynamic_to_dir"]
 
 PHANTOMS = ("foam2d", "foam3d", "foam3d-benchmark")
+#: Expanding foams for dynamic scans (:mod:`bubsub.core.foam.expanding`).
+DYNAMIC_PHANTOMS = ("expanding2d", "expanding3d")
 
 
 def make_phantom(name, seed, n_bubbles=None):
@@ -24,25 +27,29 @@ def make_phantom(name, seed, n_bubbles=None):
     raise ValueError(f"unknown phantom {name!r}; choose one of {PHANTOMS}")
 
 
-def make_geometry(ndim, beam, n_angles, det_count=None, rows=None):
-    """The scans of the paper: 2D parallel over [0, pi), 3D cone over [0, 2 pi)."""
+def make_geometry(ndim, beam, n_angles, det_count=None, rows=None, repeat=1):
+    """The scans of the paper: 2D parallel over [0, pi), 3D cone over [0, 2 pi).
+
+    ``repeat`` rotations of ``n_angles`` each, in acquisition order (a dynamic scan's subscans).
+    """
     from bubsub.core import ScanGeometry
-    from bubsub.core.foam.simulate import default_geometry_2d
+
+    def circle(period):
+        return np.tile(np.linspace(0, period, n_angles, endpoint=False), int(repeat))
 
     if ndim == 2:
         # a 14.4 mm detector sees the whole 10 mm square at every angle
         cols = det_count or 2400
         if beam == "parallel":
-            return default_geometry_2d(n_angles, det_count=cols, pixel_size=14.4 / cols)
-        angles = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
+            return ScanGeometry.parallel(circle(np.pi), pixel_size=14.4 / cols, cols=cols)
+        angles = circle(2 * np.pi)
         return ScanGeometry.cone(angles, source_origin=300.0, origin_detector=15.0, pixel_size=15.2 / cols, cols=cols)
     cols = det_count or 512
     rows = rows or cols // 2
     pixel = 0.06 * 512 / cols
     if beam == "parallel":
-        angles = np.linspace(0, np.pi, n_angles, endpoint=False)
-        return ScanGeometry.parallel(angles, pixel_size=pixel, cols=cols, rows=rows)
-    angles = np.linspace(0, 2 * np.pi, n_angles, endpoint=False)
+        return ScanGeometry.parallel(circle(np.pi), pixel_size=pixel, cols=cols, rows=rows)
+    angles = circle(2 * np.pi)
     return ScanGeometry.cone(angles, source_origin=300.0, origin_detector=15.0, pixel_size=pixel, cols=cols, rows=rows)
 
 
@@ -85,3 +92,49 @@ def simulate_to_dir(out, phantom_name="foam2d", *, angles=25, photons=1e4, seed=
             "angles": angles, "photons": photons, "beam": beam, "truth": truth.name}
     atomic_write_text(out / "phantom.json", json.dumps(meta, indent=2))
     return out / "scan.h5", truth, meta
+
+
+def simulate_dynamic_to_dir(out, phantom_name="expanding2d", *, subscans=8, projections_per_subscan=50,
+                            photons=1e4, seed=0, beam=None, det_count=None, n_bubbles=None,
+                            seconds_per_projection=0.01):
+    """Simulate a dynamic scan of an expanding foam into ``out``.
+
+    Writes ``scan.h5`` (all projections in acquisition order, root attribute
+    ``projections_per_subscan``, ``/exchange/time``), ``truth/subscan_NNNN.json|ply``
+    (the foam at each subscan's mid-time, bubble ids = phantom bubble
+    indices) and ``phantom.json`` (``truth`` names the folder; ``grid_*``
+    cover the final, largest container).
+    """
+    from bubsub.core.foam.expanding import expanding2d, expanding3d, simulate_expanding
+    from bubsub.core.io.atomic import atomic_write_text
+    from bubsub.core.io.meshio import write_ply, write_polygons_json
+    from bubsub.core.io.scanfile import write_scan
+
+    if phantom_name not in DYNAMIC_PHANTOMS:
+        raise ValueError(f"unknown dynamic phantom {phantom_name!r}; choose one of {DYNAMIC_PHANTOMS}")
+    out = Path(out)
+    (out / "truth").mkdir(parents=True, exist_ok=True)
+    kw = {"n_bubbles": n_bubbles} if n_bubbles else {}
+    foam = expanding2d(seed, **kw) if phantom_name == "expanding2d" else expanding3d(seed, **kw)
+    beam = beam or ("parallel" if foam.ndim == 2 else "cone")
+    geometry = make_geometry(foam.ndim, beam, projections_per_subscan, det_count, repeat=subscans)
+    scan, mid = simulate_expanding(foam, geometry, projections_per_subscan=projections_per_subscan,
+                                   photons=photons, seed=seed, seconds_per_projection=seconds_per_projection)
+    for k, t in enumerate(mid):
+        state = foam.at(t)
+        if foam.ndim == 2:
+            write_polygons_json(out / "truth" / f"subscan_{k:04d}.json", state.bubbles)
+        else:
+            write_ply(out / "truth" / f"subscan_{k:04d}.ply", state.bubbles)
+    write_scan(out / "scan.h5", scan)
+    shape, extent = truth_grid(foam.final)
+    times = scan.time.reshape(subscans, projections_per_subscan).mean(axis=1)
+    meta = {"phantom": phantom_name, "ndim": foam.ndim, "seed": seed, "size": list(foam.final.size),
+            "liquid_attenuation": foam.final.liquid_attenuation, "bubble_contrast": foam.final.contrast,
+            "bubbles": foam.n_bubbles, "grid_shape": list(shape), "grid_extent": list(extent),
+            "subscans": subscans, "projections_per_subscan": projections_per_subscan,
+            "angles": subscans * projections_per_subscan, "photons": photons, "beam": beam, "truth": "truth",
+            "subscan_times": times.tolist(), "subscan_phase": mid.tolist(),
+            "seconds_per_projection": seconds_per_projection}
+    atomic_write_text(out / "phantom.json", json.dumps(meta, indent=2))
+    return out / "scan.h5", out / "truth", meta

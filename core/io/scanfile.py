@@ -10,8 +10,14 @@ A scan file holds, for one scan::
     /geometry/vectors      float64 (angle, 12) or (angle, 6): ASTRA vector rows,
                            attrs kind (parallel3d_vec | cone_vec | parallel_vec | fanflat_vec),
                            det_rows and det_cols (3D) or det_count (2D), lengths in mm
+    /exchange/time         float64 (angle,), seconds, optional: acquisition time of each
+                           projection (dynamic scans)
     /implements            "exchange:geometry"
     root attribute bubble_contrast   float, attenuation of gas minus liquid, 1/mm (e.g. -0.1)
+    root attribute projections_per_subscan   int, optional: a dynamic scan holds all its
+                           projections in acquisition order, this many per subscan (see
+                           :mod:`bubsub.core.io.subscans`); a background of one subscan's
+                           worth of projections is then repeated for every subscan
 
 Raw detector counts are accepted too: if ``/exchange/data_white`` exists,
 ``/exchange/data`` is read as raw counts, ``/exchange/data_white`` as flat
@@ -42,7 +48,7 @@ __all__ = ["Scan", "read_scan", "write_scan", "theta_from_geometry", "MIN_TRANSM
 #: Smallest transmission accepted when converting raw counts (larger line integrals are clamped).
 MIN_TRANSMISSION = 1e-6
 
-_RESERVED_ATTRS = {"bubble_contrast", "bubsub_format"}
+_RESERVED_ATTRS = {"bubble_contrast", "bubsub_format", "projections_per_subscan"}
 
 
 def theta_from_geometry(geometry):
@@ -94,6 +100,10 @@ class Scan:
     attrs : dict, optional
         Extra scalar or string metadata (written as root attributes), e.g.
         ``photons`` and ``seed`` of a simulation.
+    time : (n_angles,) float, optional
+        Acquisition time of each projection, seconds (dynamic scans).
+    projections_per_subscan : int, optional
+        A dynamic scan's projections per subscan (acquisition order).
 
     Raises
     ------
@@ -109,6 +119,8 @@ class Scan:
     bubble_contrast: float | None = None
     path: Path | None = None
     attrs: dict = dataclasses.field(default_factory=dict)
+    time: np.ndarray | None = None
+    projections_per_subscan: int | None = None
 
     def __post_init__(self):
         if not isinstance(self.geometry, ScanGeometry):
@@ -121,6 +133,13 @@ class Scan:
         else:
             self.theta = _theta_array(self.theta, "theta", self.geometry.n_angles)
         self.bubble_contrast = _contrast(self.bubble_contrast, "bubble_contrast")
+        if self.time is not None:
+            self.time = _theta_array(self.time, "time", self.geometry.n_angles)
+        if self.projections_per_subscan is not None:
+            k = self.projections_per_subscan
+            if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
+                raise ValueError(f"projections_per_subscan must be a positive integer, got {k!r}")
+            self.projections_per_subscan = int(k)
         if self.path is not None:
             self.path = Path(self.path)
         if not isinstance(self.attrs, dict):
@@ -157,7 +176,8 @@ class Scan:
         Returns
         -------
         Scan
-            With ``path`` None.
+            With ``path`` None and ``projections_per_subscan`` None (a subset
+            is one static scan).
         """
         idx = np.atleast_1d(np.arange(self.n_angles)[index])
         if idx.size == 0:
@@ -170,6 +190,7 @@ class Scan:
             bubble_contrast=self.bubble_contrast,
             path=None,
             attrs=dict(self.attrs),
+            time=None if self.time is None else self.time[idx],
         )
 
     def __repr__(self):
@@ -280,6 +301,8 @@ def write_scan(path, scan, *, compression=None):
             d.attrs["units"] = "line integral"
             t = ex.create_dataset("theta", data=np.asarray(scan.theta, dtype=np.float64))
             t.attrs["units"] = "degrees"
+            if scan.time is not None:
+                ex.create_dataset("time", data=np.asarray(scan.time, dtype=np.float64)).attrs["units"] = "s"
             if scan.background is not None:
                 b = ex.create_dataset("background", data=scan.background, dtype=np.float32, compression=compression)
                 b.attrs["axes"] = d.attrs["axes"]
@@ -295,6 +318,8 @@ def write_scan(path, scan, *, compression=None):
                 v.attrs["det_count"] = int(g.det_count)
             f.attrs["bubble_contrast"] = float(scan.bubble_contrast)
             f.attrs["bubsub_format"] = 1
+            if scan.projections_per_subscan is not None:
+                f.attrs["projections_per_subscan"] = int(scan.projections_per_subscan)
             for k, val in attrs.items():
                 f.attrs[k] = val
     scan.path = dest
@@ -350,19 +375,12 @@ def read_scan(path, *, bubble_contrast=None):
             data = _counts_to_line_integrals(f, data, geometry, p)
         else:
             _check_finite_named(data, "/exchange/data", p)
+        per_subscan = _attr_int(f.attrs, "projections_per_subscan", f"{p.name}: root")
         background = None
         if "exchange/background" in f:
-            background = _read_dataset(f, "exchange/background", geometry, p)
-            _check_finite_named(background, "/exchange/background", p)
-        theta = None
-        if "exchange/theta" in f:
-            theta = np.asarray(f["exchange/theta"][()], dtype=np.float64)
-            if theta.ndim != 1 or theta.shape[0] != geometry.n_angles:
-                raise ValueError(
-                    f"{p.name}: '/exchange/theta' has shape {theta.shape} but '/geometry/vectors' "
-                    f"has {geometry.n_angles} projections"
-                )
-            _check_finite_named(theta, "/exchange/theta", p)
+            background = _read_background(f, geometry, per_subscan, p)
+        theta = _read_per_projection(f, "exchange/theta", geometry, p)
+        time_s = _read_per_projection(f, "exchange/time", geometry, p)
         if bubble_contrast is None:
             if "bubble_contrast" not in f.attrs:
                 raise ValueError(
@@ -387,7 +405,35 @@ def read_scan(path, *, bubble_contrast=None):
         bubble_contrast=bubble_contrast,
         path=p,
         attrs=attrs,
+        time=time_s,
+        projections_per_subscan=per_subscan,
     )
+
+
+def _read_per_projection(f, name, geometry, p):
+    """A per-projection 1D dataset (theta, time) or None; its length must match the geometry rows."""
+    if name not in f:
+        return None
+    arr = np.asarray(f[name][()], dtype=np.float64)
+    if arr.ndim != 1 or arr.shape[0] != geometry.n_angles:
+        raise ValueError(
+            f"{p.name}: '/{name}' has shape {arr.shape} but '/geometry/vectors' has {geometry.n_angles} projections"
+        )
+    _check_finite_named(arr, "/" + name, p)
+    return arr
+
+
+def _read_background(f, geometry, per_subscan, p):
+    """``/exchange/background``, per projection or (dynamic scans) one subscan's worth repeated."""
+    ds = f["exchange/background"]
+    if per_subscan is not None and ds.shape == (per_subscan, *geometry.shape[1:]) and ds.shape != geometry.shape:
+        one = np.asarray(ds[()])
+        _check_finite_named(one, "/exchange/background", p)
+        reps = -(-geometry.n_angles // per_subscan)
+        return np.tile(one, (reps,) + (1,) * (one.ndim - 1))[: geometry.n_angles]
+    background = _read_dataset(f, "exchange/background", geometry, p)
+    _check_finite_named(background, "/exchange/background", p)
+    return background
 
 
 def _attr_str(v):
@@ -459,9 +505,12 @@ def _read_geometry(f, p):
 def _read_dataset(f, name, geometry, p):
     ds = f[name]
     if ds.shape != geometry.shape:
+        hint = ""
+        if len(ds.shape) == len(geometry.shape) and ds.shape[0] > geometry.n_angles and ds.shape[0] % geometry.n_angles == 0:
+            hint = " (a dynamic scan needs one geometry row per projection, in acquisition order)"
         raise ValueError(
             f"{p.name}: '/{name}' has shape {ds.shape} but '/geometry/vectors' describes "
-            f"{_shape_words(geometry)}"
+            f"{_shape_words(geometry)}{hint}"
         )
     if not (np.issubdtype(ds.dtype, np.floating) or np.issubdtype(ds.dtype, np.integer)):
         raise ValueError(f"{p.name}: '/{name}' must be numeric, got dtype {ds.dtype}")

@@ -27,7 +27,7 @@ from bubsub.core.voxel.reconstruct3d import iterate
 __all__ = ["AstraProjector2D", "fbp_2d", "reconstruct_2d", "astra_vol_geom", "METHODS_2D"]
 
 #: Methods of :func:`reconstruct_2d` and their default iteration counts.
-METHODS_2D = {"fbp": None, "sirt": 200, "cgls": 30, "lsqr": 30, "tv": 300}
+METHODS_2D = {"fbp": None, "sirt": 200, "cgls": 30, "lsqr": 30, "tv": 300, "bb": 30}
 
 _F32 = np.float32
 
@@ -329,7 +329,7 @@ def reconstruct_2d(
 
     Parameters
     ----------
-    method : {'fbp', 'sirt', 'cgls', 'lsqr', 'tv'}
+    method : {'fbp', 'sirt', 'cgls', 'lsqr', 'tv', 'bb'}
         ``fbp``: :func:`fbp_2d`; ``sirt`` / ``cgls``: ASTRA's CPU algorithms
         (``backend='astra'``; CGLS with ``x0`` or a callback, and SIRT with a
         callback, use :mod:`bubsub.core.voxel.solvers` on the ASTRA projector) or

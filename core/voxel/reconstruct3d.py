@@ -12,7 +12,7 @@ from bubsub.core.voxel.projector3d import VoxelProjector
 __all__ = ["reconstruct_3d", "iterate", "METHODS_3D"]
 
 #: Methods of :func:`reconstruct_3d` and their default iteration counts.
-METHODS_3D = {"fdk": None, "fbp": None, "sirt": 50, "cgls": 15, "lsqr": 15, "tv": 50}
+METHODS_3D = {"fdk": None, "fbp": None, "sirt": 50, "cgls": 15, "lsqr": 15, "tv": 50, "bb": 30}
 
 _F32 = np.float32
 
@@ -45,7 +45,7 @@ def reconstruct_3d(
 
     Parameters
     ----------
-    method : {'fdk', 'fbp', 'sirt', 'cgls', 'lsqr', 'tv'}
+    method : {'fdk', 'fbp', 'sirt', 'cgls', 'lsqr', 'tv', 'bb'}
         ``fdk``/``fbp``: :func:`fdk`; ``sirt``, ``cgls``, ``lsqr``: the
         solvers of :mod:`bubsub.core.voxel.solvers` on :class:`VoxelProjector`;
         ``tv``: :func:`bubsub.core.voxel.solvers.tv_pdhg`.
@@ -93,6 +93,8 @@ def iterate(method, op, projections, iterations, tv_weight, nonneg, isotropic, x
         return solvers.sirt(op, b, it, x0=x0, nonneg=nonneg, callback=callback)
     if method == "cgls":
         return solvers.cgls(op, b, it, x0=x0, callback=callback)
+    if method == "bb":
+        return solvers.pgd_bb(op, b, it, x0=x0, nonneg=nonneg, callback=callback)
     if method == "lsqr":
         if x0 is not None:
             raise ValueError("lsqr does not take x0")

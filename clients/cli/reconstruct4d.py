@@ -1,0 +1,47 @@
+"""``bubsub reconstruct4d``: BubSub on a dynamic scan, subscan by subscan backwards in time."""
+
+from __future__ import annotations
+
+from bubsub.clients.cli.args import positive_int
+
+
+def cmd_reconstruct4d(args):
+    from bubsub.core.io.scanfile import read_scan
+
+    from bubsub.clients.pipeline.dynamic import DynamicSettings, reconstruct_dynamic
+
+    scan = read_scan(args.scan)
+    settings = DynamicSettings(iterations=args.iterations, control_points=args.control_points, levels=args.levels,
+                               holdout=args.holdout, voxel_baseline=args.voxel_baseline, progress=not args.quiet)
+    report = reconstruct_dynamic(scan, args.out, settings, projections_per_subscan=args.projections_per_subscan,
+                                 subscans=args.subscans, resume=args.resume)
+    t = report["totals"]
+    state = " (interrupted: the finished subscans are complete; rerun with --resume)" if report["interrupted"] else ""
+    print(f"{report['subscans_complete']} subscans, {t['tracks']} bubble tracks ({t['tracks_ended']} ended), "
+          f"{t['seconds']:.1f} s{state}")
+    if t["subscans_diverged"]:
+        print(f"warning: {t['subscans_diverged']} subscan fit(s) diverged; kept their successor's bubbles "
+              f"(see report.json)")
+    print(f"wrote {args.out}/subscan_NNNN/, tracks.csv, report.json, growth.png, mse.png")
+    return 130 if report["interrupted"] else 0
+
+
+def register(sub):
+    """Add the command's parser to ``sub`` (argparse subparsers)."""
+    p = sub.add_parser("reconstruct4d", help="reconstruct a dynamic scan subscan by subscan, with bubble tracks")
+    p.add_argument("scan", help="HDF5 scan file: all projections in acquisition order")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--projections-per-subscan", type=positive_int,
+                   help="projections per subscan (default: the file's root attribute projections_per_subscan)")
+    p.add_argument("--subscans", help="A:B reconstructs subscans A..B-1 (default all)")
+    p.add_argument("--holdout", choices=("odd", "even"), help="keep these projections of every subscan aside "
+                   "and report their MSE")
+    p.add_argument("--iterations", type=int, default=80, help="BFGS iterations per subscan (default 80)")
+    p.add_argument("--control-points", type=positive_int, help="control points per bubble (3D default 42, 2D 9)")
+    p.add_argument("--levels", type=int, default=2, help="subdivision levels (default 2)")
+    p.add_argument("--voxel-baseline", action="store_true",
+                   help="also run the voxel baseline (30 Barzilai-Borwein iterations, x >= 0) per subscan "
+                        "and plot its held-out MSE")
+    p.add_argument("--resume", action="store_true", help="continue from the complete subscan folders in --out")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_reconstruct4d)

@@ -1,0 +1,210 @@
+"""Files of a 4D reconstruction: one folder per subscan, tracks.csv, report.json, plots.
+
+``DIR/subscan_NNNN/`` holds what ``bubsub reconstruct`` writes (bubble ids =
+track ids); it is written as ``DIR/.subscan_NNNN.partial`` and renamed when
+complete, so a folder with the final name is always complete (``--resume``
+trusts it). ``tracks.csv`` has one row per (subscan, bubble):
+
+=====================  ======  =============================================
+column                 unit    meaning
+=====================  ======  =============================================
+subscan                        subscan index in the scan
+time                   s       mid-time of the subscan (``/exchange/time``);
+                               the subscan index when the scan has no times
+bubble_id                      track id (kept through time)
+centroid_x, _y[, _z]   mm      centroid of the refined surface
+area | volume          mm^2|3  2D area, 3D volume
+perimeter | surface    mm|mm^2 2D perimeter, 3D surface area
+equivalent_diameter    mm      of the disc (ball) of equal area (volume)
+=====================  ======  =============================================
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from bubsub.core.io.atomic import atomic_path, atomic_write_text
+from bubsub.core.io.meshio import bubble_table, read_ply, read_polygons_json, write_csv
+
+__all__ = ["subscan_dir", "write_subscan", "read_subscan_result", "complete_subscans", "track_rows",
+           "write_tracks", "write_summary"]
+
+
+def subscan_dir(out, index):
+    """``out/subscan_NNNN``."""
+    return Path(out) / f"subscan_{int(index):04d}"
+
+
+def write_subscan(out, result, ndim, scan_path=None):
+    """Write one subscan's folder atomically (a partial folder renamed when complete).
+
+    Returns
+    -------
+    pathlib.Path
+        The subscan's folder.
+    """
+    from bubsub.clients.pipeline.reconstruct import Reconstruction, write_outputs
+
+    final = subscan_dir(out, result.index)
+    partial = Path(out) / f".{final.name}.partial"
+    if partial.exists():
+        shutil.rmtree(partial)
+    report = dict(result.report, dimension=ndim, levels=result.state.levels, track_ids=list(result.state.ids))
+    rec = Reconstruction(result.state.surfaces(), report, result.preview, result.preview_extent,
+                         ids=list(result.state.ids))
+    write_outputs(partial, rec, scan_path=scan_path)
+    if final.exists():  # a stale folder of an earlier run, replaced by the complete new one
+        shutil.rmtree(final)
+    os.replace(partial, final)
+    return final
+
+
+def read_subscan_result(out, index, attenuation):
+    """A completed subscan folder back as a :class:`~bubsub.clients.pipeline.dynamic.SubscanResult`."""
+    from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
+    from bubsub.core.projection.subdivision import SubdivisionSurface
+
+    d = subscan_dir(out, index)
+    report = json.loads((d / "report.json").read_text())
+    levels = int(report.get("levels", 2))
+    if report["dimension"] == 3:
+        items, ids = read_ply(d / "control.ply", attenuation=attenuation, with_ids=True)
+    else:
+        items, ids = read_polygons_json(d / "control.json", attenuation=attenuation, with_ids=True)
+    state = BubbleState.from_surfaces(ids, [SubdivisionSurface(m, levels) for m in items], attenuation, levels)
+    for k in ("dimension", "levels", "track_ids", "files", "scan"):
+        report.pop(k, None)
+    ended = tuple(int(i) for i in report.get("ended", {}))
+    return SubscanResult(int(index), float(report["time"]), state, ended, report)
+
+
+def complete_subscans(out):
+    """Indices of the complete subscan folders in ``out`` (sorted)."""
+    out = Path(out)
+    if not out.is_dir():
+        return []
+    found = []
+    for p in out.iterdir():
+        if p.is_dir() and p.name.startswith("subscan_") and (p / "report.json").is_file():
+            try:
+                found.append(int(p.name[len("subscan_"):]))
+            except ValueError:
+                continue
+    return sorted(found)
+
+
+def track_rows(results):
+    """Rows of ``tracks.csv`` (see the module docstring), in time order."""
+    rows = []
+    for res in sorted(results, key=lambda r: r.index):
+        fine = [s.fine() for s in res.state.surfaces()]
+        for row in bubble_table(fine, list(res.state.ids)):
+            bid = row.pop("id")
+            rows.append({"subscan": res.index, "time": res.time, "bubble_id": bid, **row})
+    return rows
+
+
+def write_tracks(path, results):
+    """Write ``tracks.csv`` (atomically); the one place its columns are decided."""
+    rows = track_rows(results)
+    return write_csv(path, rows)
+
+
+def write_summary(out, results, *, layout, time_unit, settings, engine="local", workers=1, interrupted=False,
+                  baseline=None):
+    """Write ``tracks.csv``, ``report.json``, ``growth.png`` and ``mse.png`` for the completed subscans."""
+    out = Path(out)
+    results = sorted(results, key=lambda r: r.index)
+    write_tracks(out / "tracks.csv", results)
+    per = [dict(r.report) for r in results]
+    ended = [i for r in results for i in r.ended]
+    warm = [p["seconds"] for p in per if p.get("start") == "warm"]
+    cold = [p["seconds"] for p in per if p.get("start") == "cold"]
+    report = {
+        "engine": engine, "workers": workers, "interrupted": interrupted,
+        "projections_per_subscan": layout.per_subscan, "subscans_in_scan": layout.n_subscans,
+        "subscans_selected": [layout.selected.start, layout.selected.stop],
+        "subscans_complete": len(results), "time_unit": time_unit,
+        "settings": {k: v for k, v in settings.__dict__.items() if k != "progress"},
+        "totals": {
+            "seconds": float(sum(p["seconds"] for p in per)),
+            "seconds_cold": float(sum(cold)), "seconds_warm_median": float(np.median(warm)) if warm else None,
+            "iterations": int(sum(p["iterations"] or 0 for p in per)),
+            "tracks": len({i for r in results for i in r.state.ids} | set(ended)),
+            "tracks_ended": len(ended), "subscans_diverged": sum(bool(p.get("diverged")) for p in per),
+        },
+        "subscans": per,
+    }
+    atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=_json_default))
+    if results:
+        plot_growth(out / "growth.png", track_rows(results), time_unit)
+        plot_mse(out / "mse.png", per)
+    return report
+
+
+def _json_default(o):
+    from bubsub.clients.pipeline.reconstruct import _json_default as default
+
+    return default(o)
+
+
+def _figure():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_growth(path, rows, time_unit):
+    """Equivalent diameter against time per bubble, and the size distribution at up to four times."""
+    plt = _figure()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=100)
+    by_id = {}
+    for r in rows:
+        by_id.setdefault(r["bubble_id"], []).append((r["time"], r["equivalent_diameter"]))
+    for pts in by_id.values():
+        t, d = np.array(sorted(pts)).T
+        a.plot(t, d, lw=0.8, marker=".", ms=3)
+    a.set_xlabel(f"time ({time_unit})")
+    a.set_ylabel("equivalent diameter (mm)")
+    a.set_title(f"{len(by_id)} bubble tracks", fontsize=10)
+    times = sorted({r["time"] for r in rows})
+    pick = [times[int(round(i))] for i in np.linspace(0, len(times) - 1, min(4, len(times)))]
+    for t in dict.fromkeys(pick):
+        d = [r["equivalent_diameter"] for r in rows if r["time"] == t]
+        b.hist(d, bins=12, histtype="step", label=f"t = {t:.3g} {time_unit}")
+    b.set_xlabel("equivalent diameter (mm)")
+    b.set_ylabel("bubbles")
+    b.legend(fontsize=8)
+    b.set_title("size distribution", fontsize=10)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)
+
+
+def plot_mse(path, per_subscan):
+    """Held-out projection MSE per subscan: BubSub and, where run, the voxel baseline (paper fig. 6)."""
+    plt = _figure()
+    fig, ax = plt.subplots(figsize=(6.5, 4), dpi=100)
+    sub = [p["subscan"] for p in per_subscan]
+    for key, label in (("holdout_mse", "BubSub"), ("voxel_holdout_mse", "voxel (BB, 30 it., x >= 0)")):
+        vals = [p.get(key) for p in per_subscan]
+        if any(v is not None for v in vals):
+            ax.plot(sub, [np.nan if v is None else v for v in vals], marker="o", ms=3, label=label)
+    ax.set_xlabel("subscan")
+    ax.set_ylabel("held-out projection MSE")
+    ax.set_yscale("log")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    else:
+        ax.set_title("no held-out projections (use --holdout)", fontsize=10)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)

@@ -178,7 +178,7 @@ def sim(tmp_path_factory):
 def rec(sim, tmp_path_factory):
     out = tmp_path_factory.mktemp("dynrec")
     rc = main(["reconstruct4d", str(sim / "scan.h5"), "--out", str(out), "--holdout", "odd", "--iterations", "30",
-               "--quiet"])
+               "--voxel-baseline", "--quiet"])
     assert rc == 0
     return out
 
@@ -201,6 +201,7 @@ def test_reconstruct4d_outputs_and_tracks(sim, rec):
     per = {p["subscan"]: p for p in report["subscans"]}
     assert per[2]["start"] == "cold" and per[1]["start"] == per[0]["start"] == "warm"
     assert all(p["holdout_mse"] < 1e-3 for p in per.values())
+    assert all(0 < p["voxel_holdout_mse"] < 1e-2 for p in per.values())
     with open(rec / "tracks.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == ["subscan", "time", "bubble_id", "centroid_x", "centroid_y", "area", "perimeter",

@@ -16,7 +16,7 @@ test: venv
 	$(BIN)/python -m pytest -q
 
 demo: venv
-	$(BIN)/bubsub demo --out demo-output
+	$(BIN)/bubsub demo --out demo-output --overwrite
 
 bench: venv
 	$(BIN)/python -m bubsub.bench

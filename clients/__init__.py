@@ -8,8 +8,18 @@ The HTTP client needs ``httpx`` (the ``client`` extra) and is imported lazily.
 
 from .optimise.fit import FitResult, estimate_radii, fit
 
-__all__ = ["fit", "estimate_radii", "FitResult", "ProjectorClient", "RemoteJob", "RemoteError",
+__all__ = ["version", "fit", "estimate_radii", "FitResult", "ProjectorClient", "RemoteJob", "RemoteError",
            "RemoteValueError", "UnknownJobError"]
+
+
+def version():
+    """The installed bubsub version (``"unknown"`` for a source tree that is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version as dist_version
+
+    try:
+        return dist_version("bubsub")
+    except PackageNotFoundError:  # pragma: no cover - an uninstalled source tree
+        return "unknown"
 
 
 def __getattr__(name):

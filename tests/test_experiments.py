@@ -38,8 +38,7 @@ def test_summary_table():
 
 
 def test_unknown_experiment_is_refused(tmp_path, capsys):
-    with pytest.raises(SystemExit):
-        main(["experiment", "fig9", "--out", str(tmp_path)])
+    assert main(["experiment", "fig9", "--out", str(tmp_path)]) == 2
     assert "invalid choice" in capsys.readouterr().err
 
 

@@ -1,21 +1,72 @@
-"""Argument types shared by the ``bubsub`` commands."""
+"""Argument types shared by the ``bubsub`` commands.
+
+Each refuses a bad value while the command line is parsed, before any data
+is read or computed.
+"""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-__all__ = ["positive_int", "positive_float"]
+__all__ = ["positive_int", "non_negative_int", "positive_float", "existing_file", "output_folder",
+           "add_output_arguments"]
+
+
+def _number(text, kind):
+    try:
+        return kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be {'an integer' if kind is int else 'a number'}, got {text!r}") from None
 
 
 def positive_int(text):
-    v = int(text)
+    v = _number(text, int)
     if v < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
     return v
 
 
-def positive_float(text):
-    v = float(text)
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+def non_negative_int(text):
+    v = _number(text, int)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or a positive integer, got {text}")
     return v
+
+
+def positive_float(text):
+    v = _number(text, float)
+    if not (v > 0 and v != float("inf")):
+        raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
+    return v
+
+
+def existing_file(text):
+    p = Path(text)
+    if not p.exists():
+        raise argparse.ArgumentTypeError(f"{text!r} does not exist")
+    if p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a folder, not a file")
+    return text
+
+
+def output_folder(text):
+    """A folder to write into: refused when it names a file or lies under one (the policy on earlier
+    results is :func:`bubsub.clients.pipeline.outputs.check_output_folder`)."""
+    from bubsub.clients.pipeline.outputs import folder_problem
+
+    problem = folder_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
+def add_output_arguments(parser, what="results", default=None):
+    """``--out`` (required unless ``default``) and ``--overwrite``, following
+    :mod:`bubsub.clients.pipeline.outputs`."""
+    note = f"; default {default}" if default else ""
+    parser.add_argument("--out", required=default is None, default=default, type=output_folder, metavar="FOLDER",
+                        help=f"folder for the {what} (created if missing; a folder holding earlier bubsub "
+                             f"results is refused unless --overwrite{note})")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the results of an earlier run in --out (its other files are removed)")

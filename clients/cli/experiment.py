@@ -2,7 +2,21 @@
 
 from __future__ import annotations
 
-from bubsub.clients.cli.args import positive_int
+import argparse
+
+from bubsub.clients.cli.args import add_output_arguments, positive_int
+
+
+def _experiments_epilog():
+    from bubsub.clients.experiments.runner import EXPERIMENTS
+
+    lines = ["experiments (the setting swept, its paper values, the methods compared):"]
+    for e in EXPERIMENTS.values():
+        values = ", ".join(f"{v:g}" for v in e.values)
+        lines.append(f"  {e.name:<6} {e.title}\n         {e.variable}: {values}; methods: {' '.join(e.methods)}")
+    lines.append("\nWrites OUT/NAME.csv (one row per run), OUT/NAME.png and OUT/NAME.json (summary).")
+    return "\n".join(lines)
+
 
 def cmd_experiment(args):
     from bubsub.clients.experiments.runner import run_experiment
@@ -14,26 +28,38 @@ def cmd_experiment(args):
 
 def cmd_demo(args):
     from bubsub.clients.experiments.demo import demo
+    from bubsub.clients.pipeline.outputs import check_output_folder
 
-    demo(args.out, progress=not args.quiet)
+    demo(check_output_folder(args.out, overwrite=args.overwrite), progress=not args.quiet)
     return 0
 
 
 def register(sub):
     """Add the command's parser to ``sub`` (argparse subparsers)."""
-    p = sub.add_parser("experiment", help="reproduce a figure of the paper (CSV + PNG)")
-    p.add_argument("name", choices=("fig1a", "fig1b", "fig5", "fig3a"))
-    p.add_argument("--out", required=True)
-    p.add_argument("--quick", action="store_true", help="a small version that runs in about a minute")
+    from bubsub.clients.experiments.runner import EXPERIMENTS
+
+    p = sub.add_parser("experiment", help="reproduce a figure of the paper (CSV + PNG)",
+                       description="Reproduce a figure of the BubSub paper: DDI of each method against the "
+                                   "simulated truth, per setting and seed (lower DDI is better).",
+                       epilog=_experiments_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("name", choices=tuple(EXPERIMENTS), help="the figure to reproduce (listed below)")
+    p.add_argument("--out", required=True, metavar="FOLDER", help="folder for NAME.csv, NAME.png and NAME.json")
+    p.add_argument("--quick", action="store_true",
+                   help="a small version (coarser grids, fewer settings, 1 seed) that runs in about a minute")
     p.add_argument("--seeds", type=positive_int, help="runs per point (default: 10, quick: 1)")
-    p.add_argument("--values", type=float, nargs="+", help="the settings to sweep instead of the paper's")
-    p.add_argument("--methods", nargs="+", help="run only these methods (e.g. bubsub tv)")
+    p.add_argument("--values", type=float, nargs="+", metavar="VALUE",
+                   help="the settings to sweep instead of the paper's (projections, photon counts or radius factors)")
+    p.add_argument("--methods", nargs="+", metavar="METHOD",
+                   help="run only these methods (e.g. bubsub tv; the experiment's list is below)")
     p.add_argument("--resume", action="store_true",
                    help="keep the runs already in OUT/NAME.csv and run only the missing ones")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_experiment)
 
-    p = sub.add_parser("demo", help="simulate, reconstruct and evaluate a small 2D foam against FBP")
-    p.add_argument("--out", default="demo-output")
-    p.add_argument("--quiet", action="store_true")
+    p = sub.add_parser("demo", help="simulate, reconstruct and evaluate a small 2D foam against FBP",
+                       description="Simulate a 2D foam (25 projections), reconstruct it with BubSub, and print "
+                                   "the Dice dissimilarity (DDI, 0 = perfect, lower is better) of BubSub, FBP "
+                                   "and SIRT against the truth. Takes about a minute.")
+    add_output_arguments(p, "demo: simulation/, bubsub/, demo.png and ddi.txt", default="demo-output")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_demo)

@@ -2,29 +2,76 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 
-from bubsub.clients.cli.args import positive_float, positive_int
+from bubsub.clients.cli.args import add_output_arguments, existing_file, non_negative_int, positive_float, positive_int
+
+_EPILOG = """\
+Order of work: the arguments, the output folder, the scan file's metadata and its
+bubble signal (sign of bubble_contrast, background) and --server are checked first;
+then a low-resolution voxel preview finds the bubbles, a radius-only pre-fit sizes
+them, and BFGS fits all control vertices. Outputs: bubbles.ply (3D) or bubbles.json
+(2D), control.ply|json, bubbles.csv (+ bubbles.csv-metadata.json describing its
+columns), report.json and PNG pictures. What each parameter does: docs/parameters.md.
+"""
+
+
+def connect(url, token):
+    """A :class:`ProjectorClient` for ``url``, checked to answer within seconds.
+
+    Raises
+    ------
+    ValueError
+        One line naming the URL when the server does not answer ``/healthz``
+        or refuses the token.
+    """
+    import httpx
+
+    from bubsub.clients.remote.client import ProjectorClient, RemoteError
+
+    # connection attempts give up after 5 s, so an unreachable host fails in seconds, not minutes
+    client = ProjectorClient(url, token=token, timeout=httpx.Timeout(120.0, connect=5.0), retry_timeout=60.0)
+    if not client.healthy():
+        client.close()
+        raise ValueError(f"no projector server answers at {url} (GET {url.rstrip('/')}/healthz failed); "
+                         f"start one with `bubsub serve` or correct --server")
+    try:
+        client.jobs()  # an authenticated request: a wrong --token fails now, not after the preview
+    except RemoteError as exc:
+        client.close()
+        raise ValueError(f"the projector server at {url} refused the request: {exc}") from None
+    return client
+
 
 def cmd_reconstruct(args):
     from bubsub.core.io.scanfile import read_scan
 
+    from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
+    from bubsub.clients.pipeline.outputs import check_output_folder
     from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, load_initial, reconstruct, write_outputs
 
+    out = check_output_folder(args.out, overwrite=args.overwrite)
+    if args.token and not args.server:
+        raise ValueError("--token is only used with --server")
     scan = read_scan(args.scan)
     settings = ReconstructionSettings(
         iterations=args.iterations, control_points=args.control_points, levels=args.levels,
         radius=args.radius, estimate_radii=not args.no_radius_estimation, supersampling=args.supersampling,
-        holdout=args.holdout, progress=not args.quiet,
+        holdout=args.holdout, progress=not args.quiet, background_subtracted=args.background_subtracted,
     )
+    check_settings(settings, scan.ndim)
+    if args.holdout and scan.n_angles < 2:
+        raise ValueError("--holdout needs a scan with at least two projections")
+    check_bubble_signal(scan, background_subtracted=args.background_subtracted)
     init = load_initial(args.init, scan.bubble_contrast, args.levels) if args.init else None
+    if init is not None and init[0].ndim != scan.ndim:
+        raise ValueError(f"--init {args.init} holds {init[0].ndim}D bubbles but the scan is {scan.ndim}D")
     factory = None
     client = None
     jobs = []
     if args.server:
-        from bubsub.clients.remote.client import ProjectorClient
-
-        client = ProjectorClient(args.server, token=args.token)
+        client = connect(args.server, args.token)
 
         def factory(geometry, data, surfaces):
             job = client.create_job(geometry, data=data, surfaces=surfaces, supersampling=args.supersampling)
@@ -41,31 +88,43 @@ def cmd_reconstruct(args):
                 except Exception as exc:  # noqa: BLE001 - the result matters more than the clean-up
                     print(f"bubsub reconstruct: could not delete remote job: {exc}", file=sys.stderr)
             client.close()
-    files = write_outputs(args.out, rec, scan_path=args.scan)
+    files = write_outputs(out, rec, scan_path=args.scan)
     r = rec.report
-    state = " (interrupted: partial result)" if r["interrupted"] else ""
-    print(f"{r['bubbles']} bubbles, {r['iterations']} iterations, objective {r['initial_objective']:.4g} -> "
-          f"{r['final_objective']:.4g}, {r['seconds_total']:.1f} s{state}")
+    print(f"{r['bubbles']} bubbles, {r['iterations']} iterations ({r.get('stop_reason', 'done')}), objective "
+          f"{r['initial_objective']:.4g} -> {r['final_objective']:.4g}, {r['seconds_total']:.1f} s")
     if "holdout_mse" in r:
         print(f"held-out projection MSE ({r['holdout_projections']} projections): {r['holdout_mse']:.4g}")
-    print("wrote " + ", ".join(str(p) for p in files.values()))
+    print(f"wrote {out}: " + ", ".join(p.name for p in files.values()))
     return 130 if r["interrupted"] else 0
 
 
 def register(sub):
     """Add the command's parser to ``sub`` (argparse subparsers)."""
-    p = sub.add_parser("reconstruct", help="reconstruct bubbles from a scan file")
-    p.add_argument("scan", help="HDF5 scan file (Data Exchange layout)")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--iterations", type=int, default=80, help="BFGS iterations (default 80)")
-    p.add_argument("--control-points", type=positive_int, help="control points per bubble (3D: 12, 42, 162; default 42; 2D default 9)")
-    p.add_argument("--levels", type=int, default=2, help="subdivision levels (default 2)")
-    p.add_argument("--radius", type=positive_float, help="constant initial radius in mm (default: from the voxel preview)")
-    p.add_argument("--no-radius-estimation", action="store_true", help="skip the radius-only pre-fit")
-    p.add_argument("--init", help="initial control mesh: a previous reconstruction's control.ply / control.json")
-    p.add_argument("--holdout", choices=("odd", "even"), help="keep these projections aside and report their MSE")
+    p = sub.add_parser("reconstruct", help="reconstruct bubbles from a scan file",
+                       description="Reconstruct the bubbles of a scan file as meshes (BubSub).",
+                       epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scan", type=existing_file, help="HDF5 scan file (Data Exchange layout, see docs/design.md)")
+    add_output_arguments(p, "meshes, table, report and pictures")
+    p.add_argument("--iterations", type=non_negative_int, default=80,
+                   help="maximum BFGS iterations (default 80, the paper's; the fit stops earlier when converged)")
+    p.add_argument("--control-points", type=positive_int,
+                   help="control points per bubble (3D: 12, 42 or 162, default 42; 2D: >= 3, default 9)")
+    p.add_argument("--levels", type=non_negative_int, default=2,
+                   help="Loop/curve subdivision levels of the fitted surface (0-4, default 2)")
+    p.add_argument("--radius", type=positive_float,
+                   help="initial radius of every bubble in mm (default: from the voxel preview)")
+    p.add_argument("--no-radius-estimation", action="store_true",
+                   help="skip the radius-only pre-fit (paper eq. 4-5) before the full fit")
+    p.add_argument("--init", type=existing_file,
+                   help="initial control mesh: a previous reconstruction's control.ply / control.json")
+    p.add_argument("--holdout", choices=("odd", "even"),
+                   help="keep these projections aside and report their MSE (a check against over-fitting)")
     p.add_argument("--supersampling", type=positive_int, default=1, help="rays per pixel and axis (default 1)")
-    p.add_argument("--server", help="URL of a bubsub projector server to fit against (default: local)")
+    p.add_argument("--background-subtracted", action="store_true",
+                   help="the projections hold only the bubbles' signal: accept a scan without "
+                        "/exchange/background whose bubble_contrast is positive")
+    p.add_argument("--server", metavar="URL",
+                   help="URL of a bubsub projector server to fit against (default: local); checked at start")
     p.add_argument("--token", help="bearer token for --server")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or phase lines")
     p.set_defaults(func=cmd_reconstruct)

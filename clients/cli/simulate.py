@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
-from bubsub.clients.cli.args import positive_float, positive_int
+from bubsub.clients.cli.args import add_output_arguments, positive_float, positive_int
 from bubsub.clients.pipeline.simulation import DYNAMIC_PHANTOMS, PHANTOMS, simulate_dynamic_to_dir, simulate_to_dir
 
 
 def cmd_simulate(args):
+    from bubsub.clients.pipeline.outputs import check_output_folder
+
     if args.phantom in DYNAMIC_PHANTOMS:
-        return _simulate_dynamic(args)
-    if args.subscans is not None or args.projections_per_subscan is not None:
+        if args.angles is not None:
+            raise ValueError("a dynamic phantom takes --subscans and --projections-per-subscan, not --angles")
+    elif args.subscans is not None or args.projections_per_subscan is not None:
         raise ValueError(f"--subscans and --projections-per-subscan need a dynamic phantom ({', '.join(DYNAMIC_PHANTOMS)})")
-    scan, truth, meta = simulate_to_dir(args.out, args.phantom, angles=args.angles or 25, photons=args.photons,
+    out = check_output_folder(args.out, overwrite=args.overwrite)
+    if args.phantom in DYNAMIC_PHANTOMS:
+        return _simulate_dynamic(args, out)
+    scan, truth, meta = simulate_to_dir(out, args.phantom, angles=args.angles or 25, photons=args.photons,
                                         seed=args.seed, beam=args.beam, det_count=args.det_count,
                                         n_bubbles=args.bubbles)
     print(f"wrote {scan} ({meta['angles']} projections, I0={meta['photons']:g}, seed {meta['seed']}), "
@@ -19,11 +25,9 @@ def cmd_simulate(args):
     return 0
 
 
-def _simulate_dynamic(args):
-    if args.angles is not None:
-        raise ValueError("a dynamic phantom takes --subscans and --projections-per-subscan, not --angles")
+def _simulate_dynamic(args, out):
     scan, truth, meta = simulate_dynamic_to_dir(
-        args.out, args.phantom, subscans=args.subscans or 8, projections_per_subscan=args.projections_per_subscan or 50,
+        out, args.phantom, subscans=args.subscans or 8, projections_per_subscan=args.projections_per_subscan or 50,
         photons=args.photons, seed=args.seed, beam=args.beam, det_count=args.det_count, n_bubbles=args.bubbles)
     print(f"wrote {scan} ({meta['subscans']} subscans of {meta['projections_per_subscan']} projections, "
           f"I0={meta['photons']:g}, seed {meta['seed']}), ground truth per subscan in {truth} "
@@ -33,9 +37,13 @@ def _simulate_dynamic(args):
 
 def register(sub):
     """Add the command's parser to ``sub`` (argparse subparsers)."""
-    p = sub.add_parser("simulate", help="simulate a foam scan (scan.h5) and its ground truth")
+    p = sub.add_parser("simulate", help="simulate a foam scan (scan.h5) and its ground truth",
+                       description="Simulate a foam scan (scan.h5, with its liquid background) and write its "
+                                   "ground truth (truth.json in 2D, truth.ply in 3D, truth/ per subscan for a "
+                                   "dynamic scan) and phantom.json.")
     p.add_argument("--phantom", choices=PHANTOMS + DYNAMIC_PHANTOMS, default="foam2d",
-                   help="static foam, or an expanding foam for a dynamic scan (expanding2d, expanding3d)")
+                   help="foam2d / foam3d: random static foam; foam3d-benchmark: the fixed 3D benchmark foam; "
+                        "expanding2d / expanding3d: an expanding foam for a dynamic scan (default foam2d)")
     p.add_argument("--angles", type=positive_int, help="number of projections (default 25; static phantoms)")
     p.add_argument("--subscans", type=positive_int, help="dynamic phantoms: number of subscans (default 8)")
     p.add_argument("--projections-per-subscan", type=positive_int,
@@ -45,5 +53,5 @@ def register(sub):
     p.add_argument("--beam", choices=("parallel", "cone"), help="default: parallel in 2D, cone in 3D")
     p.add_argument("--det-count", type=positive_int, help="detector columns (2D default 2400, 3D 512)")
     p.add_argument("--bubbles", type=positive_int, help="number of bubbles (random phantoms)")
-    p.add_argument("--out", required=True, help="output folder")
+    add_output_arguments(p, "scan and ground truth")
     p.set_defaults(func=cmd_simulate)

@@ -41,6 +41,9 @@ def demo(out="demo-output", progress=True):
     table = "\n".join(lines)
     atomic_write_text(out / "ddi.txt", table + "\n")
     _demo_plot(out / "demo.png", ph, rec, shape, extent)
+    from bubsub.clients.pipeline.outputs import finish_outputs
+
+    finish_outputs(out, [out / "ddi.txt", out / "demo.png"], command="demo")
     print(table)
     print(f"wrote {out}/bubsub (meshes, CSV, report, overlay), {out}/demo.png, {out}/ddi.txt")
     return rows

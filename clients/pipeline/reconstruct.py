@@ -26,6 +26,8 @@ from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 from bubsub.clients.optimise.fit import estimate_radii, fit
+from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
+from bubsub.clients.pipeline.outputs import finish_outputs
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "initial_surfaces", "voxel_preview"]
 
@@ -43,6 +45,7 @@ class ReconstructionSettings:
     holdout: str | None = None  # "odd" or "even": projections kept aside for validation
     voxel_size: float | None = None  # of the initial voxel reconstruction; default: from the field of view
     min_distance: float | None = None  # between bubble centres (mm)
+    background_subtracted: bool = False  # accept a positive contrast without /exchange/background
     progress: bool = True
 
 
@@ -220,6 +223,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     Reconstruction
     """
     s = settings or ReconstructionSettings()
+    check_settings(s, scan.ndim)
+    check_bubble_signal(scan, background_subtracted=s.background_subtracted)
     t0 = time.perf_counter()
     contrast = scan.bubble_contrast
     data = scan.bubble_data
@@ -294,7 +299,11 @@ def prune(surfaces, min_radius):
 def write_outputs(out_dir, rec, scan_path=None):
     """Write ``bubbles.ply|json``, ``bubbles.csv``, ``report.json`` and ``overlay.png``.
 
-    Every file goes to a temporary name first and is renamed when complete.
+    Every file goes to a temporary name first and is renamed when complete;
+    then the files of an earlier run in ``out_dir`` that were not replaced are
+    removed (:func:`bubsub.clients.pipeline.outputs.finish_outputs`). Callers
+    that must not replace earlier results check the folder first
+    (:func:`bubsub.clients.pipeline.outputs.check_output_folder`).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -324,6 +333,7 @@ def write_outputs(out_dir, rec, scan_path=None):
     with atomic_path(files["report"]) as tmp:
         Path(tmp).write_text(json.dumps(report, indent=2, default=_json_default))
     rec.files = files
+    finish_outputs(out, files.values(), command="reconstruct")
     return files
 
 

@@ -65,11 +65,18 @@ def truth_grid(phantom, resolution=None):
 
 def simulate_to_dir(out, phantom_name="foam2d", *, angles=25, photons=1e4, seed=0, beam=None,
                     det_count=None, n_bubbles=None, method="voxel"):
-    """Simulate a scan and write ``scan.h5``, ``truth.json|ply`` and ``phantom.json`` to ``out``."""
+    """Simulate a scan and write ``scan.h5``, ``truth.json|ply`` and ``phantom.json`` to ``out``.
+
+    The files of an earlier run in ``out`` that are not replaced are removed
+    (:func:`bubsub.clients.pipeline.outputs.finish_outputs`); ``bubsub
+    simulate`` first refuses a folder with earlier results unless ``--overwrite``.
+    """
     from bubsub.core.io.atomic import atomic_write_text
     from bubsub.core.io.meshio import write_ply, write_polygons_json
     from bubsub.core.io.scanfile import write_scan
     from bubsub.core.foam.simulate import simulate_2d, simulate_3d
+
+    from bubsub.clients.pipeline.outputs import finish_outputs
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -91,6 +98,7 @@ def simulate_to_dir(out, phantom_name="foam2d", *, angles=25, photons=1e4, seed=
             "bubbles": len(phantom.bubbles), "grid_shape": list(shape), "grid_extent": list(extent),
             "angles": angles, "photons": photons, "beam": beam, "truth": truth.name}
     atomic_write_text(out / "phantom.json", json.dumps(meta, indent=2))
+    finish_outputs(out, [out / "scan.h5", truth, out / "phantom.json"], command="simulate")
     return out / "scan.h5", truth, meta
 
 
@@ -109,6 +117,8 @@ def simulate_dynamic_to_dir(out, phantom_name="expanding2d", *, subscans=8, proj
     from bubsub.core.io.atomic import atomic_write_text
     from bubsub.core.io.meshio import write_ply, write_polygons_json
     from bubsub.core.io.scanfile import write_scan
+
+    from bubsub.clients.pipeline.outputs import finish_outputs
 
     if phantom_name not in DYNAMIC_PHANTOMS:
         raise ValueError(f"unknown dynamic phantom {phantom_name!r}; choose one of {DYNAMIC_PHANTOMS}")
@@ -137,4 +147,6 @@ def simulate_dynamic_to_dir(out, phantom_name="expanding2d", *, subscans=8, proj
             "subscan_times": times.tolist(), "subscan_phase": mid.tolist(),
             "seconds_per_projection": seconds_per_projection}
     atomic_write_text(out / "phantom.json", json.dumps(meta, indent=2))
+    truths = [out / "truth" / f"subscan_{k:04d}.{'json' if foam.ndim == 2 else 'ply'}" for k in range(len(mid))]
+    finish_outputs(out, [out / "scan.h5", out / "phantom.json", *truths], command="simulate")
     return out / "scan.h5", out / "truth", meta

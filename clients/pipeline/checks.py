@@ -1,0 +1,109 @@
+"""Checks run before a reconstruction computes anything: settings and the scan's bubble signal.
+
+Each takes well under a second and raises ``ValueError`` with one line that
+names the problem and the fix, so that a mistake costs seconds, not a fit,
+and never yields a silent wrong result.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+
+__all__ = ["check_settings", "check_bubble_signal", "CONTROL_POINTS_3D", "MAX_LEVELS"]
+
+#: Control vertices of the icosphere control meshes (3D bubbles).
+CONTROL_POINTS_3D = (12, 42, 162)
+#: Subdivision levels beyond this cost far more than they add (4**levels faces per control face).
+MAX_LEVELS = 4
+
+
+def _integer(value, name, least):
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+        raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+
+
+def check_settings(settings, ndim):
+    """Refuse reconstruction settings that cannot work for a ``ndim``-D scan.
+
+    Parameters
+    ----------
+    settings : ReconstructionSettings
+    ndim : {2, 3}
+
+    Raises
+    ------
+    ValueError
+        Naming the setting (as its command-line option) and the allowed values.
+    """
+    s = settings
+    _integer(s.iterations, "--iterations", 0)
+    _integer(s.levels, "--levels", 0)
+    if s.levels > MAX_LEVELS:
+        raise ValueError(f"--levels must be at most {MAX_LEVELS} (each level multiplies the faces by 4), "
+                         f"got {s.levels}")
+    _integer(s.supersampling, "--supersampling", 1)
+    if s.control_points is not None:
+        if ndim == 3 and s.control_points not in CONTROL_POINTS_3D:
+            raise ValueError(f"--control-points must be one of {list(CONTROL_POINTS_3D)} for a 3D scan "
+                             f"(icosphere control meshes), got {s.control_points}")
+        _integer(s.control_points, "--control-points", 3)
+    for name in ("radius", "voxel_size", "min_distance"):
+        v = getattr(s, name)
+        if v is not None and not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name.replace('_', '-')} must be a positive number of mm, got {v!r}")
+    if s.holdout not in (None, "odd", "even"):
+        raise ValueError(f"--holdout must be 'odd' or 'even', got {s.holdout!r}")
+
+
+def check_bubble_signal(scan, *, background_subtracted=False):
+    """Refuse a scan whose bubble data disagree with the sign of ``bubble_contrast``.
+
+    Gas bubbles lower the attenuation, so ``data - background`` of a foam is
+    negative where a bubble is and noise elsewhere, and ``bubble_contrast``
+    (gas minus liquid) is negative. Two mistakes give a meaningless fit:
+    a scan without ``/exchange/background`` (``data`` then holds the whole
+    liquid's projection, positive) and a contrast of the wrong sign.
+
+    Parameters
+    ----------
+    scan : bubsub.core.io.scanfile.Scan
+    background_subtracted : bool
+        The user states that ``data`` already holds only the bubbles'
+        projection; accepts a positive contrast without a background.
+
+    Raises
+    ------
+    ValueError
+        If ``sign(bubble_contrast) * (data - background)`` has more mass
+        below zero than above (the sign disagrees with the data, or the
+        liquid was not subtracted), if it is zero everywhere, or if the
+        contrast is positive and the scan has no background (unless
+        ``background_subtracted``).
+    """
+    c = scan.bubble_contrast
+    name = scan.path.name if scan.path is not None else "the scan"
+    has_bg = scan.background is not None
+    signed = np.sign(c) * scan.bubble_data
+    above = float(np.sum(signed, where=signed > 0, dtype=np.float64))
+    below = float(-np.sum(signed, where=signed < 0, dtype=np.float64))
+    prepare = "subtract the liquid's projection with `bubsub prepare --background auto`"
+    if above == 0 and below == 0:
+        raise ValueError(f"{name}: data - background is zero everywhere: there is no bubble signal to fit")
+    if below > above:
+        if not has_bg:
+            raise ValueError(
+                f"{name} has no /exchange/background and its projections are mostly "
+                f"{'positive' if c < 0 else 'negative'}, the opposite sign of bubble_contrast = {c:g} 1/mm: "
+                f"they hold the liquid's projection, not the bubbles'; {prepare}, or correct bubble_contrast")
+        raise ValueError(
+            f"{name}: bubble_contrast = {c:g} 1/mm disagrees with the data: data - background is mostly "
+            f"{'positive' if c < 0 else 'negative'} (gas bubbles lower the attenuation, so it should be "
+            f"negative with a negative contrast); check the sign of bubble_contrast and the background")
+    if c > 0 and not has_bg and not background_subtracted:
+        raise ValueError(
+            f"{name} has a positive bubble_contrast = {c:g} 1/mm (bubbles attenuating more than the liquid) "
+            f"and no /exchange/background, so the fit would take the liquid for bubbles; gas bubbles have a "
+            f"negative contrast: correct its sign and {prepare}; if the data really hold only the bubbles' "
+            f"projection, pass --background-subtracted")

@@ -1,0 +1,179 @@
+"""Output folders: the one policy every bubsub command that writes results follows.
+
+A folder *holds bubsub results* when it has the manifest :data:`MANIFEST`
+(written last by :func:`finish_outputs`, listing the files of that run) or,
+for folders written before the manifest existed, any of :data:`RESULT_NAMES`.
+
+The policy
+----------
+1. Before any computation, :func:`check_output_folder` refuses an ``--out``
+   that names a file, lies under a file or cannot be written, and a folder
+   that holds bubsub results unless ``overwrite`` (``--overwrite``) is given;
+   the message names the flag.
+2. The command writes its files (atomically, :mod:`bubsub.core.io.atomic`).
+3. :func:`finish_outputs` removes every file of the earlier run that the new
+   run did not replace (so a 3D run never leaves a 2D run's ``bubbles.json``
+   beside its ``bubbles.ply``) and writes the new manifest.
+
+An interrupted or failed run leaves the earlier results as they were until
+step 3. A new command adds ``--out``/``--overwrite`` with
+:func:`bubsub.clients.cli.args.add_output_arguments` and calls steps 1 and 3::
+
+    out = check_output_folder(args.out, overwrite=args.overwrite)  # step 1, in the first second
+    files = [...]                                                   # step 2: paths it wrote
+    finish_outputs(out, files, command="reconstruct4d")             # step 3
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from bubsub.core.io.atomic import atomic_write_text
+
+__all__ = ["MANIFEST", "RESULT_NAMES", "OutputFolderError", "folder_problem", "earlier_outputs",
+           "check_output_folder", "finish_outputs"]
+
+#: Name of the manifest: ``{"bubsub": version, "command": str, "files": [relative paths]}``.
+MANIFEST = "bubsub-outputs.json"
+
+#: Files bubsub wrote before the manifest existed; a folder holding one of them holds results.
+RESULT_NAMES = frozenset({
+    "report.json", "bubbles.ply", "bubbles.json", "bubbles.csv", "control.ply", "control.json",
+    "overlay.png", "scan.h5", "truth.json", "truth.ply", "phantom.json", "ddi.txt", "demo.png",
+})
+
+
+class OutputFolderError(ValueError):
+    """An output folder the policy refuses (``bubsub`` prints it as one line, exit status 2)."""
+
+
+def folder_problem(path):
+    """Why ``path`` cannot be an output folder (a file, under a file, not writable), or None.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    str or None
+    """
+    p = Path(path)
+    if str(path) == "":
+        return "the output folder name is empty"
+    if p.exists() and not p.is_dir():
+        return f"{str(p)!r} is a file, not a folder; give --out a folder name"
+    ancestor = p
+    while not ancestor.exists():
+        if ancestor.parent == ancestor:
+            break
+        ancestor = ancestor.parent
+    if ancestor.exists() and not ancestor.is_dir():
+        return f"cannot create the folder {str(p)!r}: {str(ancestor)!r} is a file"
+    if ancestor.exists() and not os.access(ancestor, os.W_OK | os.X_OK):
+        return f"cannot write into {str(ancestor)!r} (permission denied); choose another --out"
+    return None
+
+
+def _manifest(folder):
+    m = folder / MANIFEST
+    if not m.is_file():
+        return None
+    try:
+        doc = json.loads(m.read_text())
+        return doc if isinstance(doc, dict) and isinstance(doc.get("files"), list) else None
+    except (OSError, ValueError):
+        return None
+
+
+def earlier_outputs(path):
+    """The files of an earlier bubsub run in ``path`` (manifest entries and legacy names).
+
+    Returns
+    -------
+    list of pathlib.Path
+        Existing files, sorted; empty when the folder holds no bubsub results.
+    """
+    folder = Path(path)
+    if not folder.is_dir():
+        return []
+    found = {folder / n for n in RESULT_NAMES if (folder / n).is_file()}
+    doc = _manifest(folder)
+    if doc is not None:
+        for name in doc["files"]:
+            f = (folder / str(name)).resolve()
+            # never follow a manifest outside its own folder
+            if folder.resolve() in f.parents and f.is_file():
+                found.add(folder / str(name))
+    if (folder / MANIFEST).is_file():
+        found.add(folder / MANIFEST)
+    return sorted(found)
+
+
+def check_output_folder(path, *, overwrite=False):
+    """Step 1 of the policy: the output folder, refused with a clear message if it is unusable.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    overwrite : bool
+        Accept a folder holding earlier bubsub results (they are replaced by
+        :func:`finish_outputs`).
+
+    Returns
+    -------
+    pathlib.Path
+        Not created yet (nothing is written before the computation succeeds).
+
+    Raises
+    ------
+    OutputFolderError
+    """
+    problem = folder_problem(path)
+    if problem:
+        raise OutputFolderError(problem)
+    earlier = earlier_outputs(path)
+    if earlier and not overwrite:
+        doc = _manifest(Path(path))
+        what = f"bubsub {doc['command']}" if doc and doc.get("command") else "bubsub"
+        names = ", ".join(f.name for f in earlier[:4]) + (", ..." if len(earlier) > 4 else "")
+        raise OutputFolderError(
+            f"{str(path)!r} already holds the results of an earlier {what} run ({names}); "
+            f"pass --overwrite to replace them, or choose another --out")
+    return Path(path)
+
+
+def finish_outputs(path, files, command, **info):
+    """Step 3 of the policy: remove the earlier run's files not written again, then write the manifest.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The output folder.
+    files : iterable of str or os.PathLike
+        The files this run wrote, as opened (e.g. ``folder / "bubbles.csv"``).
+    command : str
+        E.g. ``"reconstruct"``; named in later refusals.
+    **info
+        Extra JSON-able entries for the manifest.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The earlier files removed.
+    """
+    folder = Path(path)
+    written = {Path(f).resolve() for f in files}
+    removed = []
+    for old in earlier_outputs(folder):
+        if old.name != MANIFEST and old.resolve() not in written:
+            old.unlink(missing_ok=True)
+            removed.append(old)
+    from bubsub.clients import version
+
+    names = sorted(os.path.relpath(f, folder.resolve()) for f in written)
+    doc = {"bubsub": version(), "command": command, "files": names, **info}
+    atomic_write_text(folder / MANIFEST, json.dumps(doc, indent=2) + "\n")
+    return removed

@@ -103,7 +103,7 @@ def register(sub):
     p = sub.add_parser("reconstruct", help="reconstruct bubbles from a scan file",
                        description="Reconstruct the bubbles of a scan file as meshes (BubSub).",
                        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scan", type=existing_file, help="HDF5 scan file (Data Exchange layout, see docs/design.md)")
+    p.add_argument("scan", type=existing_file, help="HDF5 scan file (Data Exchange layout, see docs/architecture.md)")
     add_output_arguments(p, "meshes, table, report and pictures")
     p.add_argument("--iterations", type=non_negative_int, default=80,
                    help="maximum BFGS iterations (default 80, the paper's; the fit stops earlier when converged)")

@@ -28,6 +28,7 @@ from bubsub.core.projection.subdivision import SubdivisionSurface
 from bubsub.clients.optimise.fit import estimate_radii, fit
 from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
 from bubsub.clients.pipeline.outputs import finish_outputs
+from bubsub.clients.pipeline.repair import check_and_repair
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "initial_surfaces", "voxel_preview"]
 
@@ -47,6 +48,8 @@ class ReconstructionSettings:
     min_distance: float | None = None  # between bubble centres (mm)
     background_subtracted: bool = False  # accept a positive contrast without /exchange/background
     progress: bool = True
+    repair: bool = True  # round self-intersecting bubbles, separate overlapping ones, refit (see .repair)
+    repair_iterations: int = 20  # BFGS iterations of each refit after a repair
 
 
 @dataclass
@@ -249,11 +252,14 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     result = fit(projector, surfaces, fit_data, iterations=s.iterations, progress=s.progress)
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     kept, dropped = prune(result.surfaces, min_radius=voxel)
+    kept, validity = check_and_repair(kept, MeshProjector(g_fit, supersampling=s.supersampling), d_fit,
+                                      repair=s.repair, iterations=s.repair_iterations, gap=0.25 * voxel)
 
     report = {
         "bubbles": len(kept),
         "bubbles_initial": len(surfaces),
-        "bubbles_dropped": dropped,
+        "bubbles_dropped": dropped + validity["dropped"],
+        "validity": validity,
         "dimension": geometry.ndim,
         "iterations": result.iterations,
         "evaluations": result.evaluations,

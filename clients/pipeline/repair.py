@@ -1,0 +1,211 @@
+"""Repair of invalid fitted bubbles: self-intersecting outlines and interpenetrating pairs.
+
+The fit minimises the projection distance only, so at few views it can
+return an outline that crosses itself (its shoelace area, and the CSV row,
+would be wrong) or two bubbles that share gas (counted twice). After the fit,
+:func:`repair_bubbles` checks (:func:`bubsub.core.projection.validity.check_bubbles`)
+and acts:
+
+* a self-intersecting bubble is replaced by a round one with its centre and
+  its root-mean-square radius ("rounded");
+* two interpenetrating bubbles are separated by a plane halfway through their
+  overlap, perpendicular to the line between their centres: the control
+  vertices beyond it are moved back onto it, leaving a film of ``gap`` mm
+  ("separated"). Loop and cubic B-spline subdivision are convex combinations
+  of control vertices, so the fine surfaces then lie on their own sides too;
+* a bubble wholly inside another, or turned inside out, is dropped ("dropped").
+
+Then a short refit lets the data reshape the repaired bubbles; the refit may
+undo a repair, so the check and the repairs run again (up to ``rounds``
+times) and the last round repairs without refitting. A bubble still invalid
+after that is dropped. Every action is recorded, and the final check's
+violations are returned, so the report says what was wrong and what was done.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bubsub.core.projection.subdivision import circle_surface, sphere_surface
+from bubsub.core.projection.validity import check_bubbles
+
+__all__ = ["check_and_repair", "repair_bubbles", "rounded", "separate"]
+
+
+def _centre_radius(surface):
+    fine = surface.fine().vertices
+    c = fine.mean(axis=0)
+    return c, float(np.sqrt(np.mean(np.sum((fine - c) ** 2, axis=1))))
+
+
+def rounded(surface):
+    """A round bubble with ``surface``'s centre, RMS radius and number of control vertices."""
+    c, r = _centre_radius(surface)
+    n = len(surface.vertices)
+    if surface.ndim == 2:
+        new = circle_surface(c, r, surface.attenuation, control=n, levels=surface.levels)
+    elif n in (12, 42, 162) and np.array_equal(
+            sphere_surface(c, r, surface.attenuation, control=n, levels=surface.levels).control_faces,
+            surface.control_faces):
+        new = sphere_surface(c, r, surface.attenuation, control=n, levels=surface.levels)
+    else:
+        # another topology (a user's initial mesh): push the control vertices onto a sphere
+        d = surface.vertices - surface.vertices.mean(axis=0)
+        norm = np.linalg.norm(d, axis=1, keepdims=True)
+        return surface.with_vertices(c + r * d / np.where(norm > 0, norm, 1.0))
+    return surface.with_vertices(new.vertices) if new.vertices.shape == surface.vertices.shape else new
+
+
+def separate(a, b, gap=0.0):
+    """Move the control vertices of two overlapping bubbles apart across a plane.
+
+    Parameters
+    ----------
+    a, b : SubdivisionSurface
+    gap : float
+        Film thickness left between them, mm.
+
+    Returns
+    -------
+    (SubdivisionSurface, SubdivisionSurface)
+    """
+    fa, fb = a.fine().vertices, b.fine().vertices
+    n = fb.mean(axis=0) - fa.mean(axis=0)
+    length = np.linalg.norm(n)
+    n = n / length if length > 0 else np.eye(a.ndim)[0]
+    # the plane halfway through the overlap along n
+    p = 0.5 * (float(np.max(fa @ n)) + float(np.min(fb @ n)))
+    va, vb = a.vertices.copy(), b.vertices.copy()
+    ta, tb = va @ n - (p - gap / 2), vb @ n - (p + gap / 2)
+    va[ta > 0] -= ta[ta > 0, None] * n
+    vb[tb < 0] -= tb[tb < 0, None] * n
+    return a.with_vertices(va), b.with_vertices(vb)
+
+
+def _size(surface):
+    fine = surface.fine()
+    return abs(fine.volume if surface.ndim == 3 else fine.area)
+
+
+def _repair_once(surfaces, violations, gap, actions, round_no):
+    surfaces = list(surfaces)
+    drop = set()
+    tangled = {}
+    for v in violations:
+        if v.kind == "self_intersection":
+            tangled.setdefault(v.bubbles[0], []).append(v.surface)
+    for v in violations:
+        if v.kind == "inverted":
+            drop.add(v.bubbles[0])
+            actions.append({"round": round_no, "action": "dropped", "bubble": v.bubbles[0], "reason": "inside out"})
+    for i, which in sorted(tangled.items()):
+        surfaces[i] = rounded(surfaces[i])
+        actions.append({"round": round_no, "action": "rounded", "bubble": i, "surfaces": which})
+    for v in violations:
+        if v.kind != "overlap":
+            continue
+        i, j = v.bubbles
+        if i in drop or j in drop:
+            continue
+        if v.crossings == 0:  # no boundary crossing but shared gas: one inside the other
+            k = i if _size(surfaces[i]) < _size(surfaces[j]) else j
+            drop.add(k)
+            actions.append({"round": round_no, "action": "dropped", "bubble": k, "reason": "inside another bubble"})
+            continue
+        surfaces[i], surfaces[j] = separate(surfaces[i], surfaces[j], gap)
+        actions.append({"round": round_no, "action": "separated", "bubbles": [i, j], "overlap": v.measure})
+    return surfaces, drop
+
+
+def repair_bubbles(surfaces, refit=None, *, gap=0.0, rounds=2):
+    """Check fitted bubbles and repair what is invalid.
+
+    Parameters
+    ----------
+    surfaces : list of SubdivisionSurface
+    refit : callable(list of SubdivisionSurface) -> list of SubdivisionSurface, optional
+        A short fit after each repair round (not after the last).
+    gap : float
+        Liquid film left between separated bubbles, mm.
+    rounds : int
+        Repair rounds (each: check, repair, refit).
+
+    Returns
+    -------
+    surfaces : list of SubdivisionSurface
+        Valid bubbles (indices change where bubbles were dropped).
+    summary : dict
+        ``violations_found`` (the first check, as dicts), ``actions`` (each
+        with its round; bubble indices refer to the list entering that
+        round), ``violations_remaining`` (the final check, empty unless a
+        repair failed and the bubble could not be dropped), ``dropped``.
+    """
+    surfaces = list(surfaces)
+    actions = []
+    found = check_bubbles(surfaces)
+    violations = found
+    dropped = 0
+    for r in range(rounds + 1):
+        if not violations:
+            break
+        last = r == rounds
+        surfaces, drop = _repair_once(surfaces, violations, gap, actions, r)
+        violations = check_bubbles(surfaces)
+        bad = {b for v in violations for b in v.bubbles} if last else set()
+        if last and bad:
+            # still invalid after repairing without a refit: drop the offenders (the smaller of a pair)
+            for v in violations:
+                k = v.bubbles[0] if len(v.bubbles) == 1 else min(v.bubbles, key=lambda b: _size(surfaces[b]))
+                if k not in drop:
+                    drop.add(k)
+                    actions.append({"round": r, "action": "dropped", "bubble": k, "reason": f"still {v.kind}"})
+        if drop:
+            dropped += len(drop)
+            surfaces = [s for k, s in enumerate(surfaces) if k not in drop]
+        if not last and refit is not None and surfaces:
+            surfaces = list(refit(surfaces))
+        violations = check_bubbles(surfaces)
+    return surfaces, {
+        "violations_found": [v.as_dict() for v in found],
+        "actions": actions,
+        "violations_remaining": [v.as_dict() for v in violations],
+        "dropped": dropped,
+    }
+
+
+def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, gap=0.0, rounds=2):
+    """The pipeline's validity step: :func:`repair_bubbles` with BFGS refits, or only the check.
+
+    Parameters
+    ----------
+    surfaces : list of SubdivisionSurface
+    projector : MeshProjector
+        Of the fitted projections (refits).
+    data : ndarray
+        The fitted projections.
+    repair : bool
+        False: check and report only (the surfaces are returned unchanged).
+    iterations : int
+        BFGS iterations of each refit.
+
+    Returns
+    -------
+    surfaces, summary
+        As :func:`repair_bubbles`; ``summary["repaired"]`` says whether repairs ran,
+        ``summary["objective_after_repair"]`` (when anything was repaired) is
+        ``0.5 ||Proj(S x) - d||^2`` of the returned bubbles.
+    """
+    if not repair:
+        found = [v.as_dict() for v in check_bubbles(surfaces)]
+        return list(surfaces), {"violations_found": found, "actions": [], "violations_remaining": found,
+                                "dropped": 0, "repaired": False}
+    from bubsub.clients.optimise.fit import fit
+
+    def refit(items):
+        return fit(projector, items, data, iterations=iterations, progress=False).surfaces
+
+    kept, summary = repair_bubbles(surfaces, refit, gap=gap, rounds=rounds)
+    summary["repaired"] = True
+    if summary["actions"] and kept:
+        summary["objective_after_repair"] = float(projector.objective(kept, data)[0])
+    return kept, summary

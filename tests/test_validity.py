@@ -1,0 +1,107 @@
+"""Validity checks (self-intersections, overlaps) and the repair step, on constructed invalid shapes."""
+
+import numpy as np
+import pytest
+
+from bubsub.clients.pipeline.repair import check_and_repair, repair_bubbles, separate
+from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
+from bubsub.core.projection.mesh import Polygon
+from bubsub.core.projection.validity import check_bubbles, crossings_between, overlap_measure, self_crossings
+
+MU = -0.1
+
+
+def _lens_area(r, d):
+    return 2 * r * r * np.arccos(d / (2 * r)) - 0.5 * d * np.sqrt(4 * r * r - d * d)
+
+
+def _tangled(surface, i=0, j=3):
+    """The same control points with two of them swapped: the outline crosses itself."""
+    v = surface.vertices.copy()
+    v[[i, j]] = v[[j, i]]
+    return surface.with_vertices(v)
+
+
+def test_figure_eight_crosses_itself_once_and_a_circle_never():
+    t = 2 * np.pi * (np.arange(40) + 0.25) / 40  # no vertex exactly at the crossing
+    eight = Polygon(np.stack([np.sin(t), np.sin(t) * np.cos(t)], axis=1), MU, _checked=True)
+    assert self_crossings(eight) == 1
+    assert self_crossings(circle_surface([0, 0], 1.0, MU, control=40).fine()) == 0
+
+
+def test_swapped_control_points_are_reported_on_control_and_fine_outline():
+    bad = _tangled(circle_surface([0, 0], 1.0, MU))
+    kinds = {(v.kind, v.surface) for v in check_bubbles([bad])}
+    assert kinds == {("self_intersection", "control"), ("self_intersection", "fine")}
+
+
+def test_pushed_in_sphere_crosses_itself_and_a_sphere_does_not():
+    s = sphere_surface([0, 0, 0], 1.0, MU)
+    assert self_crossings(s.fine()) == 0
+    v = s.vertices.copy()
+    v[v[:, 2] > 0.5, 2] -= 2.5  # the cap pushed through the bottom
+    bad = s.with_vertices(v)
+    assert self_crossings(bad.control) > 0 and self_crossings(bad.fine()) > 0
+
+
+def test_overlap_area_and_volume_match_the_analytic_lens():
+    a, b = (circle_surface(c, 1.0, MU, control=64, levels=3).fine() for c in ([0, 0], [1.5, 0]))
+    assert crossings_between(a, b) == 2
+    assert overlap_measure(a, b, samples=200) == pytest.approx(_lens_area(1.0, 1.5), rel=0.03)
+    s, t = (sphere_surface(c, 1.0, MU, control=162).fine() for c in ([0, 0, 0], [1.5, 0, 0]))
+    lens = np.pi * (4 + 1.5) * (2 - 1.5) ** 2 / 12
+    assert crossings_between(s, t) > 0
+    assert overlap_measure(s, t, samples=40) == pytest.approx(lens, rel=0.08)
+
+
+def test_disjoint_touching_and_nested_bubbles():
+    far = [circle_surface([0, 0], 1.0, MU), circle_surface([2.5, 0], 1.0, MU)]
+    assert check_bubbles(far) == []
+    nested = check_bubbles([circle_surface([0, 0], 1.0, MU), circle_surface([0.1, 0], 0.3, MU)])
+    assert len(nested) == 1 and nested[0].kind == "overlap" and nested[0].crossings == 0
+    assert nested[0].measure == pytest.approx(np.pi * 0.09, rel=0.1)
+
+
+def test_inside_out_bubble_is_reported():
+    s = circle_surface([0, 0], 1.0, MU)
+    flipped = s.with_vertices(s.vertices[::-1].copy())
+    (v,) = check_bubbles([flipped])
+    assert v.kind == "inverted" and v.measure < 0
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_separate_leaves_the_film(ndim):
+    make = circle_surface if ndim == 2 else sphere_surface
+    a, b = make(np.zeros(ndim), 1.0, MU), make(np.eye(ndim)[0] * 1.6, 1.0, MU)
+    a2, b2 = separate(a, b, gap=0.05)
+    assert check_bubbles([a2, b2]) == []
+    # convex hull property: the fine surfaces keep the film between them along the centre line
+    assert b2.fine().vertices[:, 0].min() - a2.fine().vertices[:, 0].max() >= 0.05 - 1e-9
+
+
+def test_repair_rounds_separates_and_drops_until_valid():
+    items = [
+        _tangled(circle_surface([0, 5], 1.0, MU)),
+        circle_surface([0, 0], 1.0, MU), circle_surface([1.5, 0], 1.0, MU),
+        circle_surface([5, 0], 1.0, MU), circle_surface([5, 0.1], 0.3, MU),
+    ]
+    kept, summary = repair_bubbles(items, gap=0.01)
+    assert check_bubbles(kept) == [] and summary["violations_remaining"] == []
+    assert len(kept) == 4 and summary["dropped"] == 1
+    done = {a["action"] for a in summary["actions"]}
+    assert done == {"rounded", "separated", "dropped"}
+    assert {v["kind"] for v in summary["violations_found"]} == {"self_intersection", "overlap"}
+
+
+def test_check_and_repair_with_a_refit_returns_valid_bubbles_closer_to_the_data():
+    geometry = ScanGeometry.parallel(np.linspace(0, np.pi, 12, endpoint=False), cols=96, pixel_size=0.06)
+    truth = [circle_surface([-1.0, 0], 0.8, MU, control=32, levels=3), circle_surface([1.0, 0.2], 0.7, MU, control=32, levels=3)]
+    projector = MeshProjector(geometry)
+    data = projector.forward(truth)
+    start = [_tangled(circle_surface([-1.0, 0], 0.8, MU)), circle_surface([0.6, 0.2], 0.9, MU)]
+    assert check_bubbles(start)
+    kept, summary = check_and_repair(start, projector, data, iterations=15, gap=0.01)
+    assert check_bubbles(kept) == [] and summary["repaired"]
+    assert projector.objective(kept, data)[0] < projector.objective(start, data)[0]
+    only, report = check_and_repair(start, projector, data, repair=False)
+    assert only == start and report["violations_remaining"] == report["violations_found"] != []

@@ -1,6 +1,6 @@
 """The ``bubsub`` command line.
 
-``bubsub simulate``, ``reconstruct``, ``reconstruct4d``, ``evaluate``, ``experiment``, ``demo``,
+``bubsub simulate``, ``prepare``, ``reconstruct``, ``reconstruct4d``, ``evaluate``, ``experiment``, ``demo``,
 ``serve`` and ``bench``; ``bubsub COMMAND --help`` explains each.
 
 Errors are one line on stderr (``bubsub COMMAND: error: ...``) and exit
@@ -15,7 +15,7 @@ import sys
 __all__ = ["main", "build_parser"]
 
 #: The command modules, in the order ``bubsub --help`` lists them; each has ``register(sub)``.
-COMMANDS = ("simulate", "reconstruct", "reconstruct4d", "evaluate", "experiment", "bench")
+COMMANDS = ("simulate", "prepare", "reconstruct", "reconstruct4d", "evaluate", "experiment", "bench")
 
 _EPILOG = """\
 Typical use:

@@ -15,6 +15,8 @@ def cmd_simulate(args):
     elif args.subscans is not None or args.projections_per_subscan is not None:
         raise ValueError(f"--subscans and --projections-per-subscan need a dynamic phantom ({', '.join(DYNAMIC_PHANTOMS)})")
     out = check_output_folder(args.out, overwrite=args.overwrite)
+    if args.raw:
+        return _simulate_raw(args, out)
     if args.phantom in DYNAMIC_PHANTOMS:
         return _simulate_dynamic(args, out)
     scan, truth, meta = simulate_to_dir(out, args.phantom, angles=args.angles or 25, photons=args.photons,
@@ -22,6 +24,19 @@ def cmd_simulate(args):
                                         n_bubbles=args.bubbles)
     print(f"wrote {scan} ({meta['angles']} projections, I0={meta['photons']:g}, seed {meta['seed']}), "
           f"ground truth {truth} ({meta['bubbles']} bubbles)")
+    return 0
+
+
+def _simulate_raw(args, out):
+    from bubsub.clients.pipeline.simulation import simulate_raw_to_dir
+
+    kw = {"n_angles": args.angles or 180, "photons": args.photons}
+    if args.det_count:  # keep the 9.6 mm detector of the default 800 columns of 12 um
+        kw.update(cols=args.det_count, pixel_size=9.6 / args.det_count)
+    raw, truth, meta = simulate_raw_to_dir(out, seed=args.seed, n_bubbles=args.bubbles or 8, **kw)
+    print(f"wrote {raw} (raw counts: {meta['angles']} projections of {meta['raw']['rows']} x {meta['raw']['cols']} "
+          f"pixels, axis at column {meta['axis_column']:.2f}, delta/beta {meta['delta_beta']:.4g}), ground truth "
+          f"{truth} ({meta['bubbles']} bubbles)")
     return 0
 
 
@@ -53,5 +68,8 @@ def register(sub):
     p.add_argument("--beam", choices=("parallel", "cone"), help="default: parallel in 2D, cone in 3D")
     p.add_argument("--det-count", type=positive_int, help="detector columns (2D default 2400, 3D 512)")
     p.add_argument("--bubbles", type=positive_int, help="number of bubbles (random phantoms)")
+    p.add_argument("--raw", action="store_true",
+                   help="a raw beamline scan (raw.h5: counts, flats, darks, phase contrast) of a 2D foam in a "
+                        "container, for bubsub prepare (default 180 projections, 800 columns)")
     add_output_arguments(p, "scan and ground truth")
     p.set_defaults(func=cmd_simulate)

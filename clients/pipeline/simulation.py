@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
 __all__ = ["PHANTOMS", "DYNAMIC_PHANTOMS", "make_phantom", "make_geometry", "truth_grid", "simulate_to_dir",
-           "simulate_dynamic_to_dir"]
+           "simulate_dynamic_to_dir", "simulate_raw_to_dir"]
 
 PHANTOMS = ("foam2d", "foam3d", "foam3d-benchmark")
 #: Expanding foams for dynamic scans (:mod:`bubsub.core.foam.expanding`).
@@ -150,3 +151,33 @@ def simulate_dynamic_to_dir(out, phantom_name="expanding2d", *, subscans=8, proj
     truths = [out / "truth" / f"subscan_{k:04d}.{'json' if foam.ndim == 2 else 'ply'}" for k in range(len(mid))]
     finish_outputs(out, [out / "scan.h5", out / "phantom.json", *truths], command="simulate")
     return out / "scan.h5", out / "truth", meta
+
+
+def simulate_raw_to_dir(out, *, seed=0, n_bubbles=8, foam_size=5.6, **settings):
+    """Simulate a raw beamline scan: ``raw.h5`` (Data Exchange counts), ``truth.json`` and ``phantom.json``.
+
+    The foam (``n_bubbles`` in a ``foam_size`` mm square) sits in the
+    cylindrical container of :mod:`bubsub.core.foam.raw`; ``settings`` go to
+    :func:`bubsub.core.foam.raw.raw_settings`.
+    """
+    from bubsub.core.foam import phantoms
+    from bubsub.core.foam.raw import raw_settings, simulate_raw, write_raw
+    from bubsub.core.io.atomic import atomic_write_text
+    from bubsub.core.io.meshio import write_polygons_json
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    s = raw_settings(seed=seed, **settings)
+    phantom = phantoms.foam2d(seed, n_bubbles=n_bubbles, size=foam_size, liquid_attenuation=s.liquid_mu)
+    raw = simulate_raw(phantom, s)
+    write_raw(out / "raw.h5", raw, s)
+    truth = out / "truth.json"
+    write_polygons_json(truth, phantom.bubbles)
+    shape, extent = truth_grid(phantom)
+    meta = {"phantom": "foam2d-raw", "ndim": 2, "seed": seed, "size": list(phantom.size),
+            "liquid_attenuation": phantom.liquid_attenuation, "bubble_contrast": phantom.contrast,
+            "bubbles": len(phantom.bubbles), "grid_shape": list(shape), "grid_extent": list(extent),
+            "angles": s.n_angles, "photons": s.photons, "beam": "parallel", "truth": truth.name,
+            "raw": dataclasses.asdict(s), "axis_column": s.axis_column, "delta_beta": s.delta_beta}
+    atomic_write_text(out / "phantom.json", json.dumps(meta, indent=2))
+    return out / "raw.h5", truth, meta

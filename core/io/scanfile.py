@@ -43,7 +43,8 @@ import numpy as np
 from bubsub.core.io.atomic import atomic_path
 from bubsub.core.projection.geometry import KINDS, ScanGeometry
 
-__all__ = ["Scan", "read_scan", "write_scan", "theta_from_geometry", "MIN_TRANSMISSION"]
+__all__ = ["Scan", "read_scan", "write_scan", "create_scan_datasets", "set_scan_attrs", "theta_from_geometry",
+           "MIN_TRANSMISSION"]
 
 #: Smallest transmission accepted when converting raw counts (larger line integrals are clamped).
 MIN_TRANSMISSION = 1e-6
@@ -289,41 +290,89 @@ def write_scan(path, scan, *, compression=None):
         raise ValueError(f"scan must be a Scan, got {type(scan).__name__}")
     if compression not in (None, "gzip", "lzf"):
         raise ValueError(f"compression must be None, 'gzip' or 'lzf', got {compression!r}")
-    attrs = {k: _attr_value(k, v) for k, v in scan.attrs.items()}
-    g = scan.geometry
     dest = Path(path)
     with atomic_path(dest) as tmp:
         with h5py.File(tmp, "w") as f:
-            f.create_dataset("implements", data="exchange:geometry")
-            ex = f.create_group("exchange")
-            d = ex.create_dataset("data", data=scan.data, dtype=np.float32, compression=compression)
-            d.attrs["axes"] = "theta:y:x" if g.ndim == 3 else "theta:x"
-            d.attrs["units"] = "line integral"
-            t = ex.create_dataset("theta", data=np.asarray(scan.theta, dtype=np.float64))
-            t.attrs["units"] = "degrees"
+            data, background = create_scan_datasets(
+                f, scan.geometry, scan.theta, background=scan.background is not None, compression=compression
+            )
+            data[...] = scan.data
             if scan.time is not None:
-                ex.create_dataset("time", data=np.asarray(scan.time, dtype=np.float64)).attrs["units"] = "s"
-            if scan.background is not None:
-                b = ex.create_dataset("background", data=scan.background, dtype=np.float32, compression=compression)
-                b.attrs["axes"] = d.attrs["axes"]
-                b.attrs["units"] = "line integral"
-            geo = f.create_group("geometry")
-            v = geo.create_dataset("vectors", data=np.asarray(g.vectors, dtype=np.float64))
-            v.attrs["kind"] = g.kind
-            v.attrs["units"] = "mm"
-            if g.ndim == 3:
-                v.attrs["det_rows"] = int(g.det_rows)
-                v.attrs["det_cols"] = int(g.det_cols)
-            else:
-                v.attrs["det_count"] = int(g.det_count)
-            f.attrs["bubble_contrast"] = float(scan.bubble_contrast)
-            f.attrs["bubsub_format"] = 1
+                f["exchange"].create_dataset("time", data=np.asarray(scan.time, dtype=np.float64)).attrs["units"] = "s"
+            if background is not None:
+                background[...] = scan.background
+            set_scan_attrs(f, scan.bubble_contrast, scan.attrs)
             if scan.projections_per_subscan is not None:
                 f.attrs["projections_per_subscan"] = int(scan.projections_per_subscan)
-            for k, val in attrs.items():
-                f.attrs[k] = val
     scan.path = dest
     return dest
+
+
+def create_scan_datasets(f, geometry, theta, *, background=False, compression=None, chunks=None):
+    """Lay out an open, empty HDF5 file as a scan file and return its projection datasets to fill.
+
+    For writers that stream the projections in slabs (``bubsub prepare``);
+    :func:`write_scan` uses it too, so both write the same layout. Finish
+    with :func:`set_scan_attrs`.
+
+    Parameters
+    ----------
+    f : h5py.File
+        Opened for writing (normally a temporary file of :func:`atomic_path`).
+    geometry : ScanGeometry
+    theta : (n_angles,) float
+        Degrees.
+    background : bool
+        Create ``/exchange/background`` too.
+    compression : {None, "gzip", "lzf"}
+    chunks : tuple, optional
+        HDF5 chunk shape of the projection datasets.
+
+    Returns
+    -------
+    data, background : h5py.Dataset, h5py.Dataset or None
+        float32, ``geometry.shape``.
+    """
+    if not isinstance(geometry, ScanGeometry):
+        raise ValueError(f"geometry must be a ScanGeometry, got {type(geometry).__name__}")
+    g = geometry
+    theta = _theta_array(theta, "theta", g.n_angles)
+    f.create_dataset("implements", data="exchange:geometry")
+    ex = f.create_group("exchange")
+    d = ex.create_dataset("data", shape=g.shape, dtype=np.float32, compression=compression, chunks=chunks)
+    d.attrs["axes"] = "theta:y:x" if g.ndim == 3 else "theta:x"
+    d.attrs["units"] = "line integral"
+    t = ex.create_dataset("theta", data=theta)
+    t.attrs["units"] = "degrees"
+    b = None
+    if background:
+        b = ex.create_dataset("background", shape=g.shape, dtype=np.float32, compression=compression, chunks=chunks)
+        b.attrs["axes"] = d.attrs["axes"]
+        b.attrs["units"] = "line integral"
+    geo = f.create_group("geometry")
+    v = geo.create_dataset("vectors", data=np.asarray(g.vectors, dtype=np.float64))
+    v.attrs["kind"] = g.kind
+    v.attrs["units"] = "mm"
+    if g.ndim == 3:
+        v.attrs["det_rows"] = int(g.det_rows)
+        v.attrs["det_cols"] = int(g.det_cols)
+    else:
+        v.attrs["det_count"] = int(g.det_count)
+    return d, b
+
+
+def set_scan_attrs(f, bubble_contrast, attrs=None):
+    """Write the root attributes of a scan file (``bubble_contrast`` in 1/mm, format version, extras)."""
+    contrast = _contrast(bubble_contrast, "bubble_contrast")
+    attrs = dict(attrs or {})
+    bad = _RESERVED_ATTRS.intersection(attrs)
+    if bad:
+        raise ValueError(f"attrs may not use the reserved names {sorted(bad)}")
+    values = {k: _attr_value(k, v) for k, v in attrs.items()}
+    f.attrs["bubble_contrast"] = contrast
+    f.attrs["bubsub_format"] = 1
+    for k, val in values.items():
+        f.attrs[k] = val
 
 
 # -- reading -------------------------------------------------------------------------

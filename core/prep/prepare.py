@@ -1,0 +1,432 @@
+"""``bubsub prepare``: a raw scan (counts, flats, darks, angles) to a scan file.
+
+The steps, in order (each recorded with its parameters in the report):
+
+1. read and check the raw scan (:mod:`.readers`), the options against it
+   (ROI inside the detector, binning dividing it, projections in range),
+   the angles (monotonic, degrees);
+2. flat/dark model of the ROI and bad-pixel map (:mod:`.flats`);
+3. rotation-axis search on the flat-corrected data (:mod:`.centre`), and
+   the columns cropped symmetric about the axis;
+4. pass 1, in slabs of projections: flat/dark correction, bad-pixel
+   repair, Paganin phase retrieval (:mod:`.phase`), clamped ``-log``,
+   binning, written to the output;
+5. pass 2, in slabs of detector rows: stripe removal (:mod:`.stripes`) and
+   the background (:mod:`.background`);
+6. bubble contrast (given or estimated from a slice) and its sign checked
+   against the data;
+7. the geometry (ASTRA vectors, axis at the origin) and the attributes.
+
+Memory is bounded by ``slab_mb`` (the raw file is never read whole), the
+output is written atomically (a failure or Ctrl-C leaves no file), and a
+``<out>.report.json`` lists every step and parameter.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bubsub.core.io.atomic import atomic_path, atomic_write_text
+from bubsub.core.io.scanfile import create_scan_datasets, set_scan_attrs
+from bubsub.core.prep.background import (fbp_row, envelope_background, liquid_and_gas, noise_level, radial_background,
+                                         reproject_background)
+from bubsub.core.prep.centre import center_pair, center_vo, closest_pair
+from bubsub.core.prep.flats import flat_model, repair_pixels
+from bubsub.core.prep.options import check_against_raw, prepare_options
+from bubsub.core.prep.phase import paganin_filter
+from bubsub.core.prep.readers import open_raw
+from bubsub.core.prep.stripes import remove_stripes
+from bubsub.core.projection.geometry import ScanGeometry
+
+__all__ = ["prepare", "scan_geometry", "checked_theta"]
+
+
+def checked_theta(source, index, theta_units=None):
+    """Selected angles in degrees, checked to be monotonic and not radians by mistake.
+
+    Raises
+    ------
+    ValueError
+        If the angles repeat or turn back (naming where), or look like radians
+        although read as degrees.
+    """
+    th = np.asarray(source.theta, dtype=float)[index]
+    units = theta_units or source.theta_units
+    if units == "rad":
+        th = np.degrees(th)
+    d = np.diff(th)
+    if not (np.all(d > 0) or np.all(d < 0)):
+        sign = np.sign(np.median(d)) or 1.0
+        k = int(np.argmax(sign * d <= 0))
+        raise ValueError(f"theta is not monotonic within the selected projections: angle {index[k + 1]} is "
+                         f"{th[k + 1]:.4g} deg after {th[k]:.4g} deg; select one sweep with --projections "
+                         f"START:STOP:STEP")
+    span = abs(th[-1] - th[0])
+    if theta_units is None and source.theta_units == "deg" and span < 2 * np.pi * 1.01 and th.size > 8:
+        raise ValueError(f"theta spans only {span:.4g} 'degrees' over {th.size} projections: these look like "
+                         f"radians; pass --theta-units rad if they are (or deg to keep them)")
+    return th
+
+
+def scan_geometry(theta_deg, *, pixel_size, cols, rows=None, axis_column=None, source_origin=None,
+                  origin_detector=None):
+    """ASTRA vector geometry with the rotation axis at the origin.
+
+    Parameters
+    ----------
+    theta_deg : (n,) float
+    pixel_size : (float, float)
+        Output pixel (height, width), mm.
+    cols : int
+    rows : int, optional
+        ``None`` (or 1 with ``rows=None``) gives a 2D geometry.
+    axis_column : float, optional
+        Column (pixel index) the axis projects to; default the detector centre.
+    source_origin, origin_detector : float, optional
+        Cone beam distances, mm (else parallel beam).
+    """
+    a = np.radians(np.asarray(theta_deg, dtype=float))
+    ph, pw = pixel_size
+    psize = pw if rows is None else (pw, ph)
+    if source_origin is None:
+        g = ScanGeometry.parallel(a, pixel_size=psize, cols=cols, rows=rows)
+    else:
+        g = ScanGeometry.cone(a, source_origin=source_origin, origin_detector=origin_detector, pixel_size=psize,
+                              cols=cols, rows=rows)
+    if axis_column is None:
+        return g
+    shift = cols / 2 - 0.5 - float(axis_column)
+    vec = np.array(g.vectors)
+    if g.ndim == 3:
+        vec[:, 3:6] += shift * vec[:, 6:9]
+        return ScanGeometry.from_astra(g.kind, vec, rows, cols)
+    vec[:, 2:4] += shift * vec[:, 4:6]
+    return ScanGeometry.from_astra(g.kind, vec, det_count=cols)
+
+
+def _slabs(n, per):
+    return [(a, min(n, a + per)) for a in range(0, n, per)]
+
+
+def _bar(total, desc, progress):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="proj" if desc.startswith("pass 1") else "row", disable=not progress,
+                leave=False)
+
+
+def prepare(raw, out, options=None, *, progress=True):
+    """Prepare a raw scan for ``bubsub reconstruct``.
+
+    Parameters
+    ----------
+    raw : str or os.PathLike
+        Data Exchange HDF5 file or TIFF folder (:func:`open_raw`).
+    out : str or os.PathLike
+        Scan file to write (atomically); ``<out>.report.json`` is written too.
+    options : PrepareOptions, optional
+        :func:`prepare_options` (defaults if omitted).
+    progress : bool
+        tqdm progress bars.
+
+    Returns
+    -------
+    dict
+        The report (also in ``<out>.report.json`` and the file's
+        ``prepare_report`` attribute).
+
+    Raises
+    ------
+    ValueError
+        Bad input, named, before any heavy work where it can be known then.
+    """
+    t_start = time.time()
+    o = options if options is not None else prepare_options()
+    out = Path(out)
+    src = open_raw(raw)
+    if out.resolve() == Path(src.path).resolve():
+        raise ValueError("--out must not be the raw file itself")
+    if not out.parent.is_dir():
+        raise ValueError(f"directory {str(out.parent)!r} of --out does not exist")
+    rows, cols, index = check_against_raw(o, src.det_shape, src.n_projections)
+    theta = checked_theta(src, index, o.theta_units)
+    pixel = _pixel_size(o, src)
+    phase = _phase_settings(o, src, pixel)
+    steps = []
+    report = {"raw": str(src.path), "raw_kind": src.kind, "raw_shape": [src.n_projections, *src.det_shape],
+              "flats": src.n_flats, "darks": src.n_darks, "metadata": src.metadata, "options": o.as_dict(),
+              "steps": steps}
+    steps.append({"step": "select", "rows": list(rows), "cols": list(cols), "projections": int(index.size),
+                  "first": int(index[0]), "last": int(index[-1]), "step_size": int(o.projections[2]),
+                  "theta_first_deg": float(theta[0]), "theta_last_deg": float(theta[-1])})
+
+    fm = flat_model(src, rows, cols, mode=o.flat, no_flat=o.no_flat, flats_before=o.flats_before,
+                    repair=o.repair_pixels, n_projections=src.n_projections)
+    steps.append({"step": "flat_dark", "mode": fm.mode, "flat_groups": int(fm.flats.shape[0]),
+                  "bad_pixels": int(fm.bad.sum()), "min_transmission": o.min_transmission})
+
+    ncols = cols[1] - cols[0]
+    axis, how = _axis(o, src, fm, rows, cols, index, theta)
+    steps.append({"step": "center", "method": how, "axis_column_raw": None if axis is None else axis + cols[0]})
+    c_lo, width = 0, ncols
+    if axis is not None and o.crop_to_axis:
+        half = min(axis + 0.5, ncols - 0.5 - axis)
+        width = int(np.floor(2 * half)) // o.bin * o.bin
+        if width < 8 * o.bin:
+            raise ValueError(f"the rotation axis (column {axis + cols[0]:.1f}) is at the edge of the ROI; "
+                             f"widen the ROI or pass --no-crop-to-axis")
+        c_lo = int(round(axis + 0.5 - width / 2))
+        steps.append({"step": "crop_to_axis", "cols": [cols[0] + c_lo, cols[0] + c_lo + width]})
+    fm = fm.crop(slice(None), slice(c_lo, c_lo + width))
+    read_cols = (cols[0] + c_lo, cols[0] + c_lo + width)
+    nrows = rows[1] - rows[0]
+    k = o.bin
+    out_rows, out_cols = max(1, nrows // k), width // k
+    two_d = out_rows == 1
+    axis_out = None if axis is None else (axis - c_lo + 0.5) / k - 0.5
+    geometry = scan_geometry(theta, pixel_size=(pixel[0] * k, pixel[1] * k), cols=out_cols,
+                             rows=None if two_d else out_rows, axis_column=axis_out,
+                             source_origin=o.source_origin, origin_detector=o.origin_detector)
+    if phase:
+        steps.append({"step": "phase_retrieval", "method": "paganin", **phase})
+    steps.append({"step": "bin", "factor": k, "output_shape": list(geometry.shape),
+                  "pixel_size_mm": [pixel[0] * k, pixel[1] * k]})
+
+    bg_mode = o.background
+    with atomic_path(out) as tmp:
+        import h5py
+
+        with h5py.File(tmp, "w") as f:
+            chunks = (min(index.size, 16), out_cols) if two_d else (min(index.size, 16), min(out_rows, 8), out_cols)
+            data_ds, bg_ds = create_scan_datasets(f, geometry, theta, background=bg_mode != "none", chunks=chunks)
+            per_proj = nrows * width * 4 * 6  # the slab and its working copies, bytes
+            per = max(1, int(o.slab_mb * 1e6 // per_proj))
+            step = o.projections[2]
+            with _bar(index.size, "pass 1: flats, phase, -log", progress) as bar:
+                for a, b in _slabs(index.size, per):
+                    idx = index[a:b]
+                    counts = src.read("data", slice(int(idx[0]), int(idx[-1]) + 1, step), rows, read_cols)
+                    p = _line_integrals(counts, idx, fm, o, pixel, phase)
+                    p = _bin(p, k)
+                    data_ds[a:b] = p[:, 0] if two_d else p
+                    bar.update(b - a)
+            steps.append({"step": "minus_log", "slab_projections": per})
+            _pass2(f, data_ds, bg_ds, geometry, o, steps, progress)
+            contrast = _contrast(data_ds, bg_ds, geometry, o, steps)
+            report["seconds"] = round(time.time() - t_start, 3)
+            text = json.dumps(report, indent=2, default=_jsonable)
+            set_scan_attrs(f, contrast, {"prepared_by": "bubsub prepare", "prepare_report": text})
+    atomic_write_text(out.with_name(out.name + ".report.json"), text)
+    return report
+
+
+def _jsonable(v):
+    if isinstance(v, Path):
+        return str(v)
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(type(v).__name__)
+
+
+def _pixel_size(o, src):
+    if o.pixel_size is not None:
+        return (o.pixel_size, o.pixel_size)
+    px, py = src.metadata.get("pixel_size_x_mm"), src.metadata.get("pixel_size_y_mm")
+    if px is None and py is None:
+        raise ValueError(f"{src.path.name} states no detector pixel size; pass --pixel-size (e.g. 3um)")
+    return (py or px, px or py)
+
+
+def _phase_settings(o, src, pixel):
+    if o.delta_beta is None:
+        return None
+    energy = o.energy or src.metadata.get("energy_kev")
+    distance = o.distance or src.metadata.get("distance_mm")
+    missing = [n for n, v in (("--energy", energy), ("--distance", distance)) if v is None]
+    if missing:
+        raise ValueError(f"phase retrieval (--delta-beta) needs {' and '.join(missing)}; {src.path.name} does not "
+                         f"state them")
+    return {"delta_beta": o.delta_beta, "energy_kev": energy, "distance_mm": distance,
+            "pixel_size_mm": list(pixel), "padding": "edge, 2x, fast FFT length"}
+
+
+def _line_integrals(counts, idx, fm, o, pixel, phase):
+    t, _ = fm.transmission(counts, idx)
+    if fm.bad.any():
+        repair_pixels(t, fm.bad)
+    if phase:
+        t = paganin_filter(t, pixel_size=pixel, energy=phase["energy_kev"], distance=phase["distance_mm"],
+                           delta_beta=phase["delta_beta"])
+    np.maximum(t, o.min_transmission, out=t)
+    return -np.log(t)
+
+
+def _bin(p, k):
+    if k == 1:
+        return p
+    n, r, c = p.shape
+    if r == 1:
+        return p.reshape(n, 1, c // k, k).mean(axis=3)
+    return p.reshape(n, r // k, k, c // k, k).mean(axis=(2, 4))
+
+
+def _axis(o, src, fm, rows, cols, index, theta):
+    """Axis column in ROI coordinates (None: the ROI centre is taken as is) and how it was found."""
+    if isinstance(o.center, float):
+        c = o.center - cols[0]
+        if not 0 <= c <= cols[1] - cols[0] - 1:
+            raise ValueError(f"--center {o.center} is outside the ROI columns {cols[0]}:{cols[1]}")
+        return c, "given"
+    if o.center == "none":
+        return None, "none (detector centre)"
+    method = "vo" if o.center == "auto" else o.center
+    mean_fm = fm if fm.mode != "best" else fm.__class__("mean", fm.dark, fm.flats.mean(0)[None], fm.times[:1],
+                                                        fm.bad)
+    if method == "pair":
+        i, j, err = closest_pair(theta)
+        step = float(np.median(np.abs(np.diff(theta))))
+        if err > 0.5 * step + 1e-9:
+            raise ValueError(f"no two projections are 180 degrees apart (closest {180 + err:.3g}); use --center vo "
+                             f"or give the axis column")
+        pa = [_line_integrals(src.read("data", slice(int(index[m]), int(index[m]) + 1), rows, cols),
+                              index[m:m + 1], mean_fm, o, None, None)[0] for m in (i, j)]
+        return center_pair(pa[0], pa[1]), f"pair (projections {int(index[i])}, {int(index[j])})"
+    r = (rows[0] + rows[1]) // 2
+    in180 = np.abs(theta - theta[0]) < 180.0 - 1e-6
+    sub = index[in180]
+    row_fm = mean_fm.crop(slice(r - rows[0], r - rows[0] + 1), slice(None))
+    sino = np.concatenate([
+        _line_integrals(src.read("data", slice(int(sub[a]), int(sub[b - 1]) + 1, o.projections[2]), (r, r + 1),
+                                 cols), sub[a:b], row_fm, o, None, None)[:, 0]
+        for a, b in _slabs(sub.size, 256)])
+    return center_vo(sino), f"vo (row {r}, {sub.size} projections)"
+
+
+def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
+    two_d = geometry.ndim == 2
+    n = geometry.n_angles
+    out_rows = 1 if two_d else geometry.det_rows
+    cols = geometry.det_cols
+    per = max(1, int(o.slab_mb * 1e6 // (n * cols * 4 * 6)))
+    mode = o.background
+    file_bg = _background_file(o.background, geometry) if isinstance(mode, Path) else None
+    row_geom = geometry if two_d else None
+    liquids, drift = [], []
+    with _bar(out_rows, "pass 2: stripes, background", progress) as bar:
+        for a, b in _slabs(out_rows, per):
+            block = data_ds[()][:, None] if two_d else data_ds[:, a:b]
+            if o.stripes != "none":
+                for r in range(block.shape[1]):
+                    block[:, r] = remove_stripes(block[:, r], o.stripes)
+                _store(data_ds, block, a, b, two_d)
+            if bg_ds is not None:
+                if file_bg is not None:
+                    bg = file_bg[:, None] if two_d else file_bg[:, a:b]
+                elif mode in ("reproject", "auto"):
+                    if row_geom is None:
+                        row_geom = _row_geometry(geometry)
+                    bg = np.empty_like(block)
+                    for r in range(block.shape[1]):
+                        if mode == "auto":
+                            bg[:, r] = radial_background(block[:, r], row_geom)
+                        else:
+                            bg[:, r], lq, _ = reproject_background(block[:, r], row_geom, o.foam_radius)
+                            liquids.append(lq)
+                else:
+                    env = envelope_background(block)
+                    half = n // 2
+                    drift.append(float(np.median(np.abs(envelope_background(block[:half]) -
+                                                        envelope_background(block[half:])))))
+                    bg = np.broadcast_to(env[None], block.shape)
+                _store(bg_ds, bg, a, b, two_d)
+            bar.update(b - a)
+    if o.stripes != "none":
+        steps.append({"step": "stripes", "method": o.stripes, "library": "algotom"})
+    if bg_ds is not None:
+        entry = {"step": "background", "method": str(mode) if not isinstance(mode, str) else
+                 ("radial (ring medians of an FBP, reprojected)" if mode == "auto" else mode)}
+        if liquids:
+            entry["liquid_attenuation_per_mm"] = float(np.median(liquids))
+            entry["foam_radius_mm"] = o.foam_radius
+        if drift:
+            entry["halves_median_difference"] = float(np.median(drift))
+            entry["noise"] = noise_level(data_ds[: min(n, 32)])
+        steps.append(entry)
+
+
+def _store(ds, block, a, b, two_d):
+    if two_d:
+        ds[...] = block[:, 0]
+    else:
+        ds[:, a:b] = block
+
+
+def _row_geometry(geometry):
+    """The 2D geometry of one detector row of a parallel 3D geometry (same angles and axis)."""
+    if geometry.ndim == 2:
+        return geometry
+    if geometry.is_cone:
+        raise ValueError("--background auto and reproject support parallel beams only; use envelope or a file")
+    v = geometry.vectors
+    return ScanGeometry.from_astra("parallel_vec", np.stack([v[:, 0], v[:, 1], v[:, 3], v[:, 4], v[:, 6], v[:, 7]],
+                                                            axis=1), det_count=geometry.det_cols)
+
+
+def _background_file(path, geometry):
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            name = "exchange/background" if "exchange/background" in f else "exchange/data"
+            bg = np.asarray(f[name][()], dtype=np.float32)
+    except OSError as exc:
+        raise ValueError(f"--background {path}: not a readable HDF5 file ({exc})") from None
+    if bg.shape != geometry.shape and bg.shape != geometry.shape[1:]:
+        raise ValueError(f"--background {path}: '/{name}' has shape {bg.shape}; the prepared scan is "
+                         f"{geometry.shape} (or one projection {geometry.shape[1:]})")
+    if not np.all(np.isfinite(bg)):
+        raise ValueError(f"--background {path}: '/{name}' contains NaN or inf")
+    return np.broadcast_to(bg, geometry.shape)
+
+
+def _contrast(data_ds, bg_ds, geometry, o, steps):
+    """The bubble contrast (given or estimated from the middle slice), its sign checked against the data."""
+    two_d = geometry.ndim == 2
+    mid = None if two_d else geometry.det_rows // 2
+    sino = data_ds[()] if two_d else data_ds[:, mid]
+    entry = {"step": "contrast"}
+    if o.contrast is not None:
+        contrast = o.contrast
+        entry["source"] = "given"
+    else:
+        g2 = _row_geometry(geometry)
+        image, extent, r, _ = fbp_row(sino, g2, min(g2.det_count, 512))
+        liquid, gas = liquid_and_gas(image, r <= (o.foam_radius or 0.9 * extent[1]))
+        contrast = gas - liquid
+        entry.update(source="estimated from an FBP of the middle row (Otsu split of the foam region)",
+                     liquid_per_mm=liquid, gas_per_mm=gas)
+        if contrast == 0:
+            raise ValueError("could not estimate the bubble contrast (gas and liquid look alike); pass --contrast")
+    entry["bubble_contrast_per_mm"] = float(contrast)
+    if bg_ds is not None:
+        bd = sino - (bg_ds[()] if two_d else bg_ds[:, mid])
+        sigma = noise_level(bd)
+        pos = float(np.maximum(bd - 3 * sigma, 0).sum())
+        neg = float(np.maximum(-bd - 3 * sigma, 0).sum())
+        data_sign = -1.0 if neg > pos else 1.0
+        entry["sign_check"] = {"positive_mass": pos, "negative_mass": neg}
+        if np.sign(contrast) != data_sign:
+            word = "lower" if data_sign < 0 else "raise"
+            raise ValueError(f"the bubble contrast {contrast:+.4g} /mm has the wrong sign for these data: after the "
+                             f"background the bubbles {word} the line integrals; pass --contrast with the other sign, "
+                             f"or check the background")
+    else:
+        entry["sign_check"] = "not possible without a background"
+    steps.append(entry)
+    return contrast

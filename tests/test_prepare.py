@@ -9,9 +9,9 @@ import pytest
 
 from bubsub.clients.cli.main import main
 from bubsub.core.io.scanfile import read_scan
-from bubsub.core.prep import prepare as prepare_module
+from bubsub.core.prep import pipeline as prepare_module
 from bubsub.core.prep.options import prepare_options
-from bubsub.core.prep.prepare import prepare
+from bubsub.core.prep.pipeline import prepare
 
 N, ROWS, COLS, AXIS = 60, 6, 96, 49.25
 PIXEL_UM = 50.0

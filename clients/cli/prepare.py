@@ -27,7 +27,7 @@ def _contrast(text):
 
 def cmd_prepare(args):
     from bubsub.core.prep.options import prepare_options
-    from bubsub.core.prep.prepare import prepare
+    from bubsub.core.prep.pipeline import prepare
 
     background = args.background
     options = prepare_options(

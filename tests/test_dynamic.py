@@ -304,3 +304,30 @@ def test_pgd_bb_reaches_the_nonnegative_least_squares_solution():
     # 30 iterations (the paper's baseline) already get most of the way
     f = lambda x: np.sum((A @ x.ravel() - b) ** 2)
     assert f(pgd_bb(op, b.astype(np.float32), 30)) < f(np.zeros(20)) * 0.05
+
+
+def test_track_check_catches_swapped_ids(sim, rec, tmp_path):
+    from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
+
+    out = tmp_path / "swapped"
+    shutil.copytree(rec, out)
+    path = out / "subscan_0000" / "bubbles.json"
+    doc = json.loads(path.read_text())
+    a, b = doc["bubbles"][0]["id"], doc["bubbles"][1]["id"]
+    doc["bubbles"][0]["id"], doc["bubbles"][1]["id"] = b, a
+    path.write_text(json.dumps(doc))
+    score = evaluate_dynamic(out, sim)
+    assert score["rows"] == 18 and score["right_track_fraction"] == pytest.approx(16 / 18)
+
+
+def test_fig6_quick(tmp_path):
+    assert main(["experiment", "fig6", "--quick", "--out", str(tmp_path), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "fig6.json").read_text())
+    with open(tmp_path / "fig6.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert sorted({r["method"] for r in rows}) == ["bb", "bubsub", "sirt"] and len(rows) == 6
+    assert summary["mean_ddi"]["bubsub"] < 0.5 * summary["mean_ddi"]["sirt"]
+    assert summary["mean_holdout_mse"]["bubsub"] < summary["mean_holdout_mse"]["bb"]
+    assert summary["right_track_fraction"] == 1.0
+    for name in ("fig6.png", "fig7.png"):
+        assert (tmp_path / name).read_bytes()[:4] == b"\x89PNG"

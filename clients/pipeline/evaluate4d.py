@@ -40,12 +40,13 @@ def _read(path, ndim):
     return (read_ply if ndim == 3 else read_polygons_json)(path, with_ids=True)
 
 
-def evaluate_dynamic(recon_dir, truth_dir):
+def evaluate_dynamic(recon_dir, truth_dir, grid=None):
     """DDI per subscan and the fraction of (subscan, bubble) rows on the right track.
 
     A track's identity is the truth bubble its first reconstruction (the
     cold, latest subscan) lies in; a row is on the right track when the
     bubble lies in that same truth bubble at its subscan's mid-time.
+    ``grid``: ``(shape, extent)`` of the DDI; default that of ``phantom.json``.
 
     Returns
     -------
@@ -58,7 +59,7 @@ def evaluate_dynamic(recon_dir, truth_dir):
     recon_dir, truth_dir = Path(recon_dir), Path(truth_dir)
     meta = json.loads((truth_dir / "phantom.json").read_text())
     ndim = meta["ndim"]
-    shape, extent = tuple(meta["grid_shape"]), tuple(meta["grid_extent"])
+    shape, extent = grid if grid is not None else (tuple(meta["grid_shape"]), tuple(meta["grid_extent"]))
     ext = ".ply" if ndim == 3 else ".json"
     per, matches = [], {}
     subs = sorted(int(p.name[8:]) for p in recon_dir.glob("subscan_*") if (p / "report.json").is_file())

@@ -105,14 +105,15 @@ def simulate_to_dir(out, phantom_name="foam2d", *, angles=25, photons=1e4, seed=
 
 def simulate_dynamic_to_dir(out, phantom_name="expanding2d", *, subscans=8, projections_per_subscan=50,
                             photons=1e4, seed=0, beam=None, det_count=None, n_bubbles=None,
-                            seconds_per_projection=0.01):
+                            seconds_per_projection=0.01, foam=None):
     """Simulate a dynamic scan of an expanding foam into ``out``.
 
     Writes ``scan.h5`` (all projections in acquisition order, root attribute
     ``projections_per_subscan``, ``/exchange/time``), ``truth/subscan_NNNN.json|ply``
     (the foam at each subscan's mid-time, bubble ids = phantom bubble
     indices) and ``phantom.json`` (``truth`` names the folder; ``grid_*``
-    cover the final, largest container).
+    cover the final, largest container). ``foam``: more options of
+    :func:`~bubsub.core.foam.phantoms.foam2d` / ``foam3d`` (size, radius_range, ...).
     """
     from bubsub.core.foam.expanding import expanding2d, expanding3d, simulate_expanding
     from bubsub.core.io.atomic import atomic_write_text
@@ -125,7 +126,7 @@ def simulate_dynamic_to_dir(out, phantom_name="expanding2d", *, subscans=8, proj
         raise ValueError(f"unknown dynamic phantom {phantom_name!r}; choose one of {DYNAMIC_PHANTOMS}")
     out = Path(out)
     (out / "truth").mkdir(parents=True, exist_ok=True)
-    kw = {"n_bubbles": n_bubbles} if n_bubbles else {}
+    kw = dict(foam or {}, **({"n_bubbles": n_bubbles} if n_bubbles else {}))
     foam = expanding2d(seed, **kw) if phantom_name == "expanding2d" else expanding3d(seed, **kw)
     beam = beam or ("parallel" if foam.ndim == 2 else "cone")
     geometry = make_geometry(foam.ndim, beam, projections_per_subscan, det_count, repeat=subscans)

@@ -220,7 +220,7 @@ def test_reconstruct4d_outputs_and_tracks(sim, rec):
     assert set(pid) == ids[1]
 
 
-def test_resume_continues_from_complete_subscans(sim, rec, tmp_path):
+def test_resume_continues_from_complete_subscans(sim, rec, tmp_path, capsys):
     out = tmp_path / "r"
     shutil.copytree(rec, out)
     shutil.rmtree(out / "subscan_0000")
@@ -237,6 +237,10 @@ def test_resume_continues_from_complete_subscans(sim, rec, tmp_path):
     assert new["seconds"] == old["seconds"]  # kept, not redone
     assert main(["reconstruct4d", str(sim / "scan.h5"), "--out", str(out), "--holdout", "even", "--resume",
                  "--quiet"]) == 2  # different settings: refused
+    assert main(["reconstruct4d", str(sim / "scan.h5"), "--out", str(out), "--quiet"]) == 2  # neither flag
+    assert "--overwrite" in capsys.readouterr().err
+    manifest = json.loads((out / "bubsub-outputs.json").read_text())
+    assert "subscan_0000/bubbles.json" in manifest["files"] and "tracks.csv" in manifest["files"]
 
 
 def test_reconstruct4d_bad_inputs(sim, tmp_path, capsys):

@@ -2,19 +2,28 @@
 
 from __future__ import annotations
 
-from bubsub.clients.cli.args import positive_int
+from pathlib import Path
+
+from bubsub.clients.cli.args import add_output_arguments, positive_int
 
 
 def cmd_reconstruct4d(args):
     from bubsub.core.io.scanfile import read_scan
 
     from bubsub.clients.pipeline.dynamic import DynamicSettings, reconstruct_dynamic
+    from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs
 
+    # --resume continues the run in --out, so the folder is expected to hold results
+    out = Path(args.out) if args.resume else check_output_folder(args.out, overwrite=args.overwrite)
     scan = read_scan(args.scan)
     settings = DynamicSettings(iterations=args.iterations, control_points=args.control_points, levels=args.levels,
                                holdout=args.holdout, voxel_baseline=args.voxel_baseline, progress=not args.quiet)
-    report = reconstruct_dynamic(scan, args.out, settings, projections_per_subscan=args.projections_per_subscan,
-                                 subscans=args.subscans, resume=args.resume)
+    report = reconstruct_dynamic(scan, out, settings, projections_per_subscan=args.projections_per_subscan,
+                                 subscans=args.subscans, resume=args.resume, overwrite=args.overwrite)
+    kept = [f"subscan_{p['subscan']:04d}" for p in report["subscans"]]
+    files = [f for d in kept for f in (out / d).iterdir() if f.is_file()]
+    files += [out / n for n in ("tracks.csv", "report.json", "growth.png", "mse.png", "run.json") if (out / n).is_file()]
+    finish_outputs(out, files, command="reconstruct4d")
     t = report["totals"]
     state = " (interrupted: the finished subscans are complete; rerun with --resume)" if report["interrupted"] else ""
     print(f"{report['subscans_complete']} subscans, {t['tracks']} bubble tracks ({t['tracks_ended']} ended), "
@@ -30,7 +39,7 @@ def register(sub):
     """Add the command's parser to ``sub`` (argparse subparsers)."""
     p = sub.add_parser("reconstruct4d", help="reconstruct a dynamic scan subscan by subscan, with bubble tracks")
     p.add_argument("scan", help="HDF5 scan file: all projections in acquisition order")
-    p.add_argument("--out", required=True, help="output folder")
+    add_output_arguments(p, "subscan folders, tracks.csv, report.json and plots")
     p.add_argument("--projections-per-subscan", type=positive_int,
                    help="projections per subscan (default: the file's root attribute projections_per_subscan)")
     p.add_argument("--subscans", help="A:B reconstructs subscans A..B-1 (default all)")

@@ -345,7 +345,8 @@ def _run_record(scan, layout, settings):
             "dimension": scan.ndim, "levels": settings.levels}
 
 
-def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False):
+def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False,
+                        overwrite=False):
     """``bubsub reconstruct4d``: the whole chain into an output folder (local engine, one worker).
 
     Parameters
@@ -363,6 +364,9 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
     resume : bool
         Keep the complete subscan folders of an earlier run with the same
         settings and continue the chain from the earliest of them.
+    overwrite : bool
+        Start afresh in a folder holding an earlier run (its subscan folders
+        are replaced as the new ones complete).
 
     Returns
     -------
@@ -386,8 +390,10 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
     done = [i for i in outputs.complete_subscans(out) if i in layout.selected]
     run_file = out / "run.json"
     if done and not resume:
-        raise ValueError(f"{out} already holds {len(done)} complete subscan folder(s); pass --resume to continue "
-                         f"that run, or choose another --out")
+        if not overwrite:
+            raise ValueError(f"{out} already holds {len(done)} complete subscan folder(s); pass --resume to "
+                             f"continue that run, --overwrite to start again, or choose another --out")
+        done = []
     if resume and run_file.is_file():
         before = json.loads(run_file.read_text())
         changed = sorted(k for k in record if k != "scan" and before.get(k) != record[k])

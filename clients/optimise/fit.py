@@ -17,6 +17,8 @@ from scipy.optimize import line_search, minimize
 
 from bubsub.core import SubdivisionSurface
 
+from bubsub.clients.progress import phase
+
 __all__ = ["fit", "estimate_radii", "FitResult"]
 
 #: above this many unknowns, dense BFGS (n x n inverse Hessian) gives way to L-BFGS
@@ -43,6 +45,11 @@ class FitResult:
     interrupted : bool
         True when stopped by Ctrl-C; ``surfaces`` is then the last good iterate.
     method : str
+    stop_reason : str
+        Why the fit stopped: ``"converged"`` (gradient below tolerance, or no
+        step decreased the objective any more), ``"iteration limit"``,
+        ``"evaluation limit"``, ``"interrupted"`` (Ctrl-C) or ``"stopped by
+        callback"``.
     """
 
     surfaces: list
@@ -53,6 +60,7 @@ class FitResult:
     history: list = field(default_factory=list)
     interrupted: bool = False
     method: str = "bfgs"
+    stop_reason: str = "iteration limit"
 
 
 class _Cached:
@@ -94,6 +102,9 @@ def bfgs(fun, x0, maxiter, callback=None, gtol=1e-10):
     -------
     x : (n,) float
         Last accepted iterate.
+    reason : str
+        ``"converged"`` (gradient below ``gtol``, or no step along the
+        steepest descent decreases ``f``) or ``"iteration limit"``.
     """
     cached = _Cached(fun)
 
@@ -109,7 +120,7 @@ def bfgs(fun, x0, maxiter, callback=None, gtol=1e-10):
     old_old_f = f + np.linalg.norm(g) / 2  # makes the first trial step about 1/|g| long (as scipy)
     for _ in range(maxiter):
         if np.max(np.abs(g)) < gtol:
-            break
+            return x, "converged"
         p = -(H @ g) if H is not None else -g
         alpha, _, _, f_new, _, g_new = search(p, f, g, old_old_f)
         if alpha is None and H is not None:  # a stale curvature model: restart from steepest descent
@@ -117,7 +128,7 @@ def bfgs(fun, x0, maxiter, callback=None, gtol=1e-10):
             p = -g
             alpha, _, _, f_new, _, g_new = search(p, f, g, old_old_f)
         if alpha is None:
-            break
+            return x, "converged"
         s = alpha * p
         x = x + s
         if g_new is None:
@@ -136,7 +147,7 @@ def bfgs(fun, x0, maxiter, callback=None, gtol=1e-10):
             H = dger(rho * rho * float(y @ Hy) + rho, s, s, a=H, overwrite_a=True)
         if callback is not None:
             callback(x)
-    return x
+    return x, "iteration limit"
 
 
 def _check_surfaces(surfaces):
@@ -157,14 +168,6 @@ def _objective_call(projector, data):
     return lambda surfaces: projector.objective(surfaces, data)
 
 
-def _progress(total, progress, desc):
-    if not progress:
-        return None
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, unit="it", leave=True)
-
-
 def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progress=True, callback=None):
     """Fit bubble surfaces to projections: minimise ``0.5 ||Proj(S x) - d||^2`` over x.
 
@@ -183,7 +186,8 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         ``auto`` is dense BFGS up to 6000 unknowns (2000 control vertices),
         L-BFGS beyond, where an n x n inverse Hessian no longer fits.
     progress : bool
-        Show a progress bar (notebook-aware).
+        Show progress (:func:`bubsub.clients.progress.phase`: a bar on a
+        terminal, one summary line with the stop reason otherwise).
     callback : callable, optional
         Called after each iteration with ``(iteration, objective, surfaces)``;
         return True to stop.
@@ -227,36 +231,35 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         return f, np.concatenate([np.asarray(g).ravel() for g in grads])
 
     history = []
-    bar = _progress(iterations, progress, "BubSub fit")
+    bar = phase("BubSub fit", iterations, enabled=progress)
 
     class _Stop(Exception):
         pass
 
     def on_iteration(xk):
         history.append({"iteration": len(history) + 1, "objective": best["f"], "seconds": time.perf_counter() - t0})
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(f=f"{best['f']:.4g}")
+        bar.update(1, f=f"{best['f']:.4g}")
         if callback is not None and callback(len(history), best["f"], unpack(best["x"])):
             raise _Stop
 
     interrupted = False
+    reason = "iteration limit"
     try:
         if iterations == 0:
             fun(x0)
         elif method == "bfgs":
-            bfgs(fun, x0, int(iterations), callback=on_iteration)
+            _, reason = bfgs(fun, x0, int(iterations), callback=on_iteration)
         else:
             options = {"maxiter": int(iterations), "maxcor": 20, "ftol": 1e-15, "gtol": 1e-12,
                        "maxfun": 4 * int(iterations) + 20}
-            minimize(fun, x0, jac=True, method="L-BFGS-B", callback=on_iteration, options=options)
+            res = minimize(fun, x0, jac=True, method="L-BFGS-B", callback=on_iteration, options=options)
+            reason = _lbfgs_reason(res, len(history), iterations)
     except KeyboardInterrupt:
-        interrupted = True
+        interrupted, reason = True, "interrupted"
     except _Stop:
-        pass
+        reason = "stopped by callback"
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close(reason)
     if not np.isfinite(best["f"]):
         raise RuntimeError("the fit was interrupted before the first objective evaluation finished")
     return FitResult(
@@ -268,7 +271,16 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         history=history,
         interrupted=interrupted,
         method=method,
+        stop_reason=reason,
     )
+
+
+def _lbfgs_reason(res, done, limit):
+    if done >= limit:
+        return "iteration limit"
+    if res.status == 1:  # scipy: the evaluation or iteration budget ran out
+        return "evaluation limit"
+    return "converged"
 
 
 def estimate_radii(projector, surfaces, data=None, iterations=20, *, progress=False):
@@ -295,15 +307,12 @@ def estimate_radii(projector, surfaces, data=None, iterations=20, *, progress=Fa
         f, grads = evaluate(build(r))
         return f, np.array([np.sum(np.asarray(g) * u) for g, u in zip(grads, units)])
 
-    bar = _progress(iterations, progress, "radius estimation")
-    try:
+    with phase("radius estimation", iterations, enabled=progress) as bar:
         res = minimize(
             fun, r0, jac=True, method="L-BFGS-B", bounds=[(1e-3 * r, 10 * r) for r in r0],
-            callback=(lambda _: bar.update(1)) if bar is not None else None,
+            callback=lambda _: bar.update(1),
             # each evaluation is a full projection: bound the line-search evaluations too
             options={"maxiter": int(iterations), "maxfun": int(iterations) + 5},
         )
-    finally:
-        if bar is not None:
-            bar.close()
+        bar.close(_lbfgs_reason(res, bar.n, iterations))
     return build(res.x)

@@ -29,6 +29,7 @@ from bubsub.clients.optimise.fit import estimate_radii, fit
 from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
 from bubsub.clients.pipeline.outputs import finish_outputs
 from bubsub.clients.pipeline.repair import check_and_repair
+from bubsub.clients.progress import phase
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "initial_surfaces", "voxel_preview"]
 
@@ -105,7 +106,7 @@ def _grid(geometry, voxel_size):
     return (nz, n, n), (-half, half, -half, half, -hz, hz)
 
 
-def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None):
+def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *, progress=False):
     """Low-resolution voxel reconstruction of the bubbles, for the initialisation.
 
     SIRT with a non-negativity constraint on ``sign(contrast) * data``: gas
@@ -121,14 +122,21 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None):
     """
     shape, extent = _grid(geometry, voxel_size)
     positive = np.sign(contrast) * np.asarray(data, dtype=np.float32)
-    if geometry.ndim == 2:
+    if geometry.ndim == 2:  # ASTRA's own SIRT: about a second, no per-iteration callback
         from bubsub.core.voxel.astra2d import reconstruct_2d
 
-        image = reconstruct_2d("sirt", positive, geometry, shape, extent, iterations=iterations or 100, nonneg=True)
+        with phase("voxel preview (2D SIRT)", 1, unit="reconstruction", enabled=progress) as bar:
+            image = reconstruct_2d("sirt", positive, geometry, shape, extent, iterations=iterations or 100,
+                                   nonneg=True)
+            bar.update(1, voxels="x".join(map(str, shape)))
     else:
         from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 
-        image = reconstruct_3d("sirt", positive, geometry, shape, extent, iterations=iterations or 15, nonneg=True)
+        n = iterations or 15
+        with phase("voxel preview (3D SIRT)", n, enabled=progress) as bar:
+            image = reconstruct_3d("sirt", positive, geometry, shape, extent, iterations=n, nonneg=True,
+                                   callback=lambda k, x: bar.update(1))
+            bar.postfix["voxels"] = "x".join(map(str, shape))
     return image, extent
 
 
@@ -234,7 +242,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     geometry = scan.geometry
     g_fit, d_fit, g_val, d_val = _split(geometry, data, s.holdout)
 
-    image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size)
+    image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress)
     if init is None:
         surfaces = initial_surfaces(image, extent, contrast, control_points=s.control_points, levels=s.levels,
                                     radius=s.radius, min_distance=s.min_distance)
@@ -267,6 +275,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "initial_objective": result.history[0]["objective"] if result.history else result.objective,
         "method": result.method,
         "interrupted": result.interrupted,
+        "stop_reason": result.stop_reason,
         "seconds_total": time.perf_counter() - t0,
         "seconds_fit": result.seconds,
         "seconds_initialisation": t_init,

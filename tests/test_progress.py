@@ -1,0 +1,77 @@
+"""Progress: one summary line per phase when not on a terminal, with the reason each fit stopped."""
+
+import io
+
+import numpy as np
+import pytest
+
+from bubsub.clients.cli import main
+from bubsub.clients.optimise.fit import fit
+from bubsub.clients.progress import phase
+from bubsub.core import MeshProjector, ScanGeometry, circle_surface
+
+
+@pytest.fixture(scope="module")
+def disc_scene():
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 12, endpoint=False), pixel_size=0.02, cols=160)
+    P = MeshProjector(g)
+    truth = [circle_surface([0.2, -0.1], 0.6, -0.1, control=12)]
+    return P, P.forward(truth)
+
+
+def test_a_redirected_phase_prints_one_line_with_its_stop_reason(monkeypatch):
+    monkeypatch.delenv("BUBSUB_PROGRESS", raising=False)
+    out = io.StringIO()  # not a terminal
+    bar = phase("BubSub fit", 80, stream=out)
+    for _ in range(57):
+        bar.update(1, f="0.5")
+    bar.close("converged")
+    bar.close("twice is harmless")
+    assert out.getvalue().count("\n") == 1
+    assert out.getvalue().startswith("BubSub fit: 57 iterations, ") and "converged, f = 0.5" in out.getvalue()
+    silent = io.StringIO()
+    with phase("quiet", 3, enabled=False, stream=silent) as q:
+        q.update(3)
+    assert silent.getvalue() == ""
+
+
+def test_a_terminal_bar_ends_at_its_own_count_with_the_reason(monkeypatch):
+    monkeypatch.setenv("BUBSUB_PROGRESS", "bar")
+    out = io.StringIO()
+    bar = phase("BubSub fit", 80, stream=out)
+    bar.update(57)
+    bar.close("converged")
+    last = out.getvalue().replace("\r", "\n").strip().splitlines()[-1]
+    assert "57/57" in last and "100%" in last and "converged" in last
+
+
+def test_fit_reports_why_it_stopped(disc_scene):
+    P, data = disc_scene
+    start = [circle_surface([0.25, -0.05], 0.5, -0.1, control=12)]
+    assert fit(P, start, data, iterations=2, progress=False).stop_reason == "iteration limit"
+    done = fit(P, start, data, iterations=500, progress=False)
+    assert done.stop_reason == "converged" and done.iterations < 500
+    assert fit(P, start, data, iterations=500, method="lbfgs", progress=False).stop_reason == "converged"
+    stopped = fit(P, start, data, iterations=50, progress=False, callback=lambda k, f, s: k == 3)
+    assert stopped.stop_reason == "stopped by callback" and stopped.iterations == 3
+
+    def interrupt(k, f, s):
+        raise KeyboardInterrupt
+
+    assert fit(P, start, data, iterations=50, progress=False, callback=interrupt).stop_reason == "interrupted"
+
+
+def test_redirected_reconstruct_prints_one_line_per_phase(tmp_path, capsys, monkeypatch):
+    import json
+
+    monkeypatch.delenv("BUBSUB_PROGRESS", raising=False)
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--bubbles", "4", "--det-count", "200", "--angles", "8", "--out", str(sim)]) == 0
+    capsys.readouterr()
+    rc = main(["reconstruct", str(sim / "scan.h5"), "--out", str(tmp_path / "rec"), "--iterations", "5"])
+    assert rc == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert [line.split(":")[0] for line in err] == ["voxel preview (2D SIRT)", "radius estimation", "BubSub fit"]
+    assert "iteration limit" in err[-1]
+    report = json.loads((tmp_path / "rec" / "report.json").read_text())
+    assert report["stop_reason"] == "iteration limit" and report["iterations"] == 5

@@ -12,7 +12,7 @@ Only a few plain C structs of Embree 4's API are used (``RTCRayHit``,
 ``RTCIntersectArguments``, ``RTCFilterFunctionNArguments``); their layouts are
 written out below. :func:`available` says whether the backend can run here
 (numba importable, an Embree 4 library found and answering as version 4);
-when it cannot, :class:`~bubsub.core.MeshProjector` uses the embreex backend.
+when it cannot, ``backend="auto"`` does not choose it.
 """
 
 from __future__ import annotations
@@ -23,7 +23,10 @@ import os
 
 import numpy as np
 
-__all__ = ["available", "unavailable_reason", "NativeScene", "trace_rays"]
+from bubsub.core.projection.backends.frames import RayCaster
+from bubsub.core.projection.backends.jit import cached
+
+__all__ = ["available", "unavailable_reason", "NativeScene", "NativeBackend", "trace_rays"]
 
 # enum values of Embree 4's API (rtcore_common.h, rtcore_scene.h, rtcore_buffer.h)
 _GEOMETRY_TYPE_TRIANGLE = 0
@@ -155,6 +158,26 @@ class NativeScene:
             _state["lib"].rtcReleaseScene(handle)
 
 
+class NativeBackend(RayCaster):
+    """All of a ray's crossings from one Embree traversal, recorded by an intersection filter."""
+
+    name = "native"
+
+    def prepare(self, scene, eps):
+        return _NativeCaster(scene)
+
+
+class _NativeCaster:
+    def __init__(self, scene):
+        self.scene = scene
+        self.native = NativeScene(scene.vertices, scene.faces)
+
+    def trace_chunk(self, frames, sub, pix, far, radius, start, stop):
+        f, scene = frames, self.scene
+        return trace_rays(self.native, pix, far, start, stop, sub, (f.s, f.d, f.u, f.v, f.cone, f.rows, f.cols),
+                          scene.centre, radius, scene.face_item, scene.mu, scene.normals)
+
+
 def trace_rays(scene, pixel, far, start, stop, sub, frames, shift, radius, face_item, mu, normals):
     """Cast rays ``start:stop`` of the candidate pixels; every valid crossing, paired.
 
@@ -165,7 +188,7 @@ def trace_rays(scene, pixel, far, start, stop, sub, frames, shift, radius, face_
         Sorted flat candidate pixels; ray ``q`` belongs to ``pixel[q // len(sub)]``.
     far : (k,) float
         Per pixel: how far from the ray's start a crossing can be (see
-        ``_Frames.candidate_pixels``), padded.
+        ``Frames.candidate_pixels``), padded.
     sub : (k2, 2) float
         Sub-ray offsets in pixel units.
     frames : tuple
@@ -189,25 +212,6 @@ def trace_rays(scene, pixel, far, start, stop, sub, frames, shift, radius, face_
     s, d, u, v, cone, rows, cols = frames
     return _state["kernel"](_state["intersect1"], scene.handle, _state["args_template"], pixel, far, start, stop, sub, s, d, u, v, bool(cone),
                             int(rows), int(cols), np.asarray(shift, float), float(radius), face_item, mu, normals)
-
-
-def cached(decorator, **options):
-    """``decorator(cache=True, **options)``, or without the cache where numba has nowhere to write it.
-
-    numba refuses ``cache=True`` when neither the source folder nor a user
-    cache folder is writable (a read-only install); compiling in memory then
-    costs a few seconds per process instead of failing.
-    """
-
-    def wrap(fn):
-        try:
-            return decorator(cache=True, **options)(fn)
-        except RuntimeError as exc:
-            if "cannot cache" not in str(exc):
-                raise
-            return decorator(**options)(fn)
-
-    return wrap
 
 
 def _compile(lib):

@@ -1,0 +1,238 @@
+"""The interface between :class:`~bubsub.core.MeshProjector` and its backends.
+
+A backend receives a :class:`Scene` (every item's fine mesh as one shifted
+triangle soup, or one segment soup in 2D) and the scan's :class:`Frames`, and
+returns a :class:`Traversal`: the per-pixel values and a way to reduce the
+crossings it found against per-pixel weights (``face_sums``). Everything else
+lives once, in the projector and here: resolving items, the chain rule through
+the subdivision matrices, the residual, the gradient's per-vertex scatter.
+
+Adding a backend means writing one class with ``name``, ``prisms_2d`` and
+``trace(scene, frames, sub, threads)`` and registering it in
+:mod:`bubsub.core.projection.backends`; the objective, the subdivision chain
+and the service do not change.
+
+The gradient contract
+---------------------
+For a closed outward mesh the chord of a ray is ``sum_exits t - sum_entries t``.
+Moving vertex ``j`` of a crossed face ``f`` by ``dv`` changes it by
+``b_j n_f.dv / |n_f.d|`` (``b_j`` barycentric weight of the crossing, ``n_f``
+the unit normal, ``d`` the unit ray direction). ``face_sums(w)`` returns, per
+face and corner, ``sum over crossings of w[pixel] mu_f b_j / |n_f.d|``; the
+projector multiplies by ``n_f`` and scatters to the vertices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.projection.subdivision import SubdivisionSurface
+
+__all__ = ["Scene", "Traversal", "StoredCrossings", "Backend", "vertex_gradient"]
+
+
+class Scene:
+    """All items to project as one soup, shifted so its bounding box is centred on the origin.
+
+    Attributes
+    ----------
+    items : list
+        What was given (Mesh, Polygon or SubdivisionSurface).
+    fine : list of Mesh or Polygon
+        The meshes actually projected.
+    vertices : (n, 3) float
+        All vertices minus ``centre``, mm (2D: z = 0, or prism walls).
+    faces : (m, 3) int or (m, 2) int
+        Triangles, or polygon segments (2D without prisms), into ``vertices``.
+    centre : (3,) float
+        The shift, mm.
+    half : (3,) float
+        Half-sizes of the bounding box, mm.
+    face_item : (m,) int64
+        Item of each face.
+    mu : (n_items,) float
+        Attenuation of each item, 1/mm.
+    normals : (m, 3) float
+        Unit outward normals (2D segments: in the plane z = 0).
+    vertex_offset : (n_items + 1,) int
+        First vertex of each item.
+    """
+
+    def __init__(self, items, ndim, prisms_2d):
+        self.items = list(items)
+        self.ndim = ndim
+        expected = Mesh if ndim == 3 else Polygon
+        resolved = []
+        for k, item in enumerate(self.items):
+            fine = item.fine() if isinstance(item, SubdivisionSurface) else item
+            if not isinstance(fine, expected):
+                raise TypeError(
+                    f"item {k} is a {type(item).__name__} of {type(fine).__name__}; "
+                    f"a {ndim}D geometry projects {expected.__name__} or SubdivisionSurface of {expected.__name__}"
+                )
+            resolved.append(fine)
+        if not resolved:
+            raise ValueError("nothing to project: give at least one mesh")
+        self.fine = resolved
+        self.prisms = ndim == 2 and prisms_2d
+        if ndim == 3:
+            verts = [m.vertices for m in resolved]
+            faces = [np.asarray(m.faces) for m in resolved]
+        elif self.prisms:
+            # Short walls (about one edge long) keep the triangles well shaped
+            # for Embree's BVH; rays run at z = 0, so any height is exact.
+            edges = np.concatenate([np.linalg.norm(np.diff(p.vertices, axis=0, append=p.vertices[:1]), axis=1) for p in resolved])
+            self.half_height = max(float(np.median(edges)), 1e-6)
+            verts, faces = zip(*(_prism(p.vertices, self.half_height) for p in resolved))
+        else:
+            verts = [np.c_[p.vertices, np.zeros(len(p.vertices))] for p in resolved]
+            faces = [np.stack([np.arange(len(p.vertices)), np.roll(np.arange(len(p.vertices)), -1)], 1) for p in resolved]
+        counts = np.array([len(v) for v in verts])
+        self.vertex_offset = np.concatenate([[0], np.cumsum(counts)])
+        nface = np.array([len(f) for f in faces])
+        self.face_item = np.repeat(np.arange(len(resolved)), nface)
+        vertices = np.concatenate(verts)
+        self.faces = np.concatenate([f + o for f, o in zip(faces, self.vertex_offset[:-1])])
+        self.mu = np.array([m.attenuation for m in resolved])
+        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        self.centre = 0.5 * (lo + hi)
+        self.vertices = vertices - self.centre
+        self.half = 0.5 * (hi - lo)
+        if self.prisms:
+            self.half[2] = self.half_height
+        if self.faces.shape[1] == 3:
+            a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
+            n = np.cross(b - a, c - a)
+        else:  # outward normal of a counter-clockwise polygon's segment: the edge turned clockwise
+            e = self.vertices[self.faces[:, 1]] - self.vertices[self.faces[:, 0]]
+            n = np.c_[e[:, 1], -e[:, 0], np.zeros(len(e))]
+        norm = np.linalg.norm(n, axis=1)
+        n[norm > 0] /= norm[norm > 0, None]
+        self.normals = n
+
+    def item_gradients(self, vertex_grad):
+        """Split per-vertex gradients into one array per item (chain S and the prism)."""
+        out = []
+        for k, item in enumerate(self.items):
+            g = vertex_grad[self.vertex_offset[k]: self.vertex_offset[k + 1]]
+            if self.ndim == 2:
+                n = len(self.fine[k].vertices)
+                g = g[:n, :2] + g[n:, :2] if self.prisms else g[:, :2]
+            if isinstance(item, SubdivisionSurface):
+                g = item.S.T @ g
+            out.append(np.asarray(g))
+        return out
+
+
+def _prism(poly, h):
+    """Side walls of the polygon extruded to z in [-h, h], outward oriented."""
+    n = len(poly)
+    v = np.concatenate([np.c_[poly, np.full(n, -h)], np.c_[poly, np.full(n, h)]])
+    i = np.arange(n)
+    j = (i + 1) % n
+    faces = np.concatenate([np.stack([i, j, j + n], 1), np.stack([i, j + n, i + n], 1)])
+    return v, faces
+
+
+def vertex_gradient(scene, face_sums):
+    """Per-vertex gradient (n, 3) from per-face, per-corner sums (m, k) (see the module docstring)."""
+    nv = len(scene.vertices)
+    out = np.zeros((nv, 3))
+    corners = scene.faces.ravel()
+    for c in range(3):
+        w = face_sums * scene.normals[:, c:c + 1]
+        out[:, c] = np.bincount(corners, weights=w.ravel(), minlength=nv)
+    return out
+
+
+class Traversal:
+    """What one pass of a backend over a scene found.
+
+    Attributes
+    ----------
+    values : (n_pixels,) float
+        Projection summed over sub-rays (not yet averaged), flat.
+    count : int
+        Number of valid ray-surface crossings.
+    """
+
+    def __init__(self, values, count):
+        self.values = values
+        self.count = int(count)
+
+    def face_sums(self, weights):
+        """``(m, k)`` float: per face and corner, ``sum w[pixel] mu b_j / |n.d|`` over the crossings.
+
+        Parameters
+        ----------
+        weights : (n_pixels,) float
+            Per-pixel weight of every sub-ray (the residual over ``k^2``).
+        """
+        raise NotImplementedError
+
+
+class StoredCrossings(Traversal):
+    """A traversal whose crossings are kept, in the work chunks that found them (ray-casting backends).
+
+    Attributes
+    ----------
+    chunks : list of tuple
+        Per chunk: ``pixel (k,) int64``, ``face (k,) int32``,
+        ``bary (k, 3) float32``, ``inv_cos (k,) float32`` (``1 / |n.d|``).
+    """
+
+    def __init__(self, values, chunks, scene, pool_map):
+        super().__init__(values, sum(c[0].size for c in chunks))
+        self.chunks = chunks
+        self._scene = scene
+        self._map = pool_map
+
+    def face_sums(self, weights):
+        scene = self._scene
+        mu = scene.mu[scene.face_item]
+        nf = len(scene.faces)
+
+        def per_chunk(chunk):
+            # n is constant on a face, so sum b_j * coef per face first
+            pixel, face, bary, inv_cos = chunk
+            coef = weights[pixel] * inv_cos * mu[face]
+            return np.stack([np.bincount(face, weights=coef * bary[:, j], minlength=nf) for j in range(3)], axis=1)
+
+        return sum(self._map(per_chunk, self.chunks), np.zeros((nf, 3)))
+
+
+class Backend:
+    """A way to find the crossings of a scene's rays with its faces.
+
+    Attributes
+    ----------
+    name : str
+        The name ``MeshProjector(backend=...)`` and ``BUBSUB_BACKEND`` use.
+    prisms_2d : bool
+        Whether 2D polygons reach :meth:`trace` as prisms of triangles
+        (ray casters) or as segments (``faces`` of shape (m, 2)).
+    """
+
+    name = ""
+    prisms_2d = True
+
+    def trace(self, scene, frames, sub, threads):
+        """Cast every sub-ray of every pixel through ``scene``.
+
+        Parameters
+        ----------
+        scene : Scene
+        frames : bubsub.core.projection.backends.frames.Frames
+        sub : (k2, 2) float
+            Sub-ray offsets in pixel units (``(0, 0)`` without supersampling).
+        threads : int
+
+        Returns
+        -------
+        Traversal
+        """
+        raise NotImplementedError
+
+    def __repr__(self):
+        return f"{type(self).__name__}()"

@@ -1,0 +1,382 @@
+"""The triangle-major (rasterising) backend: exact chords from projected triangles, in numba, float64.
+
+Per projection every vertex is projected onto the detector (centrally for
+cone/fan beams, orthographically for parallel beams), in units of the
+sub-ray lattice (pixel centres, or the ``k x k`` supersampling points).
+Each triangle then visits the lattice points inside its projection; a point
+inside means the point's ray crosses the triangle, and the ray's value gets
+``mu n.(x0 - q) / |n.d|``: the signed distance along the ray from a fixed
+point ``q`` of the ray to the triangle's plane, positive when leaving (n.d > 0)
+and negative when entering. Over a closed outward mesh these sum to the chord
+whatever ``q`` is; ``q`` is the ray's closest point to the scene centre, so
+the terms are about the scene's size and a far source loses no precision.
+2D scans do the same with polygon segments on the 1D detector.
+
+Exact and watertight
+--------------------
+* Everything is float64; a vertex is projected once per projection.
+* Each edge's test is computed from its lower-indexed vertex, so the two
+  triangles sharing an edge evaluate the same number; they see the edge with
+  opposite orientation, and a lattice point exactly on it goes to the one
+  triangle whose interior lies on the side of a fixed symbolic perturbation
+  of the point (``+e`` along the detector columns, ``+e^2`` along the rows).
+  Points on projected vertices are decided by the same perturbation, so a
+  fan of triangles around a vertex covers it exactly once. Every ray
+  therefore crosses each surface once per side; no pairing is needed.
+* In 2D a segment covers the lattice points in ``[min, max)`` of its two
+  projected vertices (the same perturbation).
+* Cone and fan beams need every vertex in front of the source (projected
+  triangles are only meaningful there); the projector refuses other scenes.
+
+Gradient
+--------
+``face_sums`` rasterises again and adds ``w[pixel] mu b_j / |n.d|`` per face
+corner; ``b_j`` are the 3D barycentric weights of the crossing, from the 2D
+ones corrected for perspective (``b_j ~ lambda_j / depth_j``). Nothing per
+crossing is stored: memory is O(detector + vertices) per thread.
+
+Threads: projections are split into contiguous groups, one per worker thread
+(compiled code releases the GIL); values are written per projection and face
+sums are accumulated per group, then added, so there are no races.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bubsub.core.projection.backends.base import Backend, Traversal
+from bubsub.core.projection.backends.frames import thread_map
+from bubsub.core.projection.backends.jit import cached
+
+__all__ = ["RasterBackend", "available", "unavailable_reason"]
+
+_state = {}
+
+
+def _load():
+    if "ok" not in _state:
+        try:
+            _state.update(_compile())
+            _state["ok"] = True
+        except ImportError as exc:
+            _state["ok"], _state["why"] = False, f"numba is not installed ({exc})"
+    return _state["ok"]
+
+
+def available():
+    """Whether numba is importable (the backend's only requirement)."""
+    return _load()
+
+
+def unavailable_reason():
+    """Why :func:`available` is False ("" when it is True)."""
+    return "" if _load() else _state["why"]
+
+
+class RasterBackend(Backend):
+    """Exact triangle-major projection (see the module docstring)."""
+
+    name = "raster"
+    prisms_2d = False
+
+    def trace(self, scene, frames, sub, threads):
+        if not _load():
+            raise RuntimeError(f"the raster backend is unavailable: {unavailable_reason()}")
+        job = _Job(scene, frames, sub, threads)
+        values = np.zeros(frames.n * frames.rows * frames.cols)
+        counts = thread_map(lambda g: job.run(g, values, None, None), job.groups, job.threads)
+        return _RasterTraversal(values, sum(counts), job)
+
+
+class _RasterTraversal(Traversal):
+    def __init__(self, values, count, job):
+        super().__init__(values, count)
+        self._job = job
+
+    def face_sums(self, weights):
+        job = self._job
+        nf, k = job.scene.faces.shape
+
+        def group(g):
+            acc = np.zeros((nf, k))
+            job.run(g, None, weights, acc)
+            return acc
+
+        return sum(thread_map(group, job.groups, job.threads), np.zeros((nf, k)))
+
+
+class _Job:
+    """Per-projection frames in the scene's shifted coordinates, and the kernel's arguments."""
+
+    def __init__(self, scene, frames, sub, threads):
+        self.scene = scene
+        k2 = sub.shape[0]
+        self.k = int(round(np.sqrt(k2))) if scene.ndim == 3 else k2
+        shift = scene.centre
+        cone = frames.cone
+        S = frames.s - shift if cone else frames.s / np.linalg.norm(frames.s, axis=1, keepdims=True)
+        D = frames.d - shift
+        U, V = frames.u, frames.v
+        N = np.cross(U, V)
+        vn, nu = np.cross(V, N), np.cross(N, U)
+        Au = vn / np.einsum("ij,ij->i", U, vn)[:, None]
+        Bv = nu / np.einsum("ij,ij->i", V, nu)[:, None]
+        self.frames = tuple(np.ascontiguousarray(a, dtype=np.float64) for a in (S, D, U, V, N, Au, Bv))
+        self.cone, self.rows, self.cols = bool(cone), int(frames.rows), int(frames.cols)
+        f = scene.faces
+        self.faces = np.ascontiguousarray(f, dtype=np.int64)
+        self.normals = np.ascontiguousarray(scene.normals)
+        # n.x0 per face: the plane offsets, in the shifted frame
+        self.offset = np.einsum("ij,ij->i", self.normals, scene.vertices[f[:, 0]])
+        self.face_mu = scene.mu[scene.face_item].astype(np.float64)
+        self.vertices = np.ascontiguousarray(scene.vertices, dtype=np.float64)
+        n = frames.n
+        self.threads = max(1, min(int(threads), n))
+        edges = np.linspace(0, n, self.threads + 1).round().astype(int)
+        self.groups = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+    def run(self, group, values, weights, acc):
+        """Forward (``values`` given) or face sums (``weights``, ``acc`` given) for projections ``group``."""
+        p0, p1 = group
+        grad = acc is not None
+        dummy1, dummy2 = np.zeros(1), np.zeros((1, 1))
+        kernel = _state["raster3d"] if self.scene.ndim == 3 else _state["raster2d"]
+        return kernel(p0, p1, self.vertices, self.faces, self.normals, self.offset, self.face_mu, *self.frames,
+                      self.cone, self.rows, self.cols, self.k, values if not grad else dummy1,
+                      weights if grad else dummy1, acc if grad else dummy2, grad)
+
+
+def _compile():
+    import numba
+
+    # numpy error model: float division by zero gives inf instead of a checked exception
+    jit = cached(numba.njit, nogil=True, error_model="numpy")
+
+    @jit
+    def lattice(x, p, cone, S, D, N, Au, Bv, rows, cols, k):
+        """Lattice coordinates (column, row) and projective depth of point x in projection p."""
+        if cone:
+            e0, e1, e2 = x[0] - S[p, 0], x[1] - S[p, 1], x[2] - S[p, 2]
+            w = e0 * N[p, 0] + e1 * N[p, 1] + e2 * N[p, 2]
+            h = (D[p, 0] - S[p, 0]) * N[p, 0] + (D[p, 1] - S[p, 1]) * N[p, 1] + (D[p, 2] - S[p, 2]) * N[p, 2]
+            lam = h / w
+            r0, r1, r2 = S[p, 0] + lam * e0 - D[p, 0], S[p, 1] + lam * e1 - D[p, 1], S[p, 2] + lam * e2 - D[p, 2]
+        else:
+            w = 1.0
+            rn = S[p, 0] * N[p, 0] + S[p, 1] * N[p, 1] + S[p, 2] * N[p, 2]
+            m = ((D[p, 0] - x[0]) * N[p, 0] + (D[p, 1] - x[1]) * N[p, 1] + (D[p, 2] - x[2]) * N[p, 2]) / rn
+            r0, r1, r2 = x[0] + m * S[p, 0] - D[p, 0], x[1] + m * S[p, 1] - D[p, 1], x[2] + m * S[p, 2] - D[p, 2]
+        a = r0 * Au[p, 0] + r1 * Au[p, 1] + r2 * Au[p, 2]
+        b = r0 * Bv[p, 0] + r1 * Bv[p, 1] + r2 * Bv[p, 2]
+        return (a + 0.5 * cols) * k - 0.5, (b + 0.5 * rows) * k - 0.5, w
+
+    @jit
+    def ray_length(p, col, row, cone, S, D, U, V, rows, cols, kc, kr):
+        """Source-to-detector length of the ray through lattice point (col, row); 1 for parallel beams.
+
+        ``kc``, ``kr``: lattice points per pixel along the columns and the rows.
+        """
+        if not cone:
+            return 1.0
+        a = (col + 0.5) / kc - 0.5 * cols
+        b = (row + 0.5) / kr - 0.5 * rows
+        e0 = D[p, 0] - S[p, 0] + a * U[p, 0] + b * V[p, 0]
+        e1 = D[p, 1] - S[p, 1] + a * U[p, 1] + b * V[p, 1]
+        e2 = D[p, 2] - S[p, 2] + a * U[p, 2] + b * V[p, 2]
+        return np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+
+    @jit
+    def keeps_ties(dx, dy):
+        """Whether a point exactly on a (counter-clockwise) edge of direction (dx, dy) is inside.
+
+        The point moved by (+e, +e^2) is inside when cross((dx, dy), (e, e^2)) > 0.
+        """
+        return dy < 0.0 or (dy == 0.0 and dx > 0.0)
+
+    @jit
+    def edge_setup(ia, ib, sig, X, Y):
+        """An edge as seen from its lower-indexed vertex: base, direction, orientation sign, tie rule."""
+        s = sig
+        if ib < ia:
+            ia, ib, s = ib, ia, -sig
+        dx, dy = X[ib] - X[ia], Y[ib] - Y[ia]
+        return X[ia], Y[ia], dx, dy, s, keeps_ties(s * dx, s * dy)
+
+    @jit
+    def footprint(X, Y, n_cols, n_rows):
+        """Lattice box (c0, c1, r0, r1) covering every projected vertex, clipped to the detector."""
+        c0 = max(int(np.ceil(X.min())), 0)
+        c1 = min(int(np.floor(X.max())), n_cols - 1)
+        r0 = max(int(np.ceil(Y.min())), 0)
+        r1 = min(int(np.floor(Y.max())), n_rows - 1)
+        return c0, c1, r0, r1
+
+    @jit
+    def crossing(a, cone, lin, num, nU, nr):
+        """``(|n.d|, t / |n.d|)`` of a face's crossing at detector column coordinate ``a`` (see raster3d)."""
+        if cone:
+            den = abs(lin + a * nU)
+            return den, num / den
+        return nr, (lin - a * nU) / nr
+
+    @jit
+    def project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, iW):
+        for i in range(verts.shape[0]):
+            X[i], Y[i], w = lattice(verts[i], p, cone, S, D, N, Au, Bv, rows, cols, k)
+            iW[i] = 1.0 / w
+
+    @jit
+    def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
+                 values, weights, acc, grad):
+        nv, nf = verts.shape[0], faces.shape[0]
+        X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
+        C, R = cols * k, rows * k
+        npix = rows * cols
+        L = np.zeros((R, C))  # per lattice point: sum of mu t / |e| (forward) or w |e| (gradient)
+        count = 0
+        for p in range(p0, p1):
+            project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, iW)
+            fc0, fc1, fr0, fr1 = footprint(X, Y, C, R)
+            if fc0 > fc1 or fr0 > fr1:
+                continue
+            for row in range(fr0, fr1 + 1):
+                for col in range(fc0, fc1 + 1):
+                    if grad:
+                        L[row, col] = weights[p * npix + (row // k) * cols + col // k] * ray_length(
+                            p, col, row, cone, S, D, U, V, rows, cols, k, k)
+                    else:
+                        L[row, col] = 0.0
+            for f in range(nf):
+                i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+                area2 = (X[i1] - X[i0]) * (Y[i2] - Y[i0]) - (Y[i1] - Y[i0]) * (X[i2] - X[i0])
+                if area2 == 0.0:
+                    continue  # seen edge-on: no ray crosses it in a single point
+                sig = 1.0 if area2 > 0 else -1.0
+                c0 = max(int(np.ceil(min(X[i0], X[i1], X[i2]))), fc0)
+                c1 = min(int(np.floor(max(X[i0], X[i1], X[i2]))), fc1)
+                r0 = max(int(np.ceil(min(Y[i0], Y[i1], Y[i2]))), fr0)
+                r1 = min(int(np.floor(max(Y[i0], Y[i1], Y[i2]))), fr1)
+                if c0 > c1 or r0 > r1:
+                    continue
+                bx0, by0, dx0, dy0, s0, t0 = edge_setup(i0, i1, sig, X, Y)
+                bx1, by1, dx1, dy1, s1, t1 = edge_setup(i1, i2, sig, X, Y)
+                bx2, by2, dx2, dy2, s2, t2 = edge_setup(i2, i0, sig, X, Y)
+                n0, n1, n2 = nrm[f, 0], nrm[f, 1], nrm[f, 2]
+                nU = n0 * U[p, 0] + n1 * U[p, 1] + n2 * U[p, 2]
+                nV = n0 * V[p, 0] + n1 * V[p, 1] + n2 * V[p, 2]
+                mu = fmu[f]
+                if cone:
+                    # t = n.(x0 - S) |e| / |n.e| along e = D - S + a U + b V
+                    num = offset[f] - (n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
+                    nDS = n0 * (D[p, 0] - S[p, 0]) + n1 * (D[p, 1] - S[p, 1]) + n2 * (D[p, 2] - S[p, 2])
+                    nr = 0.0
+                else:
+                    # t = n.(x0 - P) / |n.r| from the pixel point P = D + a U + b V
+                    num = offset[f] - (n0 * D[p, 0] + n1 * D[p, 1] + n2 * D[p, 2])
+                    nDS = 0.0
+                    nr = abs(n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
+                    if nr == 0.0:
+                        continue
+                sum0 = sum1 = sum2 = 0.0
+                for row in range(r0, r1 + 1):
+                    b = (row + 0.5) / k - 0.5 * rows
+                    h0, h1, h2 = dx0 * (row - by0), dx1 * (row - by1), dx2 * (row - by2)
+                    lin = nDS + b * nV if cone else num - b * nV
+                    seen = False
+                    for col in range(c0, c1 + 1):
+                        # the same operations for both triangles of an edge: the same number
+                        g0 = s0 * (h0 - dy0 * (col - bx0))
+                        g1 = s1 * (h1 - dy1 * (col - bx1))
+                        g2 = s2 * (h2 - dy2 * (col - bx2))
+                        if (g0 < 0.0 or (g0 == 0.0 and not t0) or g1 < 0.0 or (g1 == 0.0 and not t1)
+                                or g2 < 0.0 or (g2 == 0.0 and not t2)):
+                            if seen:
+                                break  # each edge test is monotonic along a row: the span is over
+                            continue
+                        seen = True
+                        den, val = crossing((col + 0.5) / k - 0.5 * cols, cone, lin, num, nU, nr)
+                        if den == 0.0:
+                            continue
+                        count += 1
+                        if not grad:
+                            L[row, col] += mu * val
+                            continue
+                        w = L[row, col]
+                        if w == 0.0:
+                            continue
+                        # barycentric weight of a vertex: the opposite edge's function over its depth
+                        l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
+                        scale = w * mu / (den * (l0 + l1 + l2))
+                        sum0 += scale * l0
+                        sum1 += scale * l1
+                        sum2 += scale * l2
+                if grad:
+                    acc[f, 0] += sum0
+                    acc[f, 1] += sum1
+                    acc[f, 2] += sum2
+            if not grad:
+                for row in range(fr0, fr1 + 1):
+                    for col in range(fc0, fc1 + 1):
+                        if L[row, col] != 0.0:
+                            values[p * npix + (row // k) * cols + col // k] += L[row, col] * ray_length(
+                                p, col, row, cone, S, D, U, V, rows, cols, k, k)
+        return count
+
+    @jit
+    def raster2d(p0, p1, verts, segs, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
+                 values, weights, acc, grad):
+        nv, ns = verts.shape[0], segs.shape[0]
+        X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
+        C = cols * k
+        L = np.zeros(C)
+        count = 0
+        for p in range(p0, p1):
+            project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, iW)
+            fc0, fc1, _, _ = footprint(X, X, C, C)
+            if fc0 > fc1:
+                continue
+            for col in range(fc0, fc1 + 1):
+                L[col] = weights[p * cols + col // k] * ray_length(p, col, 0, cone, S, D, U, V, 1, cols, k, 1) if grad else 0.0
+            for f in range(ns):
+                i0, i1 = segs[f, 0], segs[f, 1]
+                lo, hi = min(X[i0], X[i1]), max(X[i0], X[i1])
+                c0 = max(int(np.ceil(lo)), fc0)
+                c1 = min(int(np.ceil(hi)) - 1, fc1)  # [lo, hi): the last point below hi
+                if c0 > c1:
+                    continue
+                n0, n1 = nrm[f, 0], nrm[f, 1]
+                nU = n0 * U[p, 0] + n1 * U[p, 1]
+                mu = fmu[f]
+                if cone:
+                    num = offset[f] - (n0 * S[p, 0] + n1 * S[p, 1])
+                    lin = n0 * (D[p, 0] - S[p, 0]) + n1 * (D[p, 1] - S[p, 1])
+                    nr = 0.0
+                else:
+                    num = offset[f] - (n0 * D[p, 0] + n1 * D[p, 1])
+                    lin = num
+                    nr = abs(n0 * S[p, 0] + n1 * S[p, 1])
+                    if nr == 0.0:
+                        continue
+                for col in range(c0, c1 + 1):
+                    den, val = crossing((col + 0.5) / k - 0.5 * cols, cone, lin, num, nU, nr)
+                    if den == 0.0:
+                        continue
+                    count += 1
+                    if not grad:
+                        L[col] += mu * val
+                        continue
+                    w = L[col]
+                    if w == 0.0:
+                        continue
+                    t = (col - X[i0]) / (X[i1] - X[i0])
+                    l0, l1 = (1.0 - t) * iW[i0], t * iW[i1]
+                    scale = w * mu / (den * (l0 + l1))
+                    acc[f, 0] += scale * l0
+                    acc[f, 1] += scale * l1
+            if not grad:
+                for col in range(fc0, fc1 + 1):
+                    if L[col] != 0.0:
+                        values[p * cols + col // k] += L[col] * ray_length(p, col, 0, cone, S, D, U, V, 1, cols, k, 1)
+        return count
+
+    return {"raster3d": raster3d, "raster2d": raster2d}

@@ -167,20 +167,20 @@ def test_bubble_table_2d_against_circle_formulas():
     (row,) = bubble_table([poly], ids=[4])
     assert tuple(row) == BUBBLE_COLUMNS_2D
     assert row["id"] == 4
-    assert row["centroid_x"] == pytest.approx(1.0) and row["centroid_y"] == pytest.approx(-2.0)
-    assert row["area"] == pytest.approx(np.pi * r * r, rel=1e-5)
-    assert row["perimeter"] == pytest.approx(2 * np.pi * r, rel=1e-5)
-    assert row["equivalent_diameter"] == pytest.approx(2 * r, rel=1e-5)
+    assert row["centroid_x_mm"] == pytest.approx(1.0) and row["centroid_y_mm"] == pytest.approx(-2.0)
+    assert row["area_mm2"] == pytest.approx(np.pi * r * r, rel=1e-5)
+    assert row["perimeter_mm"] == pytest.approx(2 * np.pi * r, rel=1e-5)
+    assert row["equivalent_diameter_mm"] == pytest.approx(2 * r, rel=1e-5)
 
 
 def test_bubble_table_3d_against_sphere_formulas():
     m = sphere_mesh((1.0, 2.0, -3.0), 0.8, -0.1, subdivisions=4)
     (row,) = bubble_table(m)
     assert tuple(row) == BUBBLE_COLUMNS_3D
-    assert [row["centroid_x"], row["centroid_y"], row["centroid_z"]] == pytest.approx([1.0, 2.0, -3.0])
-    assert row["volume"] == pytest.approx(4 / 3 * np.pi * 0.8**3, rel=3e-3)
-    assert row["surface"] == pytest.approx(4 * np.pi * 0.8**2, rel=3e-3)
-    assert row["equivalent_diameter"] == pytest.approx(1.6, rel=1e-3)
+    assert [row["centroid_x_mm"], row["centroid_y_mm"], row["centroid_z_mm"]] == pytest.approx([1.0, 2.0, -3.0])
+    assert row["volume_mm3"] == pytest.approx(4 / 3 * np.pi * 0.8**3, rel=3e-3)
+    assert row["surface_area_mm2"] == pytest.approx(4 * np.pi * 0.8**2, rel=3e-3)
+    assert row["equivalent_diameter_mm"] == pytest.approx(1.6, rel=1e-3)
 
 
 def test_bubble_table_rejects_mixed_items(bubbles3d):
@@ -196,7 +196,7 @@ def test_csv_round_trip(tmp_path, bubbles3d):
         back = list(csv.DictReader(fh))
     assert list(back[0]) == list(BUBBLE_COLUMNS_3D)
     assert [int(r["id"]) for r in back] == [9, 8, 7, 6]
-    assert [float(r["volume"]) for r in back] == [r["volume"] for r in rows]  # exact repr
+    assert [float(r["volume_mm3"]) for r in back] == [r["volume_mm3"] for r in rows]  # exact repr
 
 
 def test_csv_bad_rows_and_failed_write(tmp_path):
@@ -218,3 +218,24 @@ def test_csv_bad_rows_and_failed_write(tmp_path):
     assert write_csv(tmp_path / "h.csv", [], columns=BUBBLE_COLUMNS_2D).read_text().strip() == ",".join(
         BUBBLE_COLUMNS_2D)
 
+
+
+def test_column_names_carry_their_units_and_the_sidecar_describes_them(tmp_path, bubbles3d):
+    from bubsub.core.io.meshio import BUBBLE_COLUMN_INFO, csv_metadata_path, unit_column
+
+    assert unit_column("volume", "mm^3") == "volume_mm3" and unit_column("id", "") == "id"
+    assert unit_column("attenuation", "1/mm") == "attenuation_per_mm"
+    with pytest.raises(ValueError, match="unknown unit"):
+        unit_column("x", "furlong")
+    # every measured column ends with the unit its description gives
+    for name, (unit, _) in BUBBLE_COLUMN_INFO.items():
+        assert name == "id" or name.endswith("_" + unit.replace("^", ""))
+    path = write_csv(tmp_path / "b.csv", bubble_table(bubbles3d), describe=BUBBLE_COLUMN_INFO, title="bubbles")
+    meta = json.loads(csv_metadata_path(path).read_text())
+    assert csv_metadata_path(path).name == "b.csv-metadata.json" and meta["url"] == "b.csv"
+    assert [c["name"] for c in meta["tableSchema"]["columns"]] == list(BUBBLE_COLUMNS_3D)
+    assert meta["tableSchema"]["columns"][4]["unit"] == "mm^3"
+    # an undescribed column writes neither file
+    with pytest.raises(ValueError, match="'extra' has no"):
+        write_csv(tmp_path / "c.csv", [{"extra": 1}], describe=BUBBLE_COLUMN_INFO)
+    assert not (tmp_path / "c.csv").exists() and not csv_metadata_path(tmp_path / "c.csv").exists()

@@ -49,7 +49,8 @@ def test_reconstruction_matches_the_truth(sim, rec, capsys):
     res = evaluate_dir(rec, sim)
     assert res["ddi"] < 0.03
     assert main(["evaluate", str(rec), str(sim)]) == 0
-    assert "ddi" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "DDI (lower is better)" in out and "0 is a perfect match" in out
 
 
 def test_outputs_are_readable(rec):
@@ -59,7 +60,11 @@ def test_outputs_are_readable(rec):
         rows = list(csv.DictReader(f))
     assert len(rows) == len(polys)
     for r, p in zip(rows, polys):
-        assert float(r["area"]) == pytest.approx(p.area, rel=1e-6)
+        assert float(r["area_mm2"]) == pytest.approx(p.area, rel=1e-6)
+    meta = json.loads((rec / "bubbles.csv-metadata.json").read_text())
+    described = [c["name"] for c in meta["tableSchema"]["columns"]]
+    assert described == list(rows[0]) and meta["url"] == "bubbles.csv"
+    assert {c["name"]: c.get("unit") for c in meta["tableSchema"]["columns"]}["area_mm2"] == "mm^2"
     assert (rec / "overlay.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(read_polygons_json(rec / "control.json")) == len(polys)
 

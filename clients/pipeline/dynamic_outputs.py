@@ -12,10 +12,12 @@ subscan                        subscan index in the scan
 time                   s       mid-time of the subscan (``/exchange/time``);
                                the subscan index when the scan has no times
 bubble_id                      track id (kept through time)
-centroid_x, _y[, _z]   mm      centroid of the refined surface
-area | volume          mm^2|3  2D area, 3D volume
-perimeter | surface    mm|mm^2 2D perimeter, 3D surface area
-equivalent_diameter    mm      of the disc (ball) of equal area (volume)
+centroid_x_mm, _y_mm   mm      centroid of the refined surface
+[, centroid_z_mm]
+area_mm2 | volume_mm3  mm^2|3  2D area, 3D volume
+perimeter_mm |         mm|mm^2 2D perimeter, 3D surface area
+surface_area_mm2
+equivalent_diameter_mm mm      of the disc (ball) of equal area (volume)
 =====================  ======  =============================================
 """
 
@@ -168,7 +170,7 @@ def plot_growth(path, rows, time_unit):
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=100)
     by_id = {}
     for r in rows:
-        by_id.setdefault(r["bubble_id"], []).append((r["time"], r["equivalent_diameter"]))
+        by_id.setdefault(r["bubble_id"], []).append((r["time"], r["equivalent_diameter_mm"]))
     for pts in by_id.values():
         t, d = np.array(sorted(pts)).T
         a.plot(t, d, lw=0.8, marker=".", ms=3)
@@ -178,7 +180,7 @@ def plot_growth(path, rows, time_unit):
     times = sorted({r["time"] for r in rows})
     pick = [times[int(round(i))] for i in np.linspace(0, len(times) - 1, min(4, len(times)))]
     for t in dict.fromkeys(pick):
-        d = [r["equivalent_diameter"] for r in rows if r["time"] == t]
+        d = [r["equivalent_diameter_mm"] for r in rows if r["time"] == t]
         b.hist(d, bins=12, histtype="step", label=f"t = {t:.3g} {time_unit}")
     b.set_xlabel("equivalent diameter (mm)")
     b.set_ylabel("bubbles")

@@ -21,17 +21,20 @@ def evaluate_dir(recon_dir, truth_dir):
     ndim = meta["ndim"]
     name = "bubbles.ply" if ndim == 3 else "bubbles.json"
     if not (recon_dir / name).is_file():
-        raise ValueError(f"{recon_dir} holds no {name}; run bubsub reconstruct first")
+        raise ValueError(f"{recon_dir} holds no {name} (a {ndim}D result, like the truth); run bubsub reconstruct "
+                         f"on the {ndim}D scan first")
+    report = recon_dir / "report.json"
+    r = json.loads(report.read_text()) if report.is_file() else {}
+    if r.get("dimension", ndim) != ndim:
+        raise ValueError(f"{report} describes a {r['dimension']}D reconstruction but the truth in {truth_dir} "
+                         f"is {ndim}D")
     reader = read_ply if ndim == 3 else read_polygons_json
     rec = reader(recon_dir / name)
     truth = reader(truth_dir / meta["truth"])
     shape, extent = tuple(meta["grid_shape"]), tuple(meta["grid_extent"])
     out = {"ddi": shapes_dice_dissimilarity(rec, truth, shape, extent), "grid_shape": list(shape),
            "bubbles_reconstructed": len(rec), "bubbles_truth": len(truth)}
-    report = recon_dir / "report.json"
-    if report.is_file():
-        r = json.loads(report.read_text())
-        for k in ("holdout_mse", "final_objective", "seconds_total", "iterations"):
-            if k in r:
-                out[k] = r[k]
+    for k in ("holdout_mse", "final_objective", "seconds_total", "iterations", "stop_reason"):
+        if k in r:
+            out[k] = r[k]
     return out

@@ -6,7 +6,9 @@
    improved by a radius-only fit (paper eq. 4-5), or a user-given initial mesh.
 4. BFGS on all control vertices (:func:`bubsub.clients.optimise.fit`).
 5. Outputs, each written atomically: ``bubbles.ply`` (3D) or ``bubbles.json``
-   (2D), ``bubbles.csv``, ``report.json`` and ``overlay.png``.
+   (2D), ``bubbles.csv`` (+ ``bubbles.csv-metadata.json``), ``report.json``,
+   ``overlay.png``, ``sizes.png`` and (3D) ``meshes.png``
+   (:mod:`bubsub.clients.pipeline.figures`).
 """
 
 from __future__ import annotations
@@ -21,7 +23,9 @@ from scipy.spatial import cKDTree
 
 from bubsub.core import MeshProjector, circle_surface, sphere_surface
 from bubsub.core.io.atomic import atomic_path
-from bubsub.core.io.meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
+from bubsub.core.io.meshio import (BUBBLE_COLUMN_INFO, BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D, bubble_table,
+                                   csv_metadata_path, read_ply, read_polygons_json, write_csv, write_ply,
+                                   write_polygons_json)
 from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
@@ -312,7 +316,8 @@ def prune(surfaces, min_radius):
 
 
 def write_outputs(out_dir, rec, scan_path=None):
-    """Write ``bubbles.ply|json``, ``bubbles.csv``, ``report.json`` and ``overlay.png``.
+    """Write ``bubbles.ply|json``, ``control.ply|json``, ``bubbles.csv`` and its column sidecar,
+    ``report.json`` and the pictures of :func:`write_figures`.
 
     Every file goes to a temporary name first and is renamed when complete;
     then the files of an earlier run in ``out_dir`` that were not replaced are
@@ -335,20 +340,40 @@ def write_outputs(out_dir, rec, scan_path=None):
         files["control"] = out / "control.json"
         write_polygons_json(files["control"], [s.control for s in rec.surfaces], rec.ids)
     files["table"] = out / "bubbles.csv"
-    write_csv(files["table"], bubble_table(fine, rec.ids))
+    rows = bubble_table(fine, rec.ids)
+    write_csv(files["table"], rows, BUBBLE_COLUMNS_3D if rec.report["dimension"] == 3 else BUBBLE_COLUMNS_2D,
+              describe=BUBBLE_COLUMN_INFO, title="bubbles reconstructed by bubsub reconstruct")
+    files["table_columns"] = csv_metadata_path(files["table"])
     report = dict(rec.report)
     if scan_path is not None:
         report["scan"] = str(scan_path)
+    files.update(write_figures(out, rec, fine, rows))
     report["files"] = {k: v.name for k, v in files.items()}
-    if rec.preview is not None:
-        files["overlay"] = out / "overlay.png"
-        report["files"]["overlay"] = "overlay.png"
-        write_overlay(files["overlay"], rec.preview, rec.preview_extent, fine)
     files["report"] = out / "report.json"
     with atomic_path(files["report"]) as tmp:
         Path(tmp).write_text(json.dumps(report, indent=2, default=_json_default))
     rec.files = files
     finish_outputs(out, files.values(), command="reconstruct")
+    return files
+
+
+def write_figures(out, rec, fine, rows):
+    """``overlay.png`` (preview slices with outlines), ``sizes.png`` and, in 3D, ``meshes.png``."""
+    from bubsub.clients.pipeline.figures import write_mesh_view, write_overlay, write_size_histogram
+
+    out = Path(out)
+    ids = [r["id"] for r in rows]
+    files = {}
+    if rec.preview is not None:
+        files["overlay"] = out / "overlay.png"
+        write_overlay(files["overlay"], rec.preview, rec.preview_extent, fine, ids)
+    files["sizes"] = out / "sizes.png"
+    write_size_histogram(files["sizes"], [r["equivalent_diameter_mm"] for r in rows], rec.report["dimension"])
+    if rec.report["dimension"] == 3:
+        # mplot3d draws every face: very many bubbles are shown by their control meshes
+        shown = fine if sum(len(m.faces) for m in fine) <= 60000 else [s.control for s in rec.surfaces]
+        files["meshes"] = out / "meshes.png"
+        write_mesh_view(files["meshes"], shown, ids)
     return files
 
 
@@ -360,54 +385,3 @@ def _json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     return str(o)
-
-
-def mesh_slice_segments(mesh, z):
-    """Segments (k, 2, 2) where the plane ``z`` cuts a triangle mesh."""
-    v = mesh.vertices
-    tri = v[np.asarray(mesh.faces)]  # (m, 3, 3)
-    dz = tri[:, :, 2] - z
-    above = dz > 0
-    n_above = above.sum(axis=1)
-    cut = (n_above == 1) | (n_above == 2)
-    segs = []
-    for t, a, h in zip(tri[cut], above[cut], dz[cut]):
-        pts = []
-        for i, j in ((0, 1), (1, 2), (2, 0)):
-            if a[i] != a[j]:
-                w = h[i] / (h[i] - h[j])
-                pts.append(t[i, :2] + w * (t[j, :2] - t[i, :2]))
-        segs.append(pts[:2])
-    return np.array(segs).reshape(-1, 2, 2)
-
-
-def write_overlay(path, image, extent, fine_items, title="BubSub reconstruction on the voxel preview"):
-    """PNG of a voxel slice with the reconstructed bubble outlines on top."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
-
-    fig, ax = plt.subplots(figsize=(7, 7), dpi=110)
-    if image.ndim == 3:
-        zc = image.shape[0] // 2
-        z = extent[4] + (zc + 0.5) * (extent[5] - extent[4]) / image.shape[0]
-        ax.imshow(image[zc], extent=extent[:4], cmap="gray", origin="upper")
-        segs = [mesh_slice_segments(m, z) for m in fine_items]
-        segs = np.concatenate(segs) if segs else np.zeros((0, 2, 2))
-        ax.add_collection(LineCollection(segs, colors="tab:orange", linewidths=1.0))
-        title += f" (slice z = {z:.2f} mm)"
-    else:
-        ax.imshow(image, extent=extent, cmap="gray", origin="upper")
-        for p in fine_items:
-            xy = np.vstack([p.vertices, p.vertices[:1]])
-            ax.plot(xy[:, 0], xy[:, 1], color="tab:orange", lw=1.0)
-    ax.set_xlim(extent[0], extent[1])
-    ax.set_ylim(extent[2], extent[3])
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_title(title, fontsize=10)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)

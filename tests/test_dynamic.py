@@ -145,24 +145,53 @@ def test_warm_start_remeshes_a_stretched_bubble_to_a_regular_mesh():
 
 
 # -- the chain --------------------------------------------------------------------------------
-def test_subscan_step_is_picklable_and_keeps_track_ids():
-    foam = expanding2d(2, n_bubbles=3, size=4.0, radius_range=(0.4, 0.6))
+@pytest.fixture(scope="module")
+def small():
+    """A 3-bubble expanding foam, two subscans of 12 projections, and warm starts near the truth."""
     from bubsub.core.foam.expanding import simulate_expanding
 
+    foam = expanding2d(2, n_bubbles=3, size=4.0, radius_range=(0.4, 0.6))
     g = ScanGeometry.parallel(np.tile(np.linspace(0, np.pi, 12, endpoint=False), 2), pixel_size=6.0 / 150, cols=150)
     scan, _ = simulate_expanding(foam, g, projections_per_subscan=12)
-    layout = subscan_layout(scan)
     truth = foam.at(0.25)
-    state = BubbleState.from_surfaces([7, 3, 5], [circle_surface(c, 1.1 * r, -0.1) for c, r in
-                                                 zip(truth.centres, truth.radii)])
+    starts = [circle_surface(c, 1.1 * r, -0.1) for c, r in zip(truth.centres, truth.radii)]
+    return subscan(scan, subscan_layout(scan), 0), truth, starts
+
+
+def test_subscan_step_is_picklable_and_keeps_track_ids(small):
+    sub, truth, starts = small
+    state = BubbleState.from_surfaces([7, 3, 5], starts)
     settings = DynamicSettings(iterations=15, progress=False)
-    args = pickle.loads(pickle.dumps((subscan(scan, layout, 0), state, settings)))
+    args = pickle.loads(pickle.dumps((sub, state, settings)))
     res = reconstruct_subscan(*args, index=0, time=0.5)
     res = pickle.loads(pickle.dumps(res))
     assert res.state.ids == (7, 3, 5) and res.report["start"] == "warm" and res.ended == ()
     assert res.report["objective"] < res.report["initial_objective"]
     for s, r in zip(res.state.surfaces(), truth.radii):
         assert np.sqrt(s.fine().area / np.pi) == pytest.approx(r, rel=0.1)
+
+
+def test_a_bubble_that_is_not_there_collapses_and_ends_its_track(small):
+    sub, _, starts = small
+    state = BubbleState.from_surfaces([7, 3, 5, 9], starts + [circle_surface([-1.6, -1.6], 0.25, -0.1)])
+    res = reconstruct_subscan(sub, state, DynamicSettings(iterations=15, progress=False))
+    assert res.ended == (9,) and res.state.ids == (7, 3, 5)
+    assert "collapsed" in res.report["ended"]["9"]
+
+
+def test_a_diverged_fit_is_flagged_and_keeps_the_last_good_state(small, monkeypatch):
+    from bubsub.clients.optimise import fit as fit_module
+
+    def diverging(*a, **k):
+        raise RuntimeError("the objective became NaN")
+
+    monkeypatch.setattr(fit_module, "fit", diverging)
+    sub, _, starts = small
+    state = BubbleState.from_surfaces([7, 3, 5], starts)
+    res = reconstruct_subscan(sub, state, DynamicSettings(iterations=15, progress=False, holdout="odd"))
+    assert res.report["diverged"] is True and "NaN" in res.report["error"]
+    assert res.state is state and res.ended == ()
+    assert res.report["holdout_mse"] > 0  # the kept state is still scored
 
 
 @pytest.fixture(scope="module")

@@ -40,14 +40,14 @@ def register(sub):
     p = sub.add_parser("reconstruct4d", help="reconstruct a dynamic scan subscan by subscan, with bubble tracks")
     p.add_argument("scan", help="HDF5 scan file: all projections in acquisition order")
     add_output_arguments(p, "subscan folders, tracks.csv, report.json and plots")
-    p.add_argument("--projections-per-subscan", type=positive_int,
+    p.add_argument("--projections-per-subscan", type=positive_int, metavar="K",
                    help="projections per subscan (default: the file's root attribute projections_per_subscan)")
-    p.add_argument("--subscans", help="A:B reconstructs subscans A..B-1 (default all)")
+    p.add_argument("--subscans", metavar="A:B", help="A:B reconstructs subscans A..B-1 (default all)")
     p.add_argument("--holdout", choices=("odd", "even"), help="keep these projections of every subscan aside "
                    "and report their MSE")
-    p.add_argument("--iterations", type=int, default=80, help="BFGS iterations per subscan (default 80)")
-    p.add_argument("--control-points", type=positive_int, help="control points per bubble (3D default 42, 2D 9)")
-    p.add_argument("--levels", type=int, default=2, help="subdivision levels (default 2)")
+    p.add_argument("--iterations", type=int, default=80, metavar="N", help="BFGS iterations per subscan (default 80)")
+    p.add_argument("--control-points", type=positive_int, metavar="N", help="control points per bubble (3D default 42, 2D 9)")
+    p.add_argument("--levels", type=int, default=2, metavar="N", help="subdivision levels (default 2)")
     p.add_argument("--voxel-baseline", action="store_true",
                    help="also run the voxel baseline (30 Barzilai-Borwein iterations, x >= 0) per subscan "
                         "and plot its held-out MSE")

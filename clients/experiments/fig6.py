@@ -59,8 +59,11 @@ def _sirt_mask(scan, shape, extent):
     return _baseline_mask("sirt", scan, shape, extent, scan.ndim)
 
 
-def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True):
-    """Run the experiment into ``out``; returns the summary dict (also ``fig6.json``)."""
+def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, config=None):
+    """Run the experiment into ``out``; returns the summary dict (also ``fig6.json``).
+
+    ``config`` overrides entries of :data:`FIG6_CONFIGS` (e.g. ``{"subscans": 10}``).
+    """
     from bubsub.core.io.meshio import read_ply, read_polygons_json
     from bubsub.core.io.scanfile import read_scan
     from bubsub.core.io.subscans import subscan, subscan_layout
@@ -73,7 +76,7 @@ def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True):
     from bubsub.clients.pipeline.simulation import simulate_dynamic_to_dir
     from bubsub.clients.pipeline.voxel4d import voxel_baseline
 
-    cfg = FIG6_CONFIGS[(ndim, bool(quick))]
+    cfg = dict(FIG6_CONFIGS[(ndim, bool(quick))], **(config or {}))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -1,4 +1,4 @@
-"""``python -m bubsub.bench [projector|remote] [options]``: print benchmark tables."""
+"""``python -m bubsub.bench [projector|remote|prepare] [options]``: print benchmark tables."""
 
 import sys
 
@@ -10,8 +10,10 @@ def main(argv=None):
         from .projector import main as run
     elif name == "remote":
         from .remote import main as run
+    elif name == "prepare":
+        from .prepare import main as run
     else:
-        print(f"unknown benchmark {name!r}; choose 'projector' or 'remote'", file=sys.stderr)
+        print(f"unknown benchmark {name!r}; choose 'projector', 'remote' or 'prepare'", file=sys.stderr)
         return 2
     return run(argv)
 

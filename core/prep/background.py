@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["fbp_row", "envelope_background", "radial_background", "reproject_background", "liquid_and_gas", "noise_level"]
+__all__ = ["fbp_row", "detector_offsets", "envelope_background", "radial_background", "reproject_background", "liquid_and_gas", "noise_level"]
 
 
 def noise_level(block):
@@ -140,24 +140,41 @@ def _reproject(image, geometry, extent):
         return op.forward(image.astype(np.float32)).reshape(geometry.shape).astype(np.float32)
 
 
-def radial_background(sinogram, geometry, *, min_fraction=0.2, smooth=1.5):
+def detector_offsets(geometry):
+    """Signed distance (mm) of each detector column's centre from the rotation axis, 2D parallel geometry."""
+    v = geometry.vectors[0]
+    u = v[4:6]
+    pixel = float(np.linalg.norm(u))
+    axis = geometry.det_count / 2 - 0.5 - float(np.dot(v[2:4], u)) / pixel ** 2
+    return (np.arange(geometry.det_count) - axis) * pixel
+
+
+def radial_background(sinogram, geometry, *, min_fraction=0.2, smooth=1.5, grid=512):
     """Rotation-invariant background of one row from ring means of its reconstruction.
+
+    The ring profile is projected analytically (each ring is an annulus of
+    constant attenuation, whose chord lengths are exact), so the result is
+    the same at every angle.
 
     Parameters
     ----------
     sinogram, geometry
         One detector row and its 2D geometry, as for :func:`reproject_background`.
     min_fraction : float
-        Rings with fewer dense pixels than this fraction are averaged whole
-        (outside the sample: air).
+        Rings with fewer dense pixels than this fraction take the dense
+        value of their neighbours (inside the sample: rings mostly filled by
+        bubbles) or are averaged whole (beyond the outermost dense ring: air).
     smooth : float
         Gaussian sigma of the profile, rings.
+    grid : int
+        At most this many reconstruction pixels across the detector.
 
     Returns
     -------
-    (n_angles, cols) float32
+    (cols,) float32
+        The background of each detector column (at every angle).
     """
-    image, extent, r, pix = fbp_row(sinogram, geometry)
+    image, extent, r, pix = fbp_row(sinogram, geometry, min(grid, geometry.det_count))
     inside = r <= extent[1]
     dense, _ = dense_and_gas_masks(image, inside)
     ring = np.minimum((r / pix).astype(int), int(extent[1] / pix))
@@ -166,9 +183,15 @@ def radial_background(sinogram, geometry, *, min_fraction=0.2, smooth=1.5):
     n_dense = np.bincount(ring[dense], minlength=nring)
     s_all = np.bincount(ring[inside], weights=image[inside], minlength=nring)
     s_dense = np.bincount(ring[dense], weights=image[dense], minlength=nring)
-    use = n_dense >= min_fraction * np.maximum(n_all, 1)
-    profile = np.where(use, s_dense / np.maximum(n_dense, 1), s_all / np.maximum(n_all, 1))
+    use = (n_dense >= min_fraction * np.maximum(n_all, 1)) & (n_dense > 0)
+    profile = s_all / np.maximum(n_all, 1)  # beyond the sample: air, all of the ring
+    if use.any():
+        k = np.arange(nring)
+        last = int(k[use].max())
+        # inside the sample, rings that are mostly gas take the liquid of their neighbours
+        profile[: last + 1] = np.interp(k[: last + 1], k[use], (s_dense / np.maximum(n_dense, 1))[use])
     profile = ndimage.gaussian_filter1d(profile, smooth, mode="nearest") if smooth else profile
-    radial = np.interp(r / pix, np.arange(nring) + 0.5, profile)
-    radial[~inside] = 0.0
-    return _reproject(radial, geometry, extent)
+    edges = np.arange(nring + 1) * pix
+    s = detector_offsets(geometry)
+    chords = 2 * np.sqrt(np.maximum(edges[:, None] ** 2 - s[None, :] ** 2, 0))  # (nring + 1, cols)
+    return (profile[:, None] * np.diff(chords, axis=0)).sum(axis=0).astype(np.float32)

@@ -334,7 +334,7 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
                     bg = np.empty_like(block)
                     for r in range(block.shape[1]):
                         if mode == "auto":
-                            bg[:, r] = radial_background(block[:, r], row_geom)
+                            bg[:, r] = radial_background(block[:, r], row_geom)[None]
                         else:
                             bg[:, r], lq, _ = reproject_background(block[:, r], row_geom, o.foam_radius)
                             liquids.append(lq)

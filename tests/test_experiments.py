@@ -34,7 +34,7 @@ def test_summary_table():
     assert s["methods"]["fbp"]["10"]["mean"] == pytest.approx(0.3)
     assert s["methods"]["fbp"]["10"]["std"] == pytest.approx(0.1)
     assert "0.3000" in format_table(s, "angles")
-    assert set(EXPERIMENTS) == {"fig1a", "fig1b", "fig5", "fig3a"}
+    assert set(EXPERIMENTS) == {"fig1a", "fig1b", "fig5", "fig3a", "dense2d", "dense3d"}
 
 
 def test_unknown_experiment_is_refused(tmp_path, capsys):

@@ -7,6 +7,8 @@ method, setting and seed) and ``NAME.png`` (mean Dice dissimilarity per method).
 * ``fig1b``: 2D foam, DDI against the photon count (150 projections).
 * ``fig5``: 2D foam, BubSub's DDI against the initial radius (25 projections, I0 = 1e4).
 * ``fig3a``: 3D foam, DDI against the number of cone-beam projections (I0 = 1e4).
+* ``dense2d`` / ``dense3d``: dense wet foam (:mod:`bubsub.core.foam.dense`, gas
+  fraction about 0.7, films of a few voxels), DDI against the number of projections.
 
 Every voxel baseline (FBP/FDK, SIRT, CGLS, TV) reconstructs the bubble data
 (scan minus background) on the evaluation grid and is binarised by Otsu's
@@ -46,6 +48,7 @@ class Experiment:
     angles: int = 25
     photons: float = 1e4
     title: str = ""
+    phantom: str = "sparse"  # "sparse" (foam2d/foam3d) or "dense" (core.foam.dense)
 
 
 EXPERIMENTS = {
@@ -58,6 +61,12 @@ EXPERIMENTS = {
                        title="2D: BubSub vs initial radius (x mean bubble radius; 25 projections, I0 = 1e4)"),
     "fig3a": Experiment("fig3a", 3, "angles", (10, 25, 50, 100), (10, 25),
                         ("fdk", "sirt", "cgls", "tv", "bubsub"), title="3D: Dice dissimilarity vs projections (I0 = 1e4)"),
+    "dense2d": Experiment("dense2d", 2, "angles", (10, 25, 50, 100), (10, 25),
+                          ("fbp", "sirt", "cgls", "tv", "bubsub"), phantom="dense",
+                          title="2D dense wet foam: Dice dissimilarity vs projections (I0 = 1e4)"),
+    "dense3d": Experiment("dense3d", 3, "angles", (10, 25, 50), (10, 25),
+                          ("fdk", "sirt", "cgls", "tv", "bubsub"), phantom="dense",
+                          title="3D dense wet foam: Dice dissimilarity vs projections (I0 = 1e4)"),
 }
 
 # quick mode shrinks the problems so a whole experiment runs in about a minute
@@ -67,19 +76,26 @@ _QUICK_3D = {"n_bubbles": 12, "det_cols": 128, "voxel": 0.25, "iterations": 40}
 _FULL_3D = {"n_bubbles": 60, "det_cols": 512, "voxel": 0.1, "iterations": 80}
 
 
-def _simulate(ndim, seed, angles, photons, cfg, quick):
-    from bubsub.core.foam import phantoms, simulate
+def _simulate(ndim, seed, angles, photons, cfg, quick, dense=False):
+    from bubsub.core.foam import dense as dense_foams, phantoms, simulate
 
     if ndim == 2:
         size = 5.0 if quick else 10.0
-        ph = phantoms.foam2d(seed, n_bubbles=cfg["n_bubbles"], **({"size": size, "radius_range": (0.25, 0.6)} if quick else {}))
+        if dense:  # films of 0.08 mm: 4 pixels of the evaluation grid in both modes
+            ph = dense_foams.dense_foam2d(seed, n_bubbles=cfg["n_bubbles"], size=size)
+        else:
+            ph = phantoms.foam2d(seed, n_bubbles=cfg["n_bubbles"], **({"size": size, "radius_range": (0.25, 0.6)} if quick else {}))
         # a detector 1.44 x the square's side sees the whole square at every angle
         g = simulate.default_geometry_2d(angles, det_count=cfg["det_count"], pixel_size=1.44 * size / cfg["det_count"])
         scan = simulate.simulate_2d(ph, g, photons=photons, seed=seed, image_size=cfg["image_size"])
         shape, extent = ph.grid(cfg["grid"])
     else:
         size = (8.0, 8.0, 4.0) if quick else (20.0, 20.0, 10.0)
-        ph = phantoms.foam3d(seed, n_bubbles=cfg["n_bubbles"], size=size)
+        if dense:  # films and Plateau borders two voxels of the evaluation grid thick
+            ph = dense_foams.dense_foam3d(seed, n_bubbles=cfg["n_bubbles"], size=size, film=2 * cfg["voxel"],
+                                          border=2 * cfg["voxel"], margin=0.1)
+        else:
+            ph = phantoms.foam3d(seed, n_bubbles=cfg["n_bubbles"], size=size)
         from bubsub.core import ScanGeometry
 
         cols = cfg["det_cols"]
@@ -155,6 +171,8 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
     values = tuple(float(v) for v in (values or (exp.quick_values if quick else exp.values)))
     seeds = seeds or (1 if quick else 10)
     cfg = (_QUICK_2D if quick else _FULL_2D) if exp.ndim == 2 else (_QUICK_3D if quick else _FULL_3D)
+    if exp.phantom == "dense" and exp.ndim == 3 and quick:
+        cfg = dict(cfg, voxel=cfg["voxel"] / 2)  # films of two voxels need a finer grid than 0.25 mm
     rows = _read_runs(out / f"{name}.csv", exp.variable, quick) if resume else []
     done = {(r[exp.variable], r["seed"], r["method"]) for r in rows}
     todo = [(v, s, m) for v in values for s in range(seeds) for m in methods if (v, s, m) not in done]
@@ -171,7 +189,7 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
                 missing = [m for m in methods if (value, seed, m) in todo]
                 if not missing:
                     continue
-                ph, scan, shape, extent = _simulate(exp.ndim, seed, angles, photons, cfg, quick)
+                ph, scan, shape, extent = _simulate(exp.ndim, seed, angles, photons, cfg, quick, exp.phantom == "dense")
                 for method in missing:
                     kw = {"iterations": cfg["iterations"]}
                     if exp.variable == "radius":

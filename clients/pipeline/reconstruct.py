@@ -34,6 +34,7 @@ from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
 from bubsub.clients.pipeline.outputs import finish_outputs
 from bubsub.clients.pipeline.repair import check_and_repair
 from bubsub.clients.progress import phase
+from bubsub.clients.pipeline.topology import adapt_bubbles
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "initial_surfaces", "voxel_preview"]
 
@@ -53,6 +54,9 @@ class ReconstructionSettings:
     min_distance: float | None = None  # between bubble centres (mm)
     background_subtracted: bool = False  # accept a positive contrast without /exchange/background
     progress: bool = True
+    preview: str = "box"  # voxel preview: "box" (0 <= x <= |contrast|, BB steps) or "sirt" (x >= 0)
+    topology: bool = True  # add/remove/merge/split bubbles between fits when the objective says so (see .topology)
+    topology_rounds: int = 2
     repair: bool = True  # round self-intersecting bubbles, separate overlapping ones, refit (see .repair)
     repair_iterations: int = 20  # BFGS iterations of each refit after a repair
 
@@ -110,12 +114,17 @@ def _grid(geometry, voxel_size):
     return (nz, n, n), (-half, half, -half, half, -hz, hz)
 
 
-def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *, progress=False):
+def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *, progress=False, method="box"):
     """Low-resolution voxel reconstruction of the bubbles, for the initialisation.
 
-    SIRT with a non-negativity constraint on ``sign(contrast) * data``: gas
-    bubbles can only lower the attenuation, and the constraint removes most
-    of the few-view streaks an FBP/FDK preview would show.
+    The bubble data ``sign(contrast) * data`` is the projection of an image
+    that is ``|contrast|`` inside bubbles and 0 elsewhere. ``method="box"``
+    (default) uses both bounds: projected gradient descent with
+    Barzilai-Borwein steps (:func:`bubsub.core.voxel.solvers.pgd_bb`) onto
+    ``0 <= x <= |contrast|`` (50 iterations in 2D, 30 in 3D); at few views it
+    separates touching bubbles that SIRT blurs together (README example, 13
+    views: 37 of 40 bubbles found instead of 28; docs/robustness.md).
+    ``method="sirt"``: SIRT with ``x >= 0`` only (100 iterations in 2D, 15 in 3D).
 
     Returns
     -------
@@ -124,23 +133,39 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
     extent : tuple
         ``(xmin, xmax, ymin, ymax[, zmin, zmax])`` in mm.
     """
+    if method not in ("box", "sirt"):
+        raise ValueError(f"preview method must be 'box' or 'sirt', got {method!r}")
     shape, extent = _grid(geometry, voxel_size)
     positive = np.sign(contrast) * np.asarray(data, dtype=np.float32)
-    if geometry.ndim == 2:  # ASTRA's own SIRT: about a second, no per-iteration callback
+    upper = np.float32(abs(contrast))
+    box = method == "box"
+    if geometry.ndim == 2 and not box:  # ASTRA's own SIRT: about a second, no per-iteration callback
         from bubsub.core.voxel.astra2d import reconstruct_2d
 
         with phase("voxel preview (2D SIRT)", 1, unit="reconstruction", enabled=progress) as bar:
             image = reconstruct_2d("sirt", positive, geometry, shape, extent, iterations=iterations or 100,
                                    nonneg=True)
             bar.update(1, voxels="x".join(map(str, shape)))
-    else:
-        from bubsub.core.voxel.reconstruct3d import reconstruct_3d
+        return image, extent
+    n = iterations or ((50 if box else 100) if geometry.ndim == 2 else (30 if box else 15))
 
-        n = iterations or 15
-        with phase("voxel preview (3D SIRT)", n, enabled=progress) as bar:
-            image = reconstruct_3d("sirt", positive, geometry, shape, extent, iterations=n, nonneg=True,
-                                   callback=lambda k, x: bar.update(1))
-            bar.postfix["voxels"] = "x".join(map(str, shape))
+    def step(k, x):
+        if box:  # pgd_bb projects onto x >= 0 itself; this adds the upper bound to each iterate
+            np.minimum(x, upper, out=x)
+        bar.update(1)
+
+    name = "bb" if box else "sirt"
+    label = f"voxel preview ({geometry.ndim}D {'box-constrained BB' if box else 'SIRT'})"
+    with phase(label, n, enabled=progress) as bar:
+        if geometry.ndim == 2:
+            from bubsub.core.voxel.astra2d import reconstruct_2d
+
+            image = reconstruct_2d(name, positive, geometry, shape, extent, iterations=n, nonneg=True, callback=step)
+        else:
+            from bubsub.core.voxel.reconstruct3d import reconstruct_3d
+
+            image = reconstruct_3d(name, positive, geometry, shape, extent, iterations=n, nonneg=True, callback=step)
+        bar.postfix["voxels"] = "x".join(map(str, shape))
     return image, extent
 
 
@@ -246,7 +271,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     geometry = scan.geometry
     g_fit, d_fit, g_val, d_val = _split(geometry, data, s.holdout)
 
-    image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress)
+    image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress, method=s.preview)
     if init is None:
         surfaces = initial_surfaces(image, extent, contrast, control_points=s.control_points, levels=s.levels,
                                     radius=s.radius, min_distance=s.min_distance)
@@ -264,14 +289,18 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     result = fit(projector, surfaces, fit_data, iterations=s.iterations, progress=s.progress)
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     kept, dropped = prune(result.surfaces, min_radius=voxel)
+    topology = None
+    if s.topology and s.topology_rounds > 0 and kept and not result.interrupted:  # Ctrl-C: write what we have
+        kept, topology = adapt_bubbles(kept, g_fit, d_fit, contrast, image, extent, voxel, s)
     kept, validity = check_and_repair(kept, MeshProjector(g_fit, supersampling=s.supersampling), d_fit,
-                                      repair=s.repair, iterations=s.repair_iterations, gap=0.25 * voxel)
+                                      repair=s.repair and not result.interrupted, iterations=s.repair_iterations, gap=0.25 * voxel)
 
     report = {
         "bubbles": len(kept),
         "bubbles_initial": len(surfaces),
         "bubbles_dropped": dropped + validity["dropped"],
         "validity": validity,
+        "topology": topology,
         "dimension": geometry.ndim,
         "iterations": result.iterations,
         "evaluations": result.evaluations,

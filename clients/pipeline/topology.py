@@ -1,0 +1,365 @@
+"""Topology that adapts during the fit: bubbles added, removed, merged and split.
+
+A BFGS fit keeps the number of bubbles it starts with, so a centre the
+initialisation missed stays missing (a neighbour stretches over its gas) and
+a spurious one stays. Between optimiser rounds :func:`adapt_topology` tries
+changes and keeps each one only if the objective ``f = 0.5 ||Proj(S x) - d||^2``
+improves:
+
+* **remove**: the projection is a sum over bubbles, so with each bubble's own
+  projection ``p_k`` the objective without it is ``0.5 ||r - p_k||^2``
+  (``r = Proj - d``), exact and cheap; a bubble goes when that is not larger
+  than ``f`` (collapsed or spurious bubbles), greedily, best first;
+* **add**: the residual ``d - Proj`` is reconstructed on the preview grid
+  (unexplained gas shows as bright blobs) and blobs found by
+  :func:`bubsub.clients.pipeline.blobs.log_blobs` outside the existing
+  bubbles become round bubbles, each kept when ``0.5 ||r + p_new||^2 < f``;
+* **merge**: two touching bubbles are replaced by one round bubble of their
+  joint size, fitted alone against the data minus the other bubbles, and
+  kept when that beats the pair fitted the same way;
+* **split**: a bubble that holds two blobs of the voxel preview (a neighbour
+  grown over a bubble the initialisation missed), or an elongated one
+  (second-moment axis ratio above ``split_ratio``), is replaced by two round
+  bubbles (at the blobs, or along its long axis), fitted the same way, kept
+  when better than the bubble itself.
+
+Then all bubbles are refitted jointly, and the next round starts. Every
+accepted change is recorded with its objective before and after.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from bubsub.core.voxel.raster import bubble_mask
+from bubsub.core.voxel.grid import world_to_index
+
+from bubsub.clients.optimise.fit import fit
+from bubsub.clients.pipeline.blobs import log_blobs
+
+__all__ = ["adapt_topology", "adapt_bubbles"]
+
+
+def _own_projections(projector, surfaces):
+    return [projector.forward([s]).astype(np.float64) for s in surfaces]
+
+
+def _half_sq(r):
+    return 0.5 * float(np.vdot(r, r))
+
+
+def _size(s):
+    fine = s.fine()
+    return abs(fine.volume if s.ndim == 3 else fine.area)
+
+
+def _equivalent_radius(size, ndim):
+    return float(np.cbrt(3 * size / (4 * np.pi)) if ndim == 3 else np.sqrt(size / np.pi))
+
+
+def _centre(s):
+    return np.asarray(s.fine().centroid, dtype=float)
+
+
+def remove_step(surfaces, residual, own, changes, round_no, cost=0.0):
+    """Greedy removal of bubbles whose removal raises ``0.5 ||r||^2`` by at most ``cost`` (in place on ``residual``)."""
+    alive = list(range(len(surfaces)))
+    while alive:
+        f = _half_sq(residual)
+        gains = [_half_sq(residual - own[k]) - f for k in alive]
+        best = int(np.argmin(gains))
+        if gains[best] > cost:
+            break
+        k = alive.pop(best)
+        residual -= own[k]
+        changes.append({"round": round_no, "change": "remove", "centre": _centre(surfaces[k]).tolist(),
+                        "objective_before": f, "objective_after": f + gains[best]})
+    return [surfaces[k] for k in alive], [own[k] for k in alive]
+
+
+def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, round_no, *, min_radius, max_radius,
+             threshold, max_add, cost=0.0):
+    """Round bubbles at blobs of the back-projected residual, each kept when the objective drops."""
+    image, extent = preview(-residual.astype(np.float32))
+    ndim = image.ndim
+    if surfaces:
+        occupied = bubble_mask(surfaces, image.shape, extent)
+    else:
+        occupied = np.zeros(image.shape, dtype=bool)
+    contrast = new_bubble(np.zeros(ndim), 1.0).attenuation
+    centres, radii = log_blobs(image, extent, contrast, min_radius=min_radius, max_radius=max_radius,
+                               threshold=threshold)
+    surfaces, own = list(surfaces), list(own)
+    added = 0
+    for c, r in zip(centres, radii):
+        if added >= max_add:
+            break
+        idx = np.clip(np.round(world_to_index(c, image.shape, extent)).astype(int), 0, np.array(image.shape) - 1)
+        if occupied[tuple(idx)]:
+            continue
+        if surfaces:  # keep clear of the existing bubbles
+            gap = min(np.min(np.linalg.norm(s.fine().vertices - c, axis=1)) for s in surfaces)
+            r = min(r, 0.9 * gap)
+        if r < min_radius:
+            continue
+        f = _half_sq(residual)
+        best = None
+        for scale in (0.7, 1.0, 1.3):
+            cand = new_bubble(c, r * scale)
+            p = projector.forward([cand]).astype(np.float64)
+            g = _half_sq(residual + p) - f
+            if best is None or g < best[0]:
+                best = (g, cand, p)
+        if best[0] < -cost:
+            g, cand, p = best
+            residual += p
+            surfaces.append(cand)
+            own.append(p)
+            added += 1
+            changes.append({"round": round_no, "change": "add", "centre": np.asarray(c).tolist(),
+                            "radius": float(_equivalent_radius(_size(cand), ndim)),
+                            "objective_before": f, "objective_after": f + g})
+    return surfaces, own
+
+
+def _local_fit(projector, items, target, iterations):
+    res = fit(projector, items, target, iterations=iterations, progress=False)
+    return res.surfaces, res.objective
+
+
+def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, touch, iterations,
+               max_tries, cost=0.0):
+    """Replace touching pairs by one bubble when that fits the data better than the pair."""
+    if len(surfaces) < 2:
+        return surfaces, own
+    fines = [s.fine().vertices for s in surfaces]
+    centres = np.array([v.mean(axis=0) for v in fines])
+    radii = np.array([np.linalg.norm(v - c, axis=1).max() for v, c in zip(fines, centres)])
+    pairs = []
+    for i, j in cKDTree(centres).query_pairs(2 * float(radii.max()) + touch):
+        if np.linalg.norm(centres[i] - centres[j]) > radii[i] + radii[j] + touch:
+            continue
+        d = float(cKDTree(fines[i]).query(fines[j])[0].min())
+        if d <= touch:
+            pairs.append((d, i, j))
+    surfaces, own = list(surfaces), list(own)
+    gone = set()
+    for _, i, j in sorted(pairs)[:max_tries]:
+        if i in gone or j in gone:
+            continue
+        target = data - (residual + data - own[i] - own[j])  # data minus all other bubbles
+        pair, f_pair = _local_fit(projector, [surfaces[i], surfaces[j]], target, iterations)
+        ndim = surfaces[i].ndim
+        size = _size(surfaces[i]) + _size(surfaces[j])
+        c = (_centre(surfaces[i]) * _size(surfaces[i]) + _centre(surfaces[j]) * _size(surfaces[j])) / size
+        one, f_one = _local_fit(projector, [new_bubble(c, _equivalent_radius(size, ndim))], target, iterations)
+        if f_one < f_pair + cost:
+            p = projector.forward(one).astype(np.float64)
+            residual += p - own[i] - own[j]
+            surfaces[i], own[i] = one[0], p
+            gone.add(j)
+            changes.append({"round": round_no, "change": "merge", "centres": [_centre(pair[0]).tolist(),
+                            _centre(pair[1]).tolist()], "objective_before": f_pair, "objective_after": f_one})
+    keep = [k for k in range(len(surfaces)) if k not in gone]
+    return [surfaces[k] for k in keep], [own[k] for k in keep]
+
+
+def _axes(s):
+    v = s.fine().vertices
+    c = v.mean(axis=0)
+    w, u = np.linalg.eigh(np.cov((v - c).T))
+    return c, w, u
+
+
+def _inside(surface, points):
+    """Which of ``points`` (k, ndim) lie inside the fine surface (winding numbers on a one-point grid each)."""
+    from bubsub.core.voxel.raster import coverage
+
+    out = []
+    for p in points:
+        tiny = 1e-6
+        extent = tuple(np.stack([p - tiny, p + tiny], axis=1).ravel())
+        out.append(coverage(surface, (1,) * len(p), extent).item() > 0)
+    return np.array(out, dtype=bool)
+
+
+def split_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, ratio, iterations,
+               max_tries, cost=0.0, blobs=None):
+    """Replace a bubble by two when that fits the data better.
+
+    Candidates: a bubble holding two or more ``blobs`` (centres, radii of the
+    preview's blobs; the two strongest become the new bubbles), or an
+    elongated one (axis ratio above ``ratio``; two bubbles along its long axis).
+    """
+    cand = []
+    for k, s in enumerate(surfaces):
+        if blobs is not None and len(blobs[0]) > 1:
+            inside = np.nonzero(_inside(s.fine(), blobs[0]))[0]
+            if len(inside) >= 2:
+                (a, b), (ra, rb) = blobs[0][inside[:2]], blobs[1][inside[:2]]
+                gap = float(np.linalg.norm(a - b))
+                # never overlapping each other
+                scale = min(1.0, 0.95 * gap / (ra + rb))
+                cand.append((0.0, k, [(a, ra * scale), (b, rb * scale)]))
+                continue
+        c, w, u = _axes(s)
+        if w[0] > 0 and np.sqrt(w[-1] / w[0]) > ratio:
+            axis = u[:, -1] * np.sqrt(w[-1])  # one standard deviation along the long axis
+            half = min(_equivalent_radius(_size(s) / 2, s.ndim), 0.95 * float(np.linalg.norm(axis)))
+            cand.append((-np.sqrt(w[-1] / w[0]), k, [(c - axis, half), (c + axis, half)]))
+    surfaces, own = list(surfaces), list(own)
+    extra = []
+    for _, k, children in sorted(cand, key=lambda t: t[0])[:max_tries]:
+        s = surfaces[k]
+        target = data - (residual + data - own[k])
+        single, f_single = _local_fit(projector, [s], target, iterations)
+        two, f_two = _local_fit(projector, [new_bubble(c, r) for c, r in children], target, iterations)
+        if f_two < f_single - cost:
+            p0, p1 = (projector.forward([t]).astype(np.float64) for t in two)
+            residual += p0 + p1 - own[k]
+            surfaces[k], own[k] = two[0], p0
+            extra.append((two[1], p1))
+            changes.append({"round": round_no, "change": "split", "centre": _centre(s).tolist(),
+                            "objective_before": f_single, "objective_after": f_two})
+    for s, p in extra:
+        surfaces.append(s)
+        own.append(p)
+    return surfaces, own
+
+
+def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius, max_radius, rounds=3,
+                   iterations=30, threshold=0.15, touch=0.0, split_ratio=1.6, local_iterations=15, max_add=20,
+                   max_tries=8, steps=("remove", "add", "merge", "split"), complexity=1.0, image=None,
+                   progress=False):
+    """Alternate topology changes and joint BFGS fits.
+
+    Parameters
+    ----------
+    projector : MeshProjector
+        Of the fitted projections (local: changes need single-bubble projections).
+    surfaces : list of SubdivisionSurface
+        Bubbles after a first fit.
+    data : ndarray
+        Projections, ``projector.geometry.shape``.
+    preview : callable(projections) -> (image, extent)
+        Voxel reconstruction of a projection array (bubbles positive), e.g.
+        :func:`bubsub.clients.pipeline.reconstruct.voxel_preview` with the
+        scan's geometry and contrast.
+    new_bubble : callable(centre, radius) -> SubdivisionSurface
+        A round bubble with the fit's topology.
+    min_radius, max_radius : float
+        Range of radii of added bubbles, mm.
+    rounds : int
+        Rounds of (changes, joint fit); stops early when a round changes nothing.
+    iterations : int
+        BFGS iterations of each joint fit.
+    threshold : float
+        Least LoG response of a residual blob, as a fraction of ``|contrast|``.
+    touch : float
+        Bubbles closer than this (mm) are merge candidates.
+    split_ratio : float
+        Least long/short axis ratio of a split candidate.
+    local_iterations, max_add, max_tries : int
+        BFGS iterations of the local fits that decide merges and splits;
+        most bubbles added per round; most merge and split candidates tried per round.
+    steps : tuple of str
+        Which changes to try.
+    image : (ndarray, extent), optional
+        The voxel preview of the data; a bubble that holds two of its blobs
+        is a split candidate.
+    complexity : float
+        A change that adds a bubble must lower the objective, and one that
+        removes a bubble may raise it, by at most ``complexity x k x sigma^2``,
+        with ``k`` the bubble's unknowns and ``sigma^2 = 2 f / m`` the mean
+        squared residual of the ``m`` data values before the round (the
+        Akaike criterion for ``complexity = 1``): without it, two bubbles
+        always fit noise a little better than one.
+
+    Returns
+    -------
+    surfaces : list of SubdivisionSurface
+    summary : dict
+        ``changes`` (each with round, kind, where, objective before and
+        after), ``objective`` (final), ``rounds`` (done), ``evaluations``.
+    """
+    surfaces = list(surfaces)
+    data = np.asarray(data)
+    changes = []
+    done = 0
+    blobs = None
+    if image is not None and "split" in steps:
+        contrast = new_bubble(np.zeros(data.ndim if not surfaces else surfaces[0].ndim), 1.0).attenuation
+        blobs = log_blobs(image[0], image[1], contrast, min_radius=min_radius, max_radius=max_radius,
+                          threshold=threshold)
+    unknowns = new_bubble(np.zeros(surfaces[0].ndim if surfaces else data.ndim), 1.0).vertices.size
+    for r in range(rounds):
+        n_before = len(changes)
+        own = _own_projections(projector, surfaces)
+        residual = (np.sum(own, axis=0) if own else np.zeros(data.shape)) - data
+        cost = complexity * unknowns * 2 * _half_sq(residual) / residual.size
+        if "remove" in steps:
+            surfaces, own = remove_step(surfaces, residual, own, changes, r, cost)
+        if "add" in steps:
+            surfaces, own = add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r,
+                                     min_radius=min_radius, max_radius=max_radius, threshold=threshold,
+                                     max_add=max_add, cost=cost)
+        if "merge" in steps:
+            surfaces, own = merge_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
+                                       touch=touch, iterations=local_iterations, max_tries=max_tries, cost=cost)
+        if "split" in steps:
+            surfaces, own = split_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
+                                       ratio=split_ratio, iterations=local_iterations, max_tries=max_tries, cost=cost,
+                                       blobs=blobs)
+        done = r + 1
+        if len(changes) == n_before or not surfaces:
+            break
+        surfaces = fit(projector, surfaces, data, iterations=iterations, progress=progress).surfaces
+    objective = float(projector.objective(surfaces, data)[0]) if surfaces else _half_sq(data)
+    return surfaces, {"changes": changes, "objective": objective, "rounds": done}
+
+
+def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, settings):
+    """:func:`adapt_topology` as the reconstruction pipeline runs it (local projector, the preview's grid).
+
+    Parameters
+    ----------
+    surfaces : list of SubdivisionSurface
+        After the first fit.
+    geometry, data
+        The fitted projections.
+    contrast : float
+    image : ndarray
+        The voxel preview (:func:`~bubsub.clients.pipeline.reconstruct.voxel_preview`).
+    extent : tuple
+        Of the voxel preview; ``voxel`` its voxel size, mm.
+    settings : ReconstructionSettings
+
+    Returns
+    -------
+    surfaces, summary
+    """
+    from bubsub.core import MeshProjector
+    from bubsub.core.projection.subdivision import circle_surface, sphere_surface
+    from bubsub.clients.pipeline.reconstruct import voxel_preview
+
+    ndim = surfaces[0].ndim
+    k = len(surfaces[0].vertices)
+    levels = surfaces[0].levels
+    if ndim == 2:
+        def new_bubble(c, r):
+            return circle_surface(c, r, contrast, control=k, levels=levels)
+    else:
+        k = k if k in (12, 42, 162) else 42
+
+        def new_bubble(c, r):
+            return sphere_surface(c, r, contrast, control=k, levels=levels)
+
+    def preview(projections):
+        return voxel_preview(projections, geometry, contrast, settings.voxel_size, method=settings.preview)
+
+    size = extent[1] - extent[0]
+    return adapt_topology(MeshProjector(geometry, supersampling=settings.supersampling), surfaces, data,
+                          preview=preview, new_bubble=new_bubble, min_radius=3 * voxel, max_radius=size / 8,
+                          rounds=settings.topology_rounds, iterations=max(10, settings.iterations // 2),
+                          touch=2 * voxel, image=(image, extent), progress=settings.progress)

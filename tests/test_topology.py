@@ -1,0 +1,116 @@
+"""Few-view robustness: blob detection, the box-constrained preview, topology changes, dense foams."""
+
+import numpy as np
+import pytest
+
+from bubsub.clients.pipeline.blobs import log_blobs
+from bubsub.clients.pipeline.reconstruct import voxel_preview
+from bubsub.clients.pipeline.topology import adapt_topology
+from bubsub.core import MeshProjector, ScanGeometry, circle_surface
+from bubsub.core.foam.dense import dense_foam2d, dense_foam3d
+from bubsub.core.projection.validity import check_bubbles
+from bubsub.core.voxel.raster import rasterize
+
+MU = -0.1
+
+
+def _disc_image(centres, radii, n=96, half=3.0):
+    extent = (-half, half, -half, half)
+    items = [circle_surface(c, r, MU, control=32, levels=3).fine() for c, r in zip(centres, radii)]
+    return -rasterize(items, (n, n), extent), extent  # bubbles positive, |contrast| inside
+
+
+def test_log_blobs_finds_touching_discs_of_different_sizes_with_their_radii():
+    centres = np.array([[-1.0, 0.0], [0.45, 0.0], [1.6, 1.6], [-1.5, -1.8]])
+    radii = np.array([0.8, 0.6, 0.35, 0.5])  # the first two touch (gap 0.05 mm)
+    image, extent = _disc_image(centres, radii)
+    found, r = log_blobs(image, extent, MU, min_radius=0.2, max_radius=1.2)
+    assert len(found) == 4
+    dist = np.linalg.norm(found[:, None] - centres[None], axis=2)
+    match = dist.argmin(axis=1)
+    assert sorted(match) == [0, 1, 2, 3]
+    assert np.all(dist.min(axis=1) < 0.15)
+    assert r == pytest.approx(radii[match], rel=0.25)
+
+
+def _scan(truth, n_angles=10, cols=128):
+    geometry = ScanGeometry.parallel(np.linspace(0, np.pi, n_angles, endpoint=False), cols=cols, pixel_size=0.05)
+    return geometry, MeshProjector(geometry).forward(truth)
+
+
+def test_box_preview_stays_in_bounds_and_separates_touching_bubbles():
+    truth = [circle_surface([-0.75, 0.0], 0.7, MU, control=32, levels=3),
+             circle_surface([0.7, 0.0], 0.65, MU, control=32, levels=3)]
+    geometry, data = _scan(truth, n_angles=8)
+    image, extent = voxel_preview(data, geometry, MU, voxel_size=0.05, method="box")
+    assert image.min() >= 0 and image.max() <= 0.1 + 1e-6
+    found, _ = log_blobs(image, extent, MU, min_radius=0.3, max_radius=1.0)
+    assert len(found) == 2
+    with pytest.raises(ValueError, match="preview method"):
+        voxel_preview(data, geometry, MU, method="fbp")
+
+
+def _adapt(start, data, geometry, **kw):
+    def preview(p):
+        return voxel_preview(p, geometry, MU, voxel_size=0.05)
+
+    return adapt_topology(MeshProjector(geometry), start, data, preview=preview,
+                          new_bubble=lambda c, r: circle_surface(c, r, MU), min_radius=0.15, max_radius=1.0,
+                          rounds=2, iterations=15, touch=0.1, **kw)
+
+
+def test_topology_adds_the_missed_bubble_and_removes_the_spurious_one():
+    truth = [circle_surface([-1.0, 0.5], 0.6, MU, control=32, levels=3),
+             circle_surface([1.0, -0.5], 0.5, MU, control=32, levels=3)]
+    geometry, data = _scan(truth)
+    start = [circle_surface([-1.0, 0.5], 0.6, MU), circle_surface([0.5, 1.8], 0.3, MU)]  # one missed, one spurious
+    projector = MeshProjector(geometry)
+    f0 = projector.objective(start, data)[0]
+    kept, summary = _adapt(start, data, geometry, steps=("remove", "add"))
+    kinds = [c["change"] for c in summary["changes"]]
+    assert kinds.count("remove") == 1 and kinds.count("add") == 1
+    assert len(kept) == 2 and summary["objective"] < 0.05 * f0
+    centres = np.array(sorted(tuple(s.fine().centroid) for s in kept))
+    assert np.allclose(centres, [(-1.0, 0.5), (1.0, -0.5)], atol=0.1)
+    for c in summary["changes"]:
+        assert c["objective_after"] < c["objective_before"] or c["change"] == "remove"
+
+
+def test_topology_splits_a_bubble_that_covers_two():
+    truth = [circle_surface([-0.6, 0.0], 0.55, MU, control=32, levels=3),
+             circle_surface([0.6, 0.0], 0.55, MU, control=32, levels=3)]
+    geometry, data = _scan(truth)
+    start = [circle_surface([0.0, 0.0], 0.8, MU)]
+    stretched = start[0].with_vertices(start[0].vertices * [1.6, 0.7])
+    kept, summary = _adapt([stretched], data, geometry, steps=("split",))
+    assert [c["change"] for c in summary["changes"]] == ["split"]
+    assert len(kept) == 2 and check_bubbles(kept) == []
+
+
+def test_topology_merges_two_halves_of_one_bubble_and_leaves_a_good_fit_alone():
+    truth = [circle_surface([0.0, 0.0], 0.8, MU, control=32, levels=3)]
+    geometry, data = _scan(truth)
+    halves = [circle_surface([-0.42, 0.0], 0.4, MU), circle_surface([0.42, 0.0], 0.4, MU)]
+    kept, summary = _adapt(halves, data, geometry, steps=("merge",))
+    assert [c["change"] for c in summary["changes"]] == ["merge"] and len(kept) == 1
+    again, summary = _adapt(kept, data, geometry)
+    assert summary["changes"] == [] and len(again) == 1
+
+
+@pytest.mark.parametrize("make, ndim", [(dense_foam2d, 2), (dense_foam3d, 3)])
+def test_dense_foam_is_dense_disjoint_and_keeps_its_films(make, ndim):
+    kw = {"n_bubbles": 12, "size": 5.0} if ndim == 2 else {"n_bubbles": 8, "size": (5.0, 5.0, 3.0), "subdivisions": 2,
+                                                            "film": 0.1, "border": 0.1, "margin": 0.1}
+    ph = make(3, **kw)
+    assert 0.6 <= ph.gas_fraction <= 0.85
+    assert check_bubbles(ph.bubbles, surfaces=("fine",)) == []
+    film = kw.get("film", 0.08)
+    # the closest neighbours are a film apart, not more (pressed together) and not less (disjoint)
+    gaps = []
+    for i, a in enumerate(ph.bubbles):
+        d = [np.min(np.linalg.norm(a.vertices[:, None] - b.vertices[None], axis=2))
+             for j, b in enumerate(ph.bubbles) if j != i]
+        gaps.append(min(d))
+    assert min(gaps) >= film - 1e-9
+    assert np.median(gaps) < 1.5 * film
+    assert make(3, **kw).bubbles[0].vertices.tolist() == ph.bubbles[0].vertices.tolist()  # seeded

@@ -1,11 +1,19 @@
-"""Benchmark "foam3d": the mesh projector on the fixed 100-bubble scene.
+"""Benchmark "foam3d": the mesh projector's backends on the fixed 100-bubble scene.
 
 Scene: 100 disjoint spherical bubbles (radius 0.6-1.2 mm, 320 triangles each)
 in a 20 x 20 x 10 mm box; cone beam, 25 projections over 360 degrees,
 256 x 512 detector of 0.06 mm pixels, source 300 mm from the centre,
-detector 15 mm behind it. Prints one table: median times of ``objective``
-(value and gradient) and ``forward``, crossings per second, peak memory, and
-trimesh's multi-hit ray interface on the same rays (forward only).
+detector 15 mm behind it. Prints, from one run (so ratios compare like with
+like on a noisy machine):
+
+* per backend: median ``objective`` (value and gradient) and ``forward``
+  times, their speed-up over the native Embree backend, crossings per second
+  per thread, the largest difference to the native projection, and the peak
+  Python-heap memory of one objective;
+* scaling of the objective with the triangle count (the bubbles as Loop
+  subdivision surfaces of 42 control vertices at 1, 2 and 3 levels: 320,
+  1280 and 5120 triangles each) and with a 4x larger detector (512 x 1024);
+* optionally trimesh's multi-hit ray interface on the same rays (forward only).
 """
 
 from __future__ import annotations
@@ -18,7 +26,8 @@ import tracemalloc
 
 import numpy as np
 
-from bubsub.core import MeshProjector, ScanGeometry
+from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
+from bubsub.core.projection.backends import NAMES, available_backends
 from bubsub.core.foam.phantoms import foam3d_benchmark
 
 
@@ -59,66 +68,121 @@ def trimesh_forward(geometry, meshes):
     return out.reshape(geometry.shape).astype(np.float32)
 
 
+def _peak_memory(fn):
+    """Peak Python-heap (numpy) memory of one call, MiB."""
+    tracemalloc.start()
+    fn()
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return peak / 2**20
+
+
+def subdivided_bubbles(meshes, levels):
+    """The benchmark's bubbles as Loop subdivision surfaces (42 control vertices) of ``levels`` levels."""
+    out = []
+    for m in meshes:
+        centre = m.vertices.mean(axis=0)
+        radius = float(np.linalg.norm(m.vertices - centre, axis=1).mean())
+        out.append(sphere_surface(centre, radius, m.attenuation, control=42, levels=levels))
+    return out
+
+
+def _objective_time(projector, items, repeats):
+    target = projector.forward(items) * np.float32(1.01)
+    projector.objective(items, target)  # warm-up (compilation, caches)
+    return _median_time(lambda: projector.objective(items, target), repeats)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m bubsub.bench projector", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=5, help="timed calls per operation (median reported)")
-    ap.add_argument("--threads", type=int, default=None, help="ray-casting threads (default: all usable cores)")
-    ap.add_argument("--backend", choices=["auto", "native", "embreex"], default="auto", help="ray-casting backend (see MeshProjector)")
-    ap.add_argument("--no-trimesh", action="store_true", help="skip the trimesh comparison")
-    ap.add_argument("--no-compare", action="store_true", help="skip timing the other backend")
+    ap.add_argument("--threads", type=int, default=None, help="worker threads (default: all usable cores)")
+    ap.add_argument("--backends", default=",".join(NAMES),
+                    help=f"comma-separated backends to time (default: {','.join(NAMES)}); native is the reference")
+    ap.add_argument("--no-scaling", action="store_true", help="skip the subdivision-level and detector-size rows")
+    ap.add_argument("--trimesh", action="store_true", help="also time trimesh's multi-hit ray interface (slow)")
     args = ap.parse_args(argv)
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    unknown = sorted(set(backends) - set(NAMES))
+    if unknown:
+        ap.error(f"unknown backend(s) {', '.join(unknown)}; choose from {', '.join(NAMES)}")
+    missing = sorted(set(backends) - set(available_backends()))
+    if missing:
+        ap.error(f"backend(s) {', '.join(missing)} cannot run here")
 
     phantom = foam3d_benchmark()
     meshes = list(phantom.bubbles)
     geometry = foam3d_geometry()
-    projector = MeshProjector(geometry, threads=args.threads, backend=args.backend)
-    t = time.perf_counter()
-    data = projector.forward(meshes)
-    t_first = time.perf_counter() - t
-    target = data * np.float32(1.01)
-    projector.objective(meshes, target)  # warm-up
+    print(f"scene: {len(meshes)} bubbles, {sum(len(m.faces) for m in meshes)} triangles; "
+          f"scan: cone, {geometry.n_angles} x {geometry.det_rows} x {geometry.det_cols}")
 
-    t_obj = _median_time(lambda: projector.objective(meshes, target), args.repeats)
-    t_fwd = _median_time(lambda: projector.forward(meshes), args.repeats)
-    crossings = projector.trace(meshes).count
-
-    tracemalloc.start()
-    projector.objective(meshes, target)
-    _, peak_py = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-    rows = [
-        ("scene", f"{len(meshes)} bubbles, {sum(len(m.faces) for m in meshes)} triangles"),
-        ("scan", f"cone, {geometry.n_angles} x {geometry.det_rows} x {geometry.det_cols}, threads={projector.threads}"),
-        ("backend", projector.backend),
-        ("first forward (compile or cache load)", f"{t_first:.3f} s"),
-        ("objective (value+gradient), median", f"{t_obj:.3f} s"),
-        ("forward, median", f"{t_fwd:.3f} s"),
-        ("valid crossings per call", f"{crossings:,}"),
-        ("crossings per second (objective)", f"{crossings / t_obj / 1e6:.2f} M/s"),
-        ("peak numpy memory in objective", f"{peak_py / 2**20:.0f} MiB"),
-        ("peak process RSS so far", f"{peak_rss:.0f} MiB"),
-    ]
-    if not args.no_compare and projector.backend == "native":
-        other = MeshProjector(geometry, threads=args.threads, backend="embreex")
-        t_other = _median_time(lambda: other.objective(meshes, target), args.repeats)
-        diff = np.abs(other.forward(meshes) - data).max()
-        rows += [("objective, embreex backend, median", f"{t_other:.3f} s"),
-                 ("max |forward difference| between backends", f"{diff:.1e}")]
-    if not args.no_trimesh:
+    results = {}
+    for name in backends:
+        projector = MeshProjector(geometry, threads=args.threads, backend=name)
         t = time.perf_counter()
-        ref = trimesh_forward(geometry, meshes)
+        data = projector.forward(meshes)
+        t_first = time.perf_counter() - t
+        t_obj = _objective_time(projector, meshes, args.repeats)
+        t_fwd = _median_time(lambda: projector.forward(meshes), args.repeats)
+        crossings = projector.trace(meshes).count
+        target = data * np.float32(1.01)
+        peak = _peak_memory(lambda: projector.objective(meshes, target))
+        results[name] = dict(first=t_first, obj=t_obj, fwd=t_fwd, crossings=crossings, peak=peak, data=data,
+                             threads=projector.threads)
+    ref = results.get("native")
+
+    print()
+    header = ["backend", "objective s", "forward s", "obj. speed-up vs native", "fwd speed-up vs native",
+              "M crossings/s/thread", "max |p - p_native|", "peak heap MiB", "first call s"]
+    rows = []
+    for name, r in results.items():
+        rows.append([name, f"{r['obj']:.3f}", f"{r['fwd']:.3f}",
+                     f"{ref['obj'] / r['obj']:.1f} x" if ref else "-", f"{ref['fwd'] / r['fwd']:.1f} x" if ref else "-",
+                     f"{r['crossings'] / r['obj'] / r['threads'] / 1e6:.2f}",
+                     f"{np.abs(r['data'] - ref['data']).max():.1e}" if ref else "-",
+                     f"{r['peak']:.0f}", f"{r['first']:.2f}"])
+    _print_table(header, rows)
+    any_r = next(iter(results.values()))
+    print(f"threads={any_r['threads']}, valid crossings per call: {any_r['crossings']:,}; "
+          f"objective = value + gradient (crossings/s counts the objective's crossings once)")
+
+    if not args.no_scaling:
+        print()
+        header = ["case", "triangles"] + [f"{n} objective s" for n in backends] + \
+            [f"{n} growth" for n in backends]
+        rows = []
+        base = {}
+        cases = [(f"subdivision level {lv}", geometry, subdivided_bubbles(meshes, lv)) for lv in (1, 2, 3)]
+        cases.append(("level 1, detector 4x (512 x 1024)", foam3d_geometry(rows=512, cols=1024, pixel_size=0.03),
+                      cases[0][2]))
+        for label, geom, items in cases:
+            times = []
+            for name in backends:
+                times.append(_objective_time(MeshProjector(geom, threads=args.threads, backend=name), items,
+                                             max(1, args.repeats // 2)))
+            base = base or dict(zip(backends, times))
+            ntri = sum(len(s.fine_faces) for s in items)
+            rows.append([label, f"{ntri:,}"] + [f"{t:.3f}" for t in times] +
+                        [f"{t / base[n]:.1f} x" for n, t in zip(backends, times)])
+        _print_table(header, rows)
+        print("growth: objective time relative to subdivision level 1 on the default detector")
+
+    if args.trimesh:
+        t = time.perf_counter()
+        tri = trimesh_forward(geometry, meshes)
         t_tri = time.perf_counter() - t
-        rows += [
-            ("trimesh multi-hit forward (1 run)", f"{t_tri:.3f} s"),
-            ("speed-up of objective over trimesh forward", f"{t_tri / t_obj:.1f} x"),
-            ("pixels where trimesh differs by > 1e-4", f"{np.mean(np.abs(ref - data) > 1e-4):.2%} (its fixed re-cast offset)"),
-        ]
-    width = max(len(r[0]) for r in rows)
-    print(f"{'benchmark foam3d':<{width}}  value")
-    print(f"{'-' * width}  {'-' * 30}")
-    for k, v in rows:
-        print(f"{k:<{width}}  {v}")
+        best = min(results, key=lambda n: results[n]["obj"])
+        print(f"\ntrimesh multi-hit forward (1 run): {t_tri:.3f} s; {best} objective is {t_tri / results[best]['obj']:.1f} x "
+              f"faster; pixels where trimesh differs by > 1e-4: {np.mean(np.abs(tri - results[best]['data']) > 1e-4):.2%} "
+              f"(its fixed re-cast offset)")
+    print(f"\npeak process RSS: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
     return 0
+
+
+def _print_table(header, rows):
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
+    print("  ".join(h.ljust(w) for h, w in zip(header, widths)))
+    print("  ".join("-" * w for w in widths))
+    for r in rows:
+        print("  ".join(str(x).ljust(w) for x, w in zip(r, widths)))

@@ -1,12 +1,9 @@
-"""The voxel projector in numpy (3D, and 2D by embedding); FDK is in :mod:`.fdk`, the solver driver in :mod:`.reconstruct3d`.
+"""The voxel projector (3D, and 2D by embedding); FDK is in :mod:`.fdk`, the solver driver in :mod:`.reconstruct3d`.
 
-One module of about 560 lines on purpose: the detector maps, the bilinear
-splat/gather pair and the slab runner are one algorithm whose forward and
-adjoint must stay in step; splitting them would separate the two halves of
-the adjoint test.
-
-No ASTRA and no GPU: everything here is vectorised numpy, one projection and
-one slab of slices at a time, with slabs shared among threads.
+No ASTRA and no GPU: the detector maps and the virtual-detector resampling
+are numpy; the per-voxel splat and its transpose are compiled loops
+(:mod:`.splat`), one slab of slices at a time, with slabs shared among
+threads.
 
 Projector (:class:`VoxelProjector`)
 -----------------------------------
@@ -50,6 +47,7 @@ from scipy import sparse
 
 from bubsub.core.projection.geometry import KINDS, ScanGeometry
 from bubsub.core.voxel.grid import resolve_grid, voxel_sizes
+from bubsub.core.voxel.splat import gather, splat
 
 __all__ = ["VoxelProjector", "as_scan_geometry"]
 
@@ -264,87 +262,7 @@ class _Maps:
         h = np.asarray(self.dxyz)
         return np.abs(np.stack([a_c * h, a_r * h], axis=2))
 
-    def _affine(self, c, z):
-        plane = (c[0] * self.x)[None, :] + (c[1] * self.y)[:, None] + c[3]
-        plane = plane.astype(_F32)
-        if c[2] != 0.0:
-            return plane[None] + (c[2] * z).astype(_F32)[:, None, None]
-        return plane[None]
 
-    def coords(self, i, z0, z1, weight="amp"):
-        """Detector (col, row) indices and weights of the voxels of slices z0:z1 in projection i.
-
-        Returns float32 arrays broadcastable to ``(z1 - z0, ny, nx)``; the
-        weight is the projector amplitude (``"amp"``) or the FDK weight (``"fdk"``).
-        """
-        z = self.z[z0:z1]
-        if self.cone:
-            inv = self._affine(self.den[i], z)
-            np.reciprocal(inv, out=inv)
-            col = self._affine(self.col[i], z) * inv
-            row = self._affine(self.row[i], z) * inv
-            if weight == "fdk":
-                w = _F32(self.fdk_w[i]) * inv * inv
-            else:
-                s = self.src[i]
-                r2 = ((self.x - s[0]) ** 2)[None, :] + ((self.y - s[1]) ** 2)[:, None]
-                dist = np.sqrt(r2.astype(_F32)[None] + ((z - s[2]) ** 2).astype(_F32)[:, None, None])
-                w = dist * (_F32(self.amp[i]) * inv * inv * inv)
-        else:
-            col = self._affine(self.col[i], z)
-            row = self._affine(self.row[i], z)
-            w = _F32(self.fdk_w[i] if weight == "fdk" else self.amp[i])
-        return col, row, w
-
-
-def _bilinear(col, row, rows, cols):
-    """Flat indices into a detector padded by 1 (low) / 2 (high) pixels, and bilinear fractions.
-
-    Returns (idx intp, fu float32, fv float32) broadcast as col/row; the
-    padded width is ``cols + 3``. Points off the detector land in the margin.
-    """
-    cc = np.clip(col + _F32(1.0), 0.0, cols + 1.0).astype(_F32, copy=False)
-    rr = np.clip(row + _F32(1.0), 0.0, rows + 1.0).astype(_F32, copy=False)
-    i0 = cc.astype(np.intp)
-    j0 = rr.astype(np.intp)
-    fu = cc - np.floor(cc)
-    fv = rr - np.floor(rr)
-    idx = j0 * (cols + 3) + i0
-    return idx, fu, fv
-
-
-def _full(a, shape):
-    return np.ascontiguousarray(np.broadcast_to(a, shape))
-
-
-def _splat(acc, vals, idx, fu, fv, wp):
-    """Add the bilinear splat of vals (at idx, fu, fv) to the flat padded detector acc."""
-    shape = np.broadcast_shapes(vals.shape, idx.shape, fu.shape, fv.shape)
-    idx = _full(idx, shape).ravel()
-    v1 = vals * fv
-    v0 = vals - v1
-    L = acc.size
-    gu = _F32(1.0) - fu
-    w = np.empty(shape, dtype=np.float64)  # bincount wants float64 weights: write them directly
-    for a, b, off in ((v0, gu, 0), (v0, fu, 1), (v1, gu, wp), (v1, fu, wp + 1)):
-        np.multiply(a, b, out=w)
-        acc[off:] += np.bincount(idx, weights=w.ravel(), minlength=L)[: L - off]
-
-
-def _gather(g, idx, fu, fv, wp):
-    """Bilinear interpolation of the flat padded detector g at (idx, fu, fv)."""
-    shape = np.broadcast_shapes(idx.shape, fu.shape, fv.shape)
-    idx = _full(idx, shape)
-    t0 = np.take(g, idx)
-    t1 = np.take(g[1:], idx)
-    top = t0 + fu * (t1 - t0)
-    t0 = np.take(g[wp:], idx)
-    t1 = np.take(g[wp + 1:], idx)
-    bot = t0 + fu * (t1 - t0)
-    bot -= top
-    bot *= fv
-    bot += top
-    return bot
 
 
 class _SlabRunner:
@@ -495,19 +413,13 @@ class VoxelProjector:
         vol = np.ascontiguousarray(x, dtype=_F32).reshape(self._shape3)
         m = self._maps
         R, C = self._vrows, self._vcols
-        wp, L = C + 3, (R + 3) * (C + 3)
+        L = (R + 3) * (C + 3)
         n = m.n
 
         def work(slabs):
             acc = np.zeros((n, L))
             for z0, z1 in slabs:
-                sub = vol[z0:z1]
-                if not np.any(sub):
-                    continue
-                for i in range(n):
-                    col, row, w = m.coords(i, z0, z1)
-                    idx, fu, fv = _bilinear(col, row, R, C)
-                    _splat(acc[i], sub * w, idx, fu, fv, wp)
+                splat(m, vol, z0, z1, acc)
             return acc
 
         acc = sum(self._runner.map(work))
@@ -539,28 +451,18 @@ class VoxelProjector:
         return self._backproject(p, "amp")
 
     def _backproject(self, p, weight, skip=None):
-        """Bilinear gather of (virtual) projections p (n, R, C) times the ``weight`` of :meth:`_Maps.coords`."""
+        """Bilinear gather of (virtual) projections p (n, R, C) times the amplitude (``"amp"``) or the FDK weight (``"fdk"``)."""
         m = self._maps
         R, C = p.shape[1:]
-        wp = C + 3
         n = m.n
         pad = np.zeros((n, R + 3, C + 3), dtype=_F32)
         pad[:, 1: R + 1, 1: C + 1] = p
         pad = pad.reshape(n, -1)
-        nz, ny, nx = self._shape3
         out = np.zeros(self._shape3, dtype=_F32)
 
         def work(slabs):
             for z0, z1 in slabs:
-                acc = out[z0:z1]
-                for i in range(n):
-                    if skip is not None and skip[i]:
-                        continue
-                    col, row, w = m.coords(i, z0, z1, weight)
-                    idx, fu, fv = _bilinear(col, row, R, C)
-                    val = _gather(pad[i], idx, fu, fv, wp)
-                    val *= w
-                    acc += val
+                gather(m, pad, z0, z1, out, weight, skip)
             return None
 
         self._runner.map(work)

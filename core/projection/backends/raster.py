@@ -213,7 +213,8 @@ def _compile():
 
     @jit
     def crossing(a, cone, lin, num, nU, nr):
-        """``(|n.d|, t / |n.d|)`` of a face's crossing at detector column coordinate ``a`` (see raster3d)."""
+        """``(den, value)`` of a face's crossing at detector coordinate ``a``: ``|n.e|`` and ``n.(x0 - S) / |n.e|``
+        (cone; times the ray length later), or ``|n.r|`` and ``n.(x0 - P) / |n.r|`` (parallel)."""
         if cone:
             den = abs(lin + a * nU)
             return den, num / den

@@ -22,28 +22,25 @@ _AXES = "xyz"
 _PREVIEW_LABEL = "voxel preview: bubble density (1/mm, |contrast| inside bubbles)"
 
 
-def _pyplot():
-    import matplotlib
+def _figure(**kw):
+    # A bare Figure renders with Agg and leaves pyplot alone: writing pictures from a
+    # notebook does not switch its backend off inline plots.
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return Figure(**kw)
 
 
 def _save(fig, path):
-    plt = _pyplot()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
 
 
 def _id_colours(ids):
     """One colour per bubble id (tab20, cycling), and the colour map and norm for a colour bar."""
+    from matplotlib import colormaps
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
-    plt = _pyplot()
-    base = plt.get_cmap("tab20")
+    base = colormaps["tab20"]
     ids = list(ids)
     colours = [base(int(i) % 20) for i in ids]
     lo, hi = (min(ids), max(ids)) if ids else (0, 1)
@@ -124,12 +121,12 @@ def write_overlay(path, image, extent, fine_items, ids=None, title="BubSub recon
     """
     from matplotlib.collections import LineCollection
 
-    plt = _pyplot()
     ids = list(range(len(fine_items))) if ids is None else list(ids)
     colours, _, _ = _id_colours(ids)
     vmax = float(np.max(image)) if image.size and np.max(image) > 0 else 1.0
     if image.ndim == 2:
-        fig, ax = plt.subplots(figsize=(7.5, 6.5), dpi=110)
+        fig = _figure(figsize=(7.5, 6.5), dpi=110)
+        ax = fig.subplots()
         shown = ax.imshow(image, extent=extent, cmap="gray", origin="upper", vmin=0, vmax=vmax)
         for p, c in zip(fine_items, colours):
             xy = np.vstack([p.vertices, p.vertices[:1]])
@@ -140,7 +137,8 @@ def write_overlay(path, image, extent, fine_items, ids=None, title="BubSub recon
         fig.colorbar(shown, ax=ax, shrink=0.8).set_label(_PREVIEW_LABEL)
         _save(fig, path)
         return
-    fig, axes = plt.subplots(1, 3, figsize=(16, 5.6), dpi=100, layout="constrained")
+    fig = _figure(figsize=(16, 5.6), dpi=100, layout="constrained")
+    axes = fig.subplots(1, 3)
     for ax, (name, axis, value, sl, ext, origin) in zip(axes, _slices(image, extent)):
         shown = ax.imshow(sl, extent=ext, cmap="gray", origin=origin, vmin=0, vmax=vmax)
         segs = [mesh_section(m, axis, value) for m in fine_items]
@@ -172,10 +170,9 @@ def write_mesh_view(path, meshes, ids=None, title="BubSub bubble meshes", elevat
     """
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    plt = _pyplot()
     ids = list(range(len(meshes))) if ids is None else list(ids)
     colours, cmap, norm = _id_colours(ids)
-    fig = plt.figure(figsize=(8, 7), dpi=100)
+    fig = _figure(figsize=(8, 7), dpi=100)
     ax = fig.add_subplot(projection="3d")
     light = np.array([0.4, -0.5, 0.77])
     light /= np.linalg.norm(light)
@@ -212,9 +209,9 @@ def write_size_histogram(path, diameters, ndim, title="Bubble size distribution"
     ndim : {2, 3}
         Says whether a diameter is that of a disc of equal area or a ball of equal volume.
     """
-    plt = _pyplot()
     d = np.asarray(diameters, dtype=float)
-    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=100)
+    fig = _figure(figsize=(7, 4.5), dpi=100)
+    ax = fig.subplots()
     if d.size:
         ax.hist(d, bins=max(5, min(40, int(np.sqrt(d.size)) + 3)), color="tab:blue", edgecolor="white")
         ax.axvline(d.mean(), color="tab:orange", lw=1.5, label=f"mean {d.mean():.3g} mm")

@@ -30,8 +30,8 @@ def connect(url, token):
 
     from bubsub.clients.remote.client import ProjectorClient, RemoteError
 
-    # connection attempts give up after 5 s, so an unreachable host fails in seconds, not minutes
-    client = ProjectorClient(url, token=token, timeout=httpx.Timeout(120.0, connect=5.0), retry_timeout=60.0)
+    # connection attempts give up after 10 s, so an unreachable host fails in seconds, not minutes
+    client = ProjectorClient(url, token=token, timeout=httpx.Timeout(120.0, connect=10.0), retry_timeout=60.0)
     if not client.healthy():
         client.close()
         raise ValueError(f"no projector server answers at {url} (GET {url.rstrip('/')}/healthz failed); "

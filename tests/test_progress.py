@@ -71,7 +71,8 @@ def test_redirected_reconstruct_prints_one_line_per_phase(tmp_path, capsys, monk
     rc = main(["reconstruct", str(sim / "scan.h5"), "--out", str(tmp_path / "rec"), "--iterations", "5"])
     assert rc == 0
     err = capsys.readouterr().err.strip().splitlines()
-    assert [line.split(":")[0] for line in err] == ["voxel preview (2D SIRT)", "radius estimation", "BubSub fit"]
+    names = [line.split(":")[0] for line in err]
+    assert names[0].startswith("voxel preview (2D") and names[1:] == ["radius estimation", "BubSub fit"]
     assert "iteration limit" in err[-1]
     report = json.loads((tmp_path / "rec" / "report.json").read_text())
     assert report["stop_reason"] == "iteration limit" and report["iterations"] == 5

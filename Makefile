@@ -2,7 +2,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: venv test demo bench clean
+.PHONY: venv test demo bench clean docker-test
 
 venv: $(BIN)/.installed
 
@@ -20,6 +20,10 @@ demo: venv
 
 bench: venv
 	$(BIN)/python -m bubsub.bench
+
+# Builds the image and runs the compose project for real (needs Docker; not part of `test`).
+docker-test:
+	bash docker/test.sh
 
 clean:
 	rm -rf $(VENV) demo-output build *.egg-info

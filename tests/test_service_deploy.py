@@ -64,15 +64,30 @@ def test_dockerfile_is_multistage_slim_nonroot_with_healthcheck():
     assert any(i.startswith("HEALTHCHECK") and "/healthz" in i for i in body)
     assert exec_form(next(i for i in body if i.startswith("CMD")))[:2] == ["bubsub", "serve"]
     installs = " ".join(i for i in body if i.startswith("RUN"))
-    assert "--no-index" in installs  # only the wheels from the builder
+    # only the builder's environment comes in: nothing is downloaded or compiled in the final stage
+    assert any(i.startswith("COPY --from=builder /opt/bubsub ") for i in body)
+    assert "pip install" not in installs
     for tool in ("gcc", "build-essential", "apt-get install", "COPY core", "COPY service"):
         assert tool not in installs and not any(i.startswith(f"COPY {tool[5:]}") for i in body if tool.startswith("COPY")), tool
 
 
+def test_dockerfile_builds_with_the_classic_builder():
+    # Debian's docker has no BuildKit: no parser directives, no RUN --mount
+    text = (DOCKER / "Dockerfile").read_text()
+    assert not re.search(r"^#\s*syntax\s*=", text, re.M | re.I)
+    assert "--mount" not in text
+    # the classic builder reads the context's ignore file at the root only
+    ignored = (ROOT / ".dockerignore").read_text().split()
+    assert {".venv", ".git", "tests"} <= set(ignored)
+
+
 def test_compose_file_is_valid_with_documented_services():
     compose = yaml.safe_load((DOCKER / "docker-compose.yml").read_text())
+    assert "name" not in compose  # docker-compose v1 refuses a top-level name
     services = compose["services"]
-    assert set(services) >= {"projector", "client"}
+    assert set(services) >= {"projector", "client", "scheduler", "worker", "cluster-client"}
+    for svc in services.values():  # published ports on the loopback only
+        assert all(str(p).startswith("127.0.0.1:") for p in svc.get("ports", [])), svc.get("ports")
     projector, client = services["projector"], services["client"]
     assert projector["build"]["dockerfile"] == "docker/Dockerfile" and projector["build"]["context"] == ".."
     env = projector["environment"]
@@ -81,12 +96,25 @@ def test_compose_file_is_valid_with_documented_services():
         assert key.startswith("BUBSUB_") and key[7:].lower() in fields, key
     assert env["BUBSUB_SCAN_DIR"] == "/scans"
     assert any(str(v).endswith(":/scans:ro") for v in projector["volumes"])
-    assert "8000:8000" in projector["ports"] and "/healthz" in " ".join(projector["healthcheck"]["test"])
+    assert "127.0.0.1:8000:8000" in projector["ports"] and "/healthz" in " ".join(projector["healthcheck"]["test"])
+    assert projector["build"]["network"] == "host"
     assert client["depends_on"]["projector"]["condition"] == "service_healthy"
     assert client["environment"]["BUBSUB_SERVER"] == "http://projector:8000"
     script = next(a for a in client["command"] if a.endswith(".py"))
     mount = next(v for v in client["volumes"] if v.split(":")[1] == str(Path(script).parent))
     assert (DOCKER / mount.split(":")[0] / Path(script).name).resolve().is_file()
+
+
+def test_compose_dask_services_share_one_scheduler_and_volume():
+    services = yaml.safe_load((DOCKER / "docker-compose.yml").read_text())["services"]
+    sched, worker, cc = services["scheduler"], services["worker"], services["cluster-client"]
+    assert sched["command"][:2] == ["dask", "scheduler"] and "8786" in sched["command"]
+    assert worker["command"][:3] == ["dask", "worker", "tcp://scheduler:8786"]
+    assert worker["environment"]["BUBSUB_THREADS"] == "1" and worker["depends_on"]["scheduler"]["condition"] == "service_healthy"
+    assert cc["environment"]["DASK_SCHEDULER_ADDRESS"] == "tcp://scheduler:8786"
+    assert "data:/data" in worker["volumes"] and "data:/data" in cc["volumes"]
+    script = next(a for a in cc["command"] if a.startswith("/examples/"))
+    assert (ROOT / "examples" / Path(script).name).is_file()
 
 
 def _free_port():

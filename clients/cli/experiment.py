@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from bubsub.clients.cli.args import add_output_arguments, positive_int
+from bubsub.clients.cluster.engine import add_cluster_arguments
 
 
 def _experiments_epilog():
@@ -19,12 +20,18 @@ def _experiments_epilog():
 
 
 def cmd_experiment(args):
+    from bubsub.clients.cluster.engine import open_client, spec_from_args
     from bubsub.clients.experiments.runner import run_experiment
 
+    spec = spec_from_args(args)
     if args.name in ("fig6", "fig6-3d"):
+        if not spec.in_process:
+            raise ValueError(f"{args.name} runs in this process; --workers/--scheduler apply to the other experiments "
+                             f"(and to reconstruct4d)")
         return _fig6(args)
-    run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values, methods=args.methods,
-                   resume=args.resume, progress=not args.quiet)
+    with open_client(spec) as client:
+        run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values,
+                       methods=args.methods, resume=args.resume, progress=not args.quiet, client=client)
     return 0
 
 
@@ -73,6 +80,7 @@ def register(sub):
     p.add_argument("--resume", action="store_true",
                    help="keep the runs already in OUT/NAME.csv and run only the missing ones")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_cluster_arguments(p)
     p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("demo", help="simulate, reconstruct and evaluate a small 2D foam against FBP",

@@ -22,6 +22,7 @@ import csv
 import json
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.metrics import dice_dissimilarity
 from bubsub.core.voxel.raster import bubble_mask
 
-__all__ = ["EXPERIMENTS", "run_experiment", "run_case"]
+__all__ = ["EXPERIMENTS", "run_experiment", "run_case", "run_setting"]
 
 #: TV weights tried per run; the one with the lowest DDI is kept (as the paper picks
 #: the weight that minimises the error)
@@ -74,6 +75,13 @@ _QUICK_2D = {"n_bubbles": 12, "det_count": 600, "image_size": 800, "grid": 256, 
 _FULL_2D = {"n_bubbles": 40, "det_count": 2400, "image_size": 2000, "grid": 512, "iterations": 80}
 _QUICK_3D = {"n_bubbles": 12, "det_cols": 128, "voxel": 0.25, "iterations": 40}
 _FULL_3D = {"n_bubbles": 60, "det_cols": 512, "voxel": 0.1, "iterations": 80}
+
+
+def _config(exp, quick):
+    cfg = (_QUICK_2D if quick else _FULL_2D) if exp.ndim == 2 else (_QUICK_3D if quick else _FULL_3D)
+    if exp.phantom == "dense" and exp.ndim == 3 and quick:
+        cfg = dict(cfg, voxel=cfg["voxel"] / 2)  # films of two voxels need a finer grid than 0.25 mm
+    return cfg
 
 
 def _simulate(ndim, seed, angles, photons, cfg, quick, dense=False):
@@ -125,6 +133,37 @@ def _baseline_mask(method, scan, shape, extent, ndim, tv_weight=None):
     return binarise(np.sign(scan.bubble_contrast) * img, bubbles_are_dark=False)
 
 
+def _setting(exp, value, quick):
+    """``(angles, photons)`` of one swept value."""
+    # quick mode keeps to 25 views, so that the photon sweep stays quick too
+    angles = int(value) if exp.variable == "angles" else (min(exp.angles, 25) if quick else exp.angles)
+    photons = float(value) if exp.variable == "photons" else exp.photons
+    return angles, photons
+
+
+@lru_cache(maxsize=1)
+def _simulated(name, seed, angles, photons, quick):
+    # the methods of one (value, seed) run one after the other here: simulate once for all of them
+    exp = EXPERIMENTS[name]
+    return _simulate(exp.ndim, seed, angles, photons, _config(exp, quick), quick, exp.phantom == "dense")
+
+
+def run_setting(name, value, seed, method, quick):
+    """One result row of experiment ``name``: ``method`` at ``value`` on the phantom of ``seed``.
+
+    A self-contained task (module-level, picklable arguments, simulates its
+    own scan from the seed), so that it runs the same here or on a Dask worker.
+    """
+    exp = EXPERIMENTS[name]
+    ph, scan, shape, extent = _simulated(name, seed, *_setting(exp, value, quick), quick)
+    kw = {"iterations": _config(exp, quick)["iterations"]}
+    if exp.variable == "radius":
+        kw.update(radius=float(value) * float(np.mean(ph.radii)), estimate_radii=False)
+    ddi, sec = run_case(method, scan, ph, shape, extent, **kw)
+    return {"experiment": name, exp.variable: value, "method": method, "seed": seed,
+            "ddi": ddi, "seconds": sec, "quick": quick}
+
+
 def run_case(method, scan, phantom, shape, extent, *, iterations=80, radius=None, estimate_radii=True):
     """DDI of one method on one simulated scan: ``(ddi, seconds)``."""
     t = time.perf_counter()
@@ -143,7 +182,8 @@ def run_case(method, scan, phantom, shape, extent, *, iterations=80, radius=None
     return dice_dissimilarity(mask, truth), time.perf_counter() - t
 
 
-def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=None, resume=False, progress=True):
+def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=None, resume=False, progress=True,
+                   client=None):
     """Run one experiment; write ``NAME.csv``, ``NAME.png`` and ``NAME.json`` (summary) into ``out``.
 
     Parameters
@@ -157,6 +197,9 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
         Keep the runs already in ``out/NAME.csv`` (same mode) and run only the
         missing (value, seed, method) cases; the CSV, summary and plot then
         cover all of them. Lets a long experiment continue after Ctrl-C.
+    client : dask.distributed.Client, optional
+        Run the cases as tasks on this cluster (one task per value, seed and
+        method; :func:`run_setting`); ``None`` runs them here, in order.
     """
     if name not in EXPERIMENTS:
         raise ValueError(f"unknown experiment {name!r}; choose one of {sorted(EXPERIMENTS)}")
@@ -170,39 +213,30 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
     # floats throughout, so resumed and new runs of one setting share a key
     values = tuple(float(v) for v in (values or (exp.quick_values if quick else exp.values)))
     seeds = seeds or (1 if quick else 10)
-    cfg = (_QUICK_2D if quick else _FULL_2D) if exp.ndim == 2 else (_QUICK_3D if quick else _FULL_3D)
-    if exp.phantom == "dense" and exp.ndim == 3 and quick:
-        cfg = dict(cfg, voxel=cfg["voxel"] / 2)  # films of two voxels need a finer grid than 0.25 mm
     rows = _read_runs(out / f"{name}.csv", exp.variable, quick) if resume else []
     done = {(r[exp.variable], r["seed"], r["method"]) for r in rows}
     todo = [(v, s, m) for v in values for s in range(seeds) for m in methods if (v, s, m) not in done]
     from tqdm.auto import tqdm
 
+    from bubsub.clients.cluster.engine import run_tasks
+
     bar = tqdm(total=len(todo), desc=name, disable=not progress)
     t0 = time.perf_counter()
+    done_now = {}
+
+    def finished(i, row):
+        done_now[i] = row
+        bar.update(1)
+        bar.set_postfix(method=row["method"], ddi=f"{row['ddi']:.3f}")
+
     try:
-        for value in values:
-            # quick mode keeps to 25 views, so that the photon sweep stays quick too
-            angles = int(value) if exp.variable == "angles" else (min(exp.angles, 25) if quick else exp.angles)
-            photons = float(value) if exp.variable == "photons" else exp.photons
-            for seed in range(seeds):
-                missing = [m for m in methods if (value, seed, m) in todo]
-                if not missing:
-                    continue
-                ph, scan, shape, extent = _simulate(exp.ndim, seed, angles, photons, cfg, quick, exp.phantom == "dense")
-                for method in missing:
-                    kw = {"iterations": cfg["iterations"]}
-                    if exp.variable == "radius":
-                        kw.update(radius=float(value) * float(np.mean(ph.radii)), estimate_radii=False)
-                    ddi, sec = run_case(method, scan, ph, shape, extent, **kw)
-                    rows.append({"experiment": name, exp.variable: value, "method": method, "seed": seed,
-                                 "ddi": ddi, "seconds": sec, "quick": quick})
-                    bar.update(1)
-                    bar.set_postfix(method=method, ddi=f"{ddi:.3f}")
+        run_tasks(client, run_setting, [(name, v, s, m, quick) for v, s, m in todo], on_result=finished)
     except KeyboardInterrupt:
-        print(f"{name}: interrupted; writing the {len(rows)} finished runs")
+        print(f"{name}: interrupted; writing the {len(rows) + len(done_now)} finished runs")
     finally:
         bar.close()
+    # task order, whatever order a cluster finished them in
+    rows += [done_now[i] for i in sorted(done_now)]
     summary = summarise(rows, exp.variable)
     summary["seconds_runs"] = float(np.nansum([float(r["seconds"]) for r in rows]))  # all runs, resumed ones too
     summary["seconds_this_call"] = time.perf_counter() - t0

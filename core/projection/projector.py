@@ -27,7 +27,21 @@ from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
-__all__ = ["MeshProjector", "Traversal"]
+__all__ = ["MeshProjector", "Traversal", "default_threads"]
+
+
+def default_threads():
+    """Threads of a projector made without ``threads``: ``BUBSUB_THREADS``, else the usable cores.
+
+    A Dask worker sets ``BUBSUB_THREADS`` so that its tasks share the machine
+    with the other workers' instead of each taking every core.
+    """
+    text = os.environ.get("BUBSUB_THREADS", "").strip()
+    if text:
+        if not text.isdigit() or int(text) < 1:
+            raise ValueError(f"BUBSUB_THREADS must be a positive integer, got {text!r}")
+        return int(text)
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 class MeshProjector:
@@ -40,7 +54,8 @@ class MeshProjector:
         ``k``: ``k x k`` rays per pixel (``k`` in 2D), averaged, modelling
         the finite pixel width.
     threads : int, optional
-        Worker threads; defaults to the number of usable cores.
+        Worker threads; defaults to :func:`default_threads` (``BUBSUB_THREADS``,
+        else the usable cores).
     backend : {"auto", "raster", "native", "embreex"}
         How crossings are found; all are exact and agree.
         ``"raster"``: triangle-major, float64, numba (the fastest).
@@ -69,7 +84,7 @@ class MeshProjector:
         self.geometry = geometry
         self.supersampling = int(supersampling)
         if threads is None:
-            threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+            threads = default_threads()
         self.threads = max(1, int(threads))
         self._frames = Frames(geometry)
         k = self.supersampling

@@ -5,11 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from bubsub.clients.cli.args import add_output_arguments, positive_int
+from bubsub.clients.cluster.engine import add_cluster_arguments
 
 
 def cmd_reconstruct4d(args):
     from bubsub.core.io.scanfile import read_scan
 
+    from bubsub.clients.cluster.engine import open_client, spec_from_args
     from bubsub.clients.pipeline.dynamic import DynamicSettings, reconstruct_dynamic
     from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs
 
@@ -18,8 +20,10 @@ def cmd_reconstruct4d(args):
     scan = read_scan(args.scan)
     settings = DynamicSettings(iterations=args.iterations, control_points=args.control_points, levels=args.levels,
                                holdout=args.holdout, voxel_baseline=args.voxel_baseline, progress=not args.quiet)
-    report = reconstruct_dynamic(scan, out, settings, projections_per_subscan=args.projections_per_subscan,
-                                 subscans=args.subscans, resume=args.resume, overwrite=args.overwrite)
+    with open_client(spec_from_args(args)) as client:
+        report = reconstruct_dynamic(scan, out, settings, projections_per_subscan=args.projections_per_subscan,
+                                     subscans=args.subscans, resume=args.resume, overwrite=args.overwrite,
+                                     client=client, chunks=args.chunks)
     kept = [f"subscan_{p['subscan']:04d}" for p in report["subscans"]]
     files = [f for d in kept for f in (out / d).iterdir() if f.is_file()]
     files += [out / n for n in ("tracks.csv", "report.json", "growth.png", "mse.png", "run.json") if (out / n).is_file()]
@@ -53,4 +57,8 @@ def register(sub):
                         "and plot its held-out MSE")
     p.add_argument("--resume", action="store_true", help="continue from the complete subscan folders in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--chunks", type=positive_int, default=1, metavar="K",
+                   help="cut the subscan chain into K chunks run in parallel, each cold-started at its last "
+                        "subscan, bubble ids linked where neighbouring chunks overlap (default 1: one chain)")
+    add_cluster_arguments(p)
     p.set_defaults(func=cmd_reconstruct4d)

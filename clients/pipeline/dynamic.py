@@ -346,8 +346,8 @@ def _run_record(scan, layout, settings):
 
 
 def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False,
-                        overwrite=False):
-    """``bubsub reconstruct4d``: the whole chain into an output folder (local engine, one worker).
+                        overwrite=False, client=None, chunks=1):
+    """``bubsub reconstruct4d``: the whole chain into an output folder.
 
     Parameters
     ----------
@@ -367,6 +367,13 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
     overwrite : bool
         Start afresh in a folder holding an earlier run (its subscan folders
         are replaced as the new ones complete).
+    client : dask.distributed.Client, optional
+        Run one task per subscan on this cluster
+        (:func:`bubsub.clients.cluster.dynamic.run_chunks`); None: here.
+    chunks : int
+        Cut the chain into this many chunks run in parallel, each cold-started
+        at its last subscan, ids linked where they overlap (see
+        :mod:`bubsub.clients.cluster.dynamic`); 1: one chain, as the paper.
 
     Returns
     -------
@@ -406,8 +413,24 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
     atomic_write_text(run_file, json.dumps(record, indent=2))
     prior = [outputs.read_subscan_result(out, i, scan.bubble_contrast) for i in done]
     start = min(prior, key=lambda r: r.index).state if prior else None
-    results, interrupted = run_chain(
-        lambda k: subscan(scan, layout, k), order[len(done):], settings, start=start, times=times,
-        step=reconstruct_subscan, on_result=lambda r: outputs.write_subscan(out, r, scan.ndim, scan.path))
+
+    def write(result):
+        outputs.write_subscan(out, result, scan.ndim, scan.path)
+
+    if client is None and chunks == 1:
+        results, interrupted = run_chain(
+            lambda k: subscan(scan, layout, k), order[len(done):], settings, start=start, times=times,
+            step=reconstruct_subscan, on_result=write)
+        engine = {}
+    else:
+        from bubsub.clients.cluster.dynamic import ScanFileSubscans, run_chunks
+        from bubsub.clients.cluster.engine import workers_of
+
+        source = (ScanFileSubscans(str(scan.path), scan.bubble_contrast, layout.per_subscan) if scan.path
+                  and client is not None else lambda k: subscan(scan, layout, k))
+        results, interrupted, links = run_chunks(client, source, order[len(done):], settings, chunks=chunks,
+                                                 start=start, times=times, on_result=write)
+        engine = {"engine": "dask" if client is not None else "local", "workers": max(1, workers_of(client)),
+                  "chunks": chunks, "chunk_links": links}
     return outputs.write_summary(out, prior + results, layout=layout, time_unit=unit, settings=settings,
-                                 interrupted=interrupted)
+                                 interrupted=interrupted, **engine)

@@ -118,7 +118,7 @@ def write_tracks(path, results):
 
 
 def write_summary(out, results, *, layout, time_unit, settings, engine="local", workers=1, interrupted=False,
-                  baseline=None):
+                  baseline=None, chunks=1, chunk_links=()):
     """Write ``tracks.csv``, ``report.json``, ``growth.png`` and ``mse.png`` for the completed subscans."""
     out = Path(out)
     results = sorted(results, key=lambda r: r.index)
@@ -128,7 +128,8 @@ def write_summary(out, results, *, layout, time_unit, settings, engine="local", 
     warm = [p["seconds"] for p in per if p.get("start") == "warm"]
     cold = [p["seconds"] for p in per if p.get("start") == "cold"]
     report = {
-        "engine": engine, "workers": workers, "interrupted": interrupted,
+        "engine": engine, "workers": workers, "chunks": chunks, "chunk_links": list(chunk_links),
+        "interrupted": interrupted,
         "projections_per_subscan": layout.per_subscan, "subscans_in_scan": layout.n_subscans,
         "subscans_selected": [layout.selected.start, layout.selected.stop],
         "subscans_complete": len(results), "time_unit": time_unit,

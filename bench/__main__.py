@@ -1,4 +1,4 @@
-"""``python -m bubsub.bench [projector|remote|prepare] [options]``: print benchmark tables."""
+"""``python -m bubsub.bench [projector|remote|prepare|cluster] [options]``: print benchmark tables."""
 
 import sys
 
@@ -12,8 +12,10 @@ def main(argv=None):
         from .remote import main as run
     elif name == "prepare":
         from .prepare import main as run
+    elif name == "cluster":
+        from .cluster import main as run
     else:
-        print(f"unknown benchmark {name!r}; choose 'projector', 'remote' or 'prepare'", file=sys.stderr)
+        print(f"unknown benchmark {name!r}; choose 'projector', 'remote', 'prepare' or 'cluster'", file=sys.stderr)
         return 2
     return run(argv)
 

@@ -9,6 +9,9 @@ PROJECT=${BUBSUB_COMPOSE_PROJECT:-bubsubtest}
 if docker compose version >/dev/null 2>&1; then COMPOSE=(docker compose); else COMPOSE=(docker-compose); fi
 COMPOSE+=(-f docker/docker-compose.yml -p "$PROJECT")
 step() { printf '\n== %s (%ss)\n' "$*" "$SECONDS"; }
+free_port() { python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
+# free host ports, so that a server or dashboard already running here does not stop the test
+export BUBSUB_HOST_PORT=${BUBSUB_HOST_PORT:-$(free_port)} DASK_DASHBOARD_HOST_PORT=${DASK_DASHBOARD_HOST_PORT:-$(free_port)}
 
 step "build $IMAGE (classic builder, --network host)"
 docker build --network host -f docker/Dockerfile -t "$IMAGE" . | grep -E '^(Step|Successfully)' || exit 1
@@ -46,11 +49,11 @@ docker ps --filter "label=com.docker.compose.project=$PROJECT" --format '{{.Name
 if docker ps --filter "label=com.docker.compose.project=$PROJECT" --format '{{.Ports}}' | grep -E '(0\.0\.0\.0|:::)[0-9]*->'; then
   echo "a port is published on all interfaces"; exit 1
 fi
-python3 - <<'PY'
-import json, urllib.request
-with urllib.request.urlopen("http://127.0.0.1:8000/healthz", timeout=5) as r:
+python3 - "$BUBSUB_HOST_PORT" "$DASK_DASHBOARD_HOST_PORT" <<'PY'
+import json, sys, urllib.request
+with urllib.request.urlopen(f"http://127.0.0.1:{sys.argv[1]}/healthz", timeout=5) as r:
     print("projector /healthz from the host:", r.status, json.load(r))
-with urllib.request.urlopen("http://127.0.0.1:8787/health", timeout=5) as r:
+with urllib.request.urlopen(f"http://127.0.0.1:{sys.argv[2]}/health", timeout=5) as r:
     print("scheduler /health from the host:", r.status, r.read().decode())
 PY
 

@@ -104,22 +104,22 @@ def run_table(out, *, cols=1200, angles=120, bubbles=8, iterations=40, seed=5):
     return rows
 
 
-def _memory_child(raw, out, slab_mb):
+def _memory_child(raw, out, slab_mb, background="auto"):
     from bubsub.core.prep import prepare, prepare_options
 
     t0 = time.time()
-    prepare(raw, out, prepare_options(slab_mb=slab_mb, center="auto"), progress=False)
+    prepare(raw, out, prepare_options(slab_mb=slab_mb, center="auto", background=background), progress=False)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # MB (Linux: kB)
     print(json.dumps({"peak_rss_mb": peak, "seconds": time.time() - t0}))
 
 
-def run_memory(out, *, sizes=(1, 4), slab_mb=32.0):
-    """Peak RSS of ``prepare`` for raw files ``sizes`` x 180 MB, slabs of ``slab_mb``."""
+def run_memory(out, *, sizes=(1, 4), slab_mb=32.0, background="auto"):
+    """Peak RSS of ``prepare`` for raw files ``sizes`` x 47 MB, slabs of ``slab_mb``."""
     import h5py
 
     out = Path(out)
     rng = np.random.default_rng(0)
-    print(f"slab size {slab_mb:g} MB")
+    print(f"slab size {slab_mb:g} MB, background {background}")
     print("| raw file (MB) | projections x rows x cols | peak RSS (MB) | baseline RSS (MB) | seconds |")
     print("|---|---|---|---|---|", flush=True)
     base = subprocess.run([sys.executable, "-c", "import resource, bubsub.core.prep.pipeline, "
@@ -128,7 +128,7 @@ def run_memory(out, *, sizes=(1, 4), slab_mb=32.0):
                           capture_output=True, text=True, check=True)
     baseline = float(base.stdout.strip())
     for k in sizes:
-        n, rows, cols = 360 * k, 256, 1024
+        n, rows, cols = 360 * k, 64, 1024
         raw = out / f"raw_{k}.h5"
         x = np.arange(cols) - cols / 2 + 3.3
         with h5py.File(raw, "w") as f:
@@ -144,7 +144,7 @@ def run_memory(out, *, sizes=(1, 4), slab_mb=32.0):
             f["measurement/instrument/detector/pixel_size_x"] = 10.0
         size = raw.stat().st_size / 1e6
         res = subprocess.run([sys.executable, "-m", "bubsub.bench.prepare", "--memory-child", str(raw),
-                              str(out / f"scan_{k}.h5"), str(slab_mb)], capture_output=True, text=True)
+                              str(out / f"scan_{k}.h5"), str(slab_mb), background], capture_output=True, text=True)
         if res.returncode:
             print(res.stderr, file=sys.stderr)
             continue
@@ -162,19 +162,20 @@ def main(argv=None):
     ap.add_argument("--angles", type=int, default=120)
     ap.add_argument("--iterations", type=int, default=40)
     ap.add_argument("--memory", action="store_true", help="measure peak RSS against the raw file size instead")
-    ap.add_argument("--sizes", type=int, nargs="+", default=[1, 4], help="raw sizes, units of 190 MB (--memory)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1, 4], help="raw sizes, units of 47 MB (--memory)")
     ap.add_argument("--slab-mb", type=float, default=32.0)
-    ap.add_argument("--memory-child", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--background", default="auto", help="background method of the memory runs (default auto)")
+    ap.add_argument("--memory-child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.memory_child:
-        raw, out, slab = args.memory_child
-        _memory_child(raw, out, float(slab))
+        raw, out, slab, *bg = args.memory_child
+        _memory_child(raw, out, float(slab), *bg)
         return 0
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out or tmp)
         out.mkdir(parents=True, exist_ok=True)
         if args.memory:
-            run_memory(out, sizes=args.sizes, slab_mb=args.slab_mb)
+            run_memory(out, sizes=args.sizes, slab_mb=args.slab_mb, background=args.background)
         else:
             run_table(out, cols=args.cols, angles=args.angles, iterations=args.iterations)
     return 0

@@ -197,3 +197,19 @@ def test_tiff_folder_gives_the_same_scan(raw, tmp_path):
     prepare(raw, tmp_path / "h.h5", opts, progress=False)
     a, b = read_scan(tmp_path / "t.h5"), read_scan(tmp_path / "h.h5")
     assert np.array_equal(a.data, b.data) and a.geometry == b.geometry
+
+
+def test_bubbles_at_the_edge_of_the_field_of_view_are_flagged():
+    from bubsub.clients.pipeline.reconstruct import field_of_view, truncated_flags
+    from bubsub.core import circle_surface
+    from bubsub.core.projection.geometry import ScanGeometry
+    from bubsub.core.prep.pipeline import scan_geometry
+
+    g = ScanGeometry.parallel(np.radians(np.arange(90) * 2.0), pixel_size=0.01, cols=400)
+    assert field_of_view(g) == pytest.approx((2.0, 0.0))
+    # an axis 10 pixels right of the detector centre leaves 1.9 mm on the short side
+    shifted = scan_geometry(np.arange(90) * 2.0, pixel_size=(0.01, 0.01), cols=400, axis_column=209.5)
+    assert field_of_view(shifted)[0] == pytest.approx(1.9)
+    inside = circle_surface([0.5, 0.0], 0.5, -0.1, 9).fine()
+    cut = circle_surface([1.7, 0.0], 0.5, -0.1, 9).fine()
+    assert truncated_flags([inside, cut], field_of_view(shifted), 0.01) == [0, 1]

@@ -50,3 +50,8 @@ def test_prepare_and_reconstruct_find_every_bubble(raw_dir):
     res = evaluate_dir(raw_dir / "rec", raw_dir)
     assert res["bubbles_reconstructed"] == res["bubbles_truth"] == 4
     assert res["ddi"] <= 0.05
+    import csv
+
+    with open(raw_dir / "rec" / "bubbles.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["truncated"] for r in rows] == ["0"] * 4  # all inside the field of view

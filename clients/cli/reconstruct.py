@@ -88,12 +88,19 @@ def cmd_reconstruct(args):
                 except Exception as exc:  # noqa: BLE001 - the result matters more than the clean-up
                     print(f"bubsub reconstruct: could not delete remote job: {exc}", file=sys.stderr)
             client.close()
+    if args.holdout and not rec.report["interrupted"]:
+        # the paper's voxel reference on the same projections: 30 BB iterations, x >= 0
+        from bubsub.clients.pipeline.voxel4d import voxel_baseline
+
+        ref = voxel_baseline(scan, args.holdout)
+        rec.report["holdout_mse_voxel_bb"] = ref["holdout_mse"]
     files = write_outputs(out, rec, scan_path=args.scan)
     r = rec.report
     print(f"{r['bubbles']} bubbles, {r['iterations']} iterations ({r.get('stop_reason', 'done')}), objective "
           f"{r['initial_objective']:.4g} -> {r['final_objective']:.4g}, {r['seconds_total']:.1f} s")
     if "holdout_mse" in r:
-        print(f"held-out projection MSE ({r['holdout_projections']} projections): {r['holdout_mse']:.4g}")
+        print(f"held-out projection MSE ({r['holdout_projections']} projections): {r['holdout_mse']:.4g}"
+              + (f" (voxel BB reference: {r['holdout_mse_voxel_bb']:.4g})" if "holdout_mse_voxel_bb" in r else ""))
     print(f"wrote {out}: " + ", ".join(p.name for p in files.values()))
     return 130 if r["interrupted"] else 0
 

@@ -34,7 +34,7 @@ def evaluate_dir(recon_dir, truth_dir):
     shape, extent = tuple(meta["grid_shape"]), tuple(meta["grid_extent"])
     out = {"ddi": shapes_dice_dissimilarity(rec, truth, shape, extent), "grid_shape": list(shape),
            "bubbles_reconstructed": len(rec), "bubbles_truth": len(truth)}
-    for k in ("holdout_mse", "final_objective", "seconds_total", "iterations", "stop_reason"):
+    for k in ("holdout_mse", "holdout_mse_voxel_bb", "final_objective", "seconds_total", "iterations", "stop_reason"):
         if k in r:
             out[k] = r[k]
     return out

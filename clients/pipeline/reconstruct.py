@@ -36,7 +36,8 @@ from bubsub.clients.pipeline.repair import check_and_repair
 from bubsub.clients.progress import phase
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
-__all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "initial_surfaces", "voxel_preview"]
+__all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "truncated_flags",
+           "initial_surfaces", "voxel_preview"]
 
 
 @dataclass
@@ -84,7 +85,9 @@ def field_of_view(geometry):
     n = g.ndim
     vec = g.vectors
     s, d, u = vec[:, :n], vec[:, n:2 * n], vec[:, 2 * n:3 * n]
-    half_w = 0.5 * g.det_cols * np.linalg.norm(u, axis=1)
+    # a detector shifted along u (an off-centre rotation axis) sees less on one side
+    shift = np.abs(np.einsum("ij,ij->i", d, u)) / np.linalg.norm(u, axis=1)
+    half_w = 0.5 * g.det_cols * np.linalg.norm(u, axis=1) - shift
     if g.is_cone:
         mag = np.linalg.norm(s - d, axis=1) / np.linalg.norm(s, axis=1)
     else:
@@ -94,6 +97,41 @@ def field_of_view(geometry):
         return r_xy, 0.0
     half_h = 0.5 * g.det_rows * np.linalg.norm(vec[:, 9:12], axis=1)
     return r_xy, float(np.min(half_h / mag))
+
+
+#: Unit and meaning of the ``truncated`` column of ``bubbles.csv``.
+TRUNCATED_INFO = ("1", "1 if the bubble reaches the edge of the field of view (the disc every projection sees, or "
+                       "the detector's top or bottom): its size and shape are uncertain; 0 otherwise")
+
+
+def _fov_report(geometry):
+    r_xy, half_z = field_of_view(geometry)
+    n = geometry.ndim
+    pixel = float(np.linalg.norm(geometry.vectors[0, 2 * n:3 * n]))
+    return {"radius": r_xy, "half_height": half_z, "margin": pixel}
+
+
+def truncated_flags(items, fov, margin):
+    """1 for each bubble that reaches the edge of the field of view, else 0.
+
+    Parameters
+    ----------
+    items : sequence of Polygon or Mesh
+        Refined bubbles.
+    fov : (r_xy, half_z)
+        :func:`field_of_view`, mm (``half_z`` ignored in 2D).
+    margin : float
+        A bubble within this distance (mm) of the edge counts as reaching it.
+    """
+    r_xy, half_z = fov
+    flags = []
+    for it in items:
+        v = np.asarray(it.vertices, dtype=float)
+        out = np.hypot(v[:, 0], v[:, 1]).max() > r_xy - margin
+        if v.shape[1] == 3:
+            out = out or np.abs(v[:, 2]).max() > half_z - margin
+        flags.append(int(out))
+    return flags
 
 
 def preview_voxel_size(geometry):
@@ -314,6 +352,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "seconds_initialisation": t_init,
         "projections_used": g_fit.n_angles,
         "holdout": s.holdout,
+        "field_of_view_mm": _fov_report(geometry),
         "settings": {k: v for k, v in s.__dict__.items() if k != "progress"},
     }
     if g_val is not None:
@@ -370,8 +409,16 @@ def write_outputs(out_dir, rec, scan_path=None):
         write_polygons_json(files["control"], [s.control for s in rec.surfaces], rec.ids)
     files["table"] = out / "bubbles.csv"
     rows = bubble_table(fine, rec.ids)
-    write_csv(files["table"], rows, BUBBLE_COLUMNS_3D if rec.report["dimension"] == 3 else BUBBLE_COLUMNS_2D,
-              describe=BUBBLE_COLUMN_INFO, title="bubbles reconstructed by bubsub reconstruct")
+    columns = BUBBLE_COLUMNS_3D if rec.report["dimension"] == 3 else BUBBLE_COLUMNS_2D
+    info = BUBBLE_COLUMN_INFO
+    fov = rec.report.get("field_of_view_mm")
+    if fov is not None:  # bubbles cut by the edge of the field of view are flagged, not dropped
+        for row, flag in zip(rows, truncated_flags(fine, (fov["radius"], fov["half_height"]), fov["margin"])):
+            row["truncated"] = flag
+        columns = (*columns, "truncated")
+        info = {**info, "truncated": TRUNCATED_INFO}
+    write_csv(files["table"], rows, columns,
+              describe=info, title="bubbles reconstructed by bubsub reconstruct")
     files["table_columns"] = csv_metadata_path(files["table"])
     report = dict(rec.report)
     if scan_path is not None:

@@ -3,10 +3,10 @@
 ``fit(projector_or_job, surfaces, data)`` runs locally against a
 :class:`bubsub.core.MeshProjector` or remotely against a :class:`RemoteJob`
 of a projector server; the rest of the pipeline does not know the difference.
-The HTTP client needs ``httpx`` (the ``client`` extra) and is imported lazily.
+The HTTP client needs ``httpx`` (the ``client`` extra) and is imported lazily;
+so is the optimiser (scipy), so that ``bubsub --help`` and refused arguments
+answer within a second or two.
 """
-
-from .optimise.fit import FitResult, estimate_radii, fit
 
 __all__ = ["version", "fit", "estimate_radii", "FitResult", "ProjectorClient", "RemoteJob", "RemoteError",
            "RemoteValueError", "UnknownJobError"]
@@ -23,6 +23,10 @@ def version():
 
 
 def __getattr__(name):
+    if name in ("fit", "estimate_radii", "FitResult"):
+        from .optimise import fit as module
+
+        return getattr(module, name)
     # httpx is optional: import the client only when it is used
     if name in ("ProjectorClient", "RemoteJob", "RemoteError", "RemoteValueError", "UnknownJobError"):
         from .remote import client

@@ -148,6 +148,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             # uvicorn has waited for in-flight requests; finish any computation left
             # (blocking is fine here: nothing else is served any more).
             state.pool.shutdown(wait=True)
+            state.decoder.shutdown(wait=True)
             state.store.clear()
             if blas is not None:
                 blas.restore_original_limits()
@@ -167,7 +168,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     errors.install(app)
     for router in ROUTERS:
         app.include_router(router)
-    app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes)
+    app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes, metrics=state.requests)
     app.add_middleware(MetricsMiddleware, metrics=state.requests)
     app.openapi = lambda: _openapi(app)
     return app

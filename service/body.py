@@ -3,10 +3,13 @@
 :class:`BodyLimitMiddleware` refuses, before the application sees the request,
 any body whose ``Content-Length`` is over the limit. :func:`read_body` reads a
 body in the route, counting the bytes as they stream in, so a chunked body (no
-``Content-Length``) is cut off with 413 as soon as it passes the limit.
+``Content-Length``) is cut off with 413 as soon as it passes the limit, and a
+body that trickles in is cut off with 408 at a deadline.
 """
 
 from __future__ import annotations
+
+import asyncio
 
 from starlette.requests import ClientDisconnect, Request
 
@@ -29,11 +32,14 @@ class BodyLimitMiddleware:
     app : ASGI application
     limit : int
         Largest body in bytes.
+    metrics : RequestMetrics, optional
+        Where refusals are counted.
     """
 
-    def __init__(self, app, limit):
+    def __init__(self, app, limit, metrics=None):
         self.app = app
         self.limit = int(limit)
+        self.metrics = metrics
 
     async def __call__(self, scope, receive, send):
         if scope["type"] == "http":
@@ -45,18 +51,22 @@ class BodyLimitMiddleware:
                         await error_response(400, "Content-Length is not an integer")(scope, receive, send)
                         return
                     if size > self.limit:
+                        if self.metrics is not None:
+                            self.metrics.refuse("too_large")
                         await _too_large(self.limit, size).response()(scope, receive, send)
                         return
         await self.app(scope, receive, send)
 
 
-async def read_body(request: Request, limit: int) -> bytes:
+async def read_body(request: Request, limit: int, timeout: float | None = None) -> bytes:
     """The whole body of ``request``, refusing it with 413 past ``limit`` bytes.
 
     Parameters
     ----------
     request : starlette.requests.Request
     limit : int
+    timeout : float, optional
+        Seconds the whole body may take to arrive (``BUBSUB_BODY_TIMEOUT_SECONDS``).
 
     Returns
     -------
@@ -66,7 +76,8 @@ async def read_body(request: Request, limit: int) -> bytes:
     ------
     APIError
         413 when the declared or streamed size exceeds ``limit``; 400 when
-        the client disconnects before the body is complete.
+        the client disconnects before the body is complete; 408 when it is
+        not complete within ``timeout``.
     """
     declared = request.headers.get("content-length")
     if declared is not None:
@@ -78,11 +89,15 @@ async def read_body(request: Request, limit: int) -> bytes:
     chunks = []
     size = 0
     try:
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > limit:
-                raise _too_large(limit)
-            chunks.append(chunk)
+        async with asyncio.timeout(timeout):
+            async for chunk in request.stream():
+                size += len(chunk)
+                if size > limit:
+                    raise _too_large(limit)
+                chunks.append(chunk)
     except ClientDisconnect:
         raise APIError(400, "client disconnected before the body was complete", "truncated") from None
+    except TimeoutError:
+        raise APIError(408, f"request body not complete after {timeout} s ({size} bytes arrived; "
+                            f"BUBSUB_BODY_TIMEOUT_SECONDS)", "body_timeout", {"Connection": "close"}) from None
     return b"".join(chunks)

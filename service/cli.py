@@ -72,17 +72,10 @@ def run_serve(args):
     import uvicorn
 
     from .app import create_app
+    from .server import uvicorn_config
 
     settings = settings_from_args(args)
-    config = uvicorn.Config(
-        create_app(settings),
-        host=settings.host,
-        port=settings.port,
-        log_level=settings.log_level,
-        timeout_graceful_shutdown=settings.shutdown_timeout_seconds,
-        proxy_headers=True,
-        server_header=False,
-    )
+    config = uvicorn_config(create_app(settings), settings)
     uvicorn.Server(config).run()
     return 0
 

@@ -114,6 +114,10 @@ def decode_npy(body, name="body"):
             shape, fortran, dtype = npformat._read_array_header(f, version)  # noqa: SLF001
     except Exception as exc:  # numpy raises ValueError/EOFError/SyntaxError on bad headers
         raise APIError(400, f"{name}: invalid .npy header ({exc})", "bad_npy") from None
+    if not isinstance(shape, tuple) or not all(type(s) is int and s >= 0 for s in shape):
+        # numpy's header parser takes any tuple literal: (-1, 3), (True, 3), (1.5,) ...
+        raise APIError(400, f"{name}: invalid .npy header: shape {shape!r} must be non-negative integers",
+                       "bad_npy")
     if dtype.hasobject or dtype.fields is not None or dtype.kind not in _NUMERIC_KINDS:
         raise APIError(422, f"{name}: dtype {dtype.str!r} is not allowed; send a numeric array", "bad_dtype")
     count = 1
@@ -130,7 +134,7 @@ def decode_npy(body, name="body"):
     return arr.reshape(shape, order="F" if fortran else "C")
 
 
-def decode_npz(body, max_bytes, name="body"):
+def decode_npz(body, max_bytes, name="body", max_members=16):
     """Arrays from ``.npz`` bytes (``numpy.savez`` or ``savez_compressed``).
 
     Parameters
@@ -139,6 +143,9 @@ def decode_npz(body, max_bytes, name="body"):
     max_bytes : int
         Largest total inflated size; a zip that would inflate beyond it is refused.
     name : str
+    max_members : int
+        Most members; more are refused before any is read (each costs a
+        header parse, and thousands of them would keep a decoder busy).
 
     Returns
     -------
@@ -151,6 +158,9 @@ def decode_npz(body, max_bytes, name="body"):
         raise APIError(400, f"{name}: not a valid .npz/zip file ({exc})", "bad_npz") from None
     with zf:
         infos = zf.infolist()
+        if len(infos) > max_members:
+            raise APIError(422, f"{name}: .npz has {len(infos)} members, over the limit of {max_members}",
+                           "bad_npz")
         total = sum(i.file_size for i in infos)
         if total > max_bytes:
             raise APIError(413, f"{name}: .npz inflates to {total} bytes, over the {max_bytes}-byte limit",
@@ -177,7 +187,7 @@ class Part:
     filename: str | None = None
 
 
-def parse_multipart(body, boundary):
+def parse_multipart(body, boundary, max_parts=16):
     """Split a fully read ``multipart/form-data`` body into its parts.
 
     Parameters
@@ -185,6 +195,8 @@ def parse_multipart(body, boundary):
     body : bytes
     boundary : str
         The ``boundary`` parameter of the ``Content-Type`` header.
+    max_parts : int
+        Most parts; more are refused (400).
 
     Returns
     -------
@@ -214,6 +226,8 @@ def parse_multipart(body, boundary):
         nxt = body.find(b"\r\n" + delim, pos)
         if nxt < 0:
             raise APIError(400, "multipart body is truncated (closing boundary not found)", "bad_multipart")
+        if len(parts) >= max_parts:
+            raise APIError(400, f"multipart body has more than {max_parts} parts", "bad_multipart")
         parts.append(_parse_part(body[pos:nxt]))
         pos = nxt + 2 + len(delim)
     return parts

@@ -76,6 +76,40 @@ class Settings(BaseSettings):
         before it cancels them.
     max_supersampling : int
         Largest ``supersampling`` a job may ask for.
+    job_compute_max_bytes : int or None
+        Memory one computation on a job may need (estimated before it runs);
+        over it: 413. None: ``job_max_bytes``, so that a request's memory
+        stays within the per-job cap (plus the constant of
+        :data:`~bubsub.service.budget.OVERHEAD_BYTES`).
+    max_compute_bytes : int
+        Memory budget of all computations running at once (estimated per
+        request before it runs, see :mod:`bubsub.service.budget`); a request
+        that fits alone but not next to the running ones gets 503.
+    crossings_per_ray : int
+        Crossings a sub-ray is assumed to have with each surface whose
+        bounding box it meets, in the compute memory estimate (2 for convex
+        bubbles; more leaves room for non-convex ones).
+    token_max_jobs, token_max_memory_bytes, token_max_computations : int or None
+        Per-token quotas: jobs, bytes of jobs, computations admitted at once.
+        None: the global cap (``max_jobs``, ``max_memory_bytes``, ``workers +
+        max_queue``) when authentication is off or only one token exists,
+        otherwise half of it.
+    decode_workers, decode_queue : int
+        Threads that decode request bodies (``.npy``, ``.npz``, multipart,
+        JSON) off the event loop, and how many decodes may wait (then 503).
+    max_json_bytes : int
+        Largest JSON document (job metadata, file reference); larger: 413.
+    max_connections : int
+        Open connections and requests at once (uvicorn ``limit_concurrency``);
+        requests over it get 503.
+    header_timeout_seconds : float
+        A connection must deliver a complete request head within this time
+        (from connecting, or from the end of the previous response); else it
+        is closed.
+    body_timeout_seconds : float
+        The whole request body must arrive within this time; else 408.
+    keepalive_timeout_seconds : int
+        An idle keep-alive connection is closed after this time.
     log_level : str
         ``critical``, ``error``, ``warning``, ``info`` or ``debug``.
     """
@@ -101,9 +135,23 @@ class Settings(BaseSettings):
     shutdown_grace_seconds: float = Field(0.0, ge=0)
     shutdown_timeout_seconds: float = Field(60.0, ge=0)
     max_supersampling: int = Field(8, ge=1, le=64)
+    job_compute_max_bytes: int | None = Field(None, ge=1024)
+    max_compute_bytes: int = Field(4 * GiB, ge=1024)
+    crossings_per_ray: int = Field(2, ge=1, le=1024)
+    token_max_jobs: int | None = Field(None, ge=1)
+    token_max_memory_bytes: int | None = Field(None, ge=1024)
+    token_max_computations: int | None = Field(None, ge=1)
+    decode_workers: int = Field(2, ge=1, le=64)
+    decode_queue: int = Field(32, ge=0)
+    max_json_bytes: int = Field(8 * MiB, ge=1024)
+    max_connections: int = Field(200, ge=1)
+    header_timeout_seconds: float = Field(10.0, gt=0)
+    body_timeout_seconds: float = Field(120.0, gt=0)
+    keepalive_timeout_seconds: int = Field(5, ge=1)
     log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = "info"
 
     @field_validator("tokens_file", "scan_dir", "sweep_interval_seconds", "projector_threads", "blas_threads",
+                     "token_max_jobs", "token_max_memory_bytes", "token_max_computations", "job_compute_max_bytes",
                      mode="before")
     @classmethod
     def _empty_is_none(cls, value):
@@ -120,6 +168,19 @@ class Settings(BaseSettings):
         if self.sweep_interval_seconds is not None:
             return self.sweep_interval_seconds
         return max(0.05, min(self.job_ttl_seconds / 4.0, 30.0))
+
+    @property
+    def compute_cap(self) -> int:
+        """Largest estimated memory of one computation on a job (413 beyond)."""
+        return self.job_compute_max_bytes or self.job_max_bytes
+
+    def token_quotas(self, n_tokens):
+        """``(jobs, bytes, computations)`` one token may hold, given ``n_tokens`` configured tokens."""
+        share = 2 if n_tokens >= 2 else 1  # with several tokens none may take the whole server by default
+        computations = self.workers + self.max_queue
+        return (self.token_max_jobs or max(1, self.max_jobs // share),
+                self.token_max_memory_bytes or self.max_memory_bytes // share,
+                self.token_max_computations or max(1, computations // share))
 
     def load_tokens(self) -> tuple[str, ...]:
         """Bearer tokens from ``tokens`` and ``tokens_file`` (empty: no auth).

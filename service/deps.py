@@ -57,7 +57,7 @@ JobDep = Annotated[Job, Depends(get_job)]
 
 async def get_body(request: Request, state: StateDep, _owner: OwnerDep) -> bytes:
     """The request body, bounded by ``BUBSUB_MAX_BODY_BYTES`` (read after authentication)."""
-    return await read_body(request, state.settings.max_body_bytes)
+    return await read_body(request, state.settings.max_body_bytes, state.settings.body_timeout_seconds)
 
 
 BodyDep = Annotated[bytes, Depends(get_body)]

@@ -26,6 +26,7 @@ _CODES = {
     404: "not_found",
     405: "method_not_allowed",
     406: "not_acceptable",
+    408: "request_timeout",
     409: "conflict",
     411: "length_required",
     413: "too_large",
@@ -83,7 +84,20 @@ def error_responses(*statuses):
     return {s: {"description": _CODES.get(s, "error").replace("_", " "), "model": Error} for s in statuses}
 
 
-async def _api_error(_request: Request, exc: APIError):
+#: statuses that mean "refused by a limit, quota or timeout", counted in /metrics by error code
+REFUSED = frozenset({408, 413, 429, 503, 507})
+
+
+def count_refusal(app, code):
+    """Count a refused request in the server's metrics (if ``app`` is a bubsub server)."""
+    state = getattr(getattr(app, "state", None), "service", None)
+    if state is not None:
+        state.requests.refuse(code)
+
+
+async def _api_error(request: Request, exc: APIError):
+    if exc.status in REFUSED:
+        count_refusal(request.app, exc.code)
     return exc.response()
 
 

@@ -22,6 +22,8 @@ from .errors import APIError
 
 __all__ = ["Group", "Job", "regular_polygon", "topology_bytes", "build_job"]
 
+_F32_MAX = float(np.finfo(np.float32).max)
+
 
 def regular_polygon(n):
     """``n`` counter-clockwise points on the unit circle (a valid placeholder control polygon)."""
@@ -187,17 +189,36 @@ class Job:
 
     # -- data --------------------------------------------------------------------
     def set_arrays(self, data=..., background=...):
-        """Replace data and/or background (``None`` removes) and refresh the target."""
-        if data is not ...:
-            self.data = data
-        if background is not ...:
-            self.background = background
-        if self.data is None:
-            self.target = None
-        elif self.background is None:
-            self.target = self.data
+        """Replace data and/or background (``None`` removes) and refresh the target.
+
+        Raises
+        ------
+        APIError
+            422 (and nothing changes) when ``data - background`` overflows float32.
+        """
+        self.data, self.background, self.target = self.arrays_with(data, background)
+
+    def arrays_with(self, data=..., background=...):
+        """``(data, background, target)`` as they would be after :meth:`set_arrays` (changes nothing).
+
+        Raises
+        ------
+        APIError
+            422 when ``data - background`` overflows float32.
+        """
+        data = self.data if data is ... else data
+        background = self.background if background is ... else background
+        if data is None:
+            target = None
+        elif background is None:
+            target = data
         else:
-            self.target = np.subtract(self.data, self.background, dtype=np.float32)
+            with np.errstate(over="ignore"):
+                target = np.subtract(data, background, dtype=np.float32)
+            if not np.all(np.isfinite(target)):
+                raise APIError(422, "data minus background overflows float32; check the arrays' scale",
+                               "out_of_range")
+        return data, background, target
 
     # -- compute -----------------------------------------------------------------
     def check_vertices(self, x, name="vertices"):
@@ -222,6 +243,13 @@ class Job:
                                 f"(angle, row, col / angle, col), got {a.shape}", "bad_shape")
         if not np.all(np.isfinite(a)):
             raise APIError(422, f"{name} contains NaN or inf", "not_finite")
+        if a.dtype.itemsize > 4 or a.dtype.kind != "f":
+            # float64 (or int64) beyond float32's range would be stored as inf and poison every objective
+            big = float(np.max(np.abs(a), initial=0.0))
+            if big > _F32_MAX:
+                raise APIError(422, f"{name} has values up to {big:.4g}, outside float32's range "
+                                    f"(+-{_F32_MAX:.4g}); the server stores projections as float32",
+                               "out_of_range")
         return np.array(a, dtype=np.float32, copy=True)
 
     def items(self, x):

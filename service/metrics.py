@@ -15,15 +15,26 @@ __all__ = ["RequestMetrics", "MetricsMiddleware", "render", "CONTENT_TYPE"]
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
 
+#: method label values; any other method is counted as ``other`` (labels must not grow with client input)
+METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH"})
+
+
 class RequestMetrics:
     """HTTP request counters."""
 
     def __init__(self):
         self.requests = {}  # (method, route, status) -> count
         self.seconds = {}  # (method, route) -> total seconds
+        self.refused = {}  # reason (an error code of the server's own) -> count
         self.in_flight = 0
 
+    def refuse(self, reason):
+        """Count a request refused for ``reason`` (a limit, quota or timeout)."""
+        self.refused[reason] = self.refused.get(reason, 0) + 1
+
     def observe(self, method, route, status, seconds):
+        method = method if method in METHODS else "other"
+        status = int(status) if 100 <= int(status) <= 599 else 0
         key = (method, route, str(status))
         self.requests[key] = self.requests.get(key, 0) + 1
         k2 = (method, route)
@@ -111,6 +122,9 @@ def render(requests, store, pool, ready, settings):
            [({"method": m, "route": r, "status": s}, n) for (m, r, s), n in sorted(requests.requests.items())])
     metric("bubsub_http_request_seconds_total", "counter", "Time spent answering HTTP requests.",
            [({"method": m, "route": r}, float(t)) for (m, r), t in sorted(requests.seconds.items())])
+    metric("bubsub_requests_refused_total", "counter",
+           "Requests refused by a limit, quota or timeout, by reason (the error code).",
+           [({"reason": r}, n) for r, n in sorted(requests.refused.items())])
     metric("bubsub_http_requests_in_flight", "gauge", "HTTP requests being answered.", [({}, requests.in_flight)])
     metric("bubsub_jobs", "gauge", "Jobs held.", [({}, len(store))])
     metric("bubsub_jobs_created_total", "counter", "Jobs created.", [({}, store.created_total)])
@@ -128,7 +142,11 @@ def render(requests, store, pool, ready, settings):
     metric("bubsub_compute_running", "gauge", "Computations running.", [({}, pool.running)])
     metric("bubsub_compute_queued", "gauge", "Computations waiting for a worker.", [({}, pool.queued)])
     metric("bubsub_compute_workers", "gauge", "Computations allowed at once.", [({}, pool.workers)])
-    metric("bubsub_compute_rejected_total", "counter", "Computations refused with 503 (queue full).",
+    metric("bubsub_compute_rejected_total", "counter", "Computations refused with 503 (queue, quota, budget).",
            [({}, pool.rejected_total)])
+    metric("bubsub_compute_cancelled_total", "counter", "Computations whose request was cancelled (503).",
+           [({}, pool.cancelled_total)])
+    metric("bubsub_compute_reserved_bytes", "gauge", "Estimated memory reserved by running computations.",
+           [({}, pool.budget.reserved if pool.budget is not None else 0)])
     metric("bubsub_ready", "gauge", "1 when the server accepts work.", [({}, int(bool(ready)))])
     return "\n".join(out) + "\n"

@@ -7,14 +7,26 @@ geometry's vector rows and the control faces of each surface group.
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 __all__ = ["GeometrySpec", "SurfaceGroupSpec", "JobCreate", "JobInfo", "SurfaceGroupInfo", "DataFile",
            "Status", "JobList", "Error"]
 
 Kind = Literal["parallel3d_vec", "cone_vec", "parallel_vec", "fanflat_vec"]
+
+#: limits of the JSON lists (with BUBSUB_MAX_JSON_BYTES they bound what parsing a job may allocate)
+MAX_ANGLES = 100_000
+MAX_CONTROL = 10_000_000
+MAX_GROUPS = 10_000
+MAX_FACES = 2_000_000  # control triangles of all groups together
+MAX_SURFACES = 1_000_000  # surfaces of all groups together
+
+#: one ASTRA vector row: 6 values (2D) or 12 (3D)
+VectorRow = Annotated[list[float], Field(min_length=6, max_length=12)]
+#: one control triangle: three vertex indices (bounded, so they always fit int64)
+Triangle = Annotated[list[Annotated[int, Field(ge=0, lt=MAX_CONTROL)]], Field(min_length=3, max_length=3)]
 
 
 class _Strict(BaseModel):
@@ -25,7 +37,7 @@ class GeometrySpec(_Strict):
     """A :class:`~bubsub.core.ScanGeometry` in ASTRA vector form."""
 
     kind: Kind
-    vectors: list[list[float]] = Field(..., min_length=1, max_length=100_000,
+    vectors: list[VectorRow] = Field(..., min_length=1, max_length=MAX_ANGLES,
                                        description="one ASTRA vector row per projection: 12 values (3D) or 6 (2D)")
     det_rows: int | None = Field(None, ge=1, le=1_000_000, description="detector rows (3D kinds only)")
     det_cols: int = Field(..., ge=1, le=1_000_000, description="detector columns (det_count in 2D)")
@@ -39,12 +51,12 @@ class SurfaceGroupSpec(_Strict):
     polygon of ``n_control`` points).
     """
 
-    n_control: int = Field(..., ge=3, le=10_000_000, description="control vertices per surface")
-    faces: list[list[int]] | None = Field(None, max_length=10_000_000,
+    n_control: int = Field(..., ge=3, le=MAX_CONTROL, description="control vertices per surface")
+    faces: list[Triangle] | None = Field(None, max_length=MAX_FACES,
                                           description="control triangles (m, 3), 3D only")
     levels: int = Field(2, ge=0, le=6, description="subdivision levels")
     attenuation: float = Field(..., description="attenuation inside the surfaces, 1/mm")
-    count: int = Field(1, ge=1, le=1_000_000, description="number of surfaces in this group")
+    count: int = Field(1, ge=1, le=MAX_SURFACES, description="number of surfaces in this group")
 
     @field_validator("attenuation")
     @classmethod
@@ -58,8 +70,18 @@ class JobCreate(_Strict):
     """Metadata of a new job (the ``job`` part of a multipart body, or the whole JSON body)."""
 
     geometry: GeometrySpec
-    surfaces: list[SurfaceGroupSpec] = Field(..., min_length=1, max_length=100_000)
+    surfaces: list[SurfaceGroupSpec] = Field(..., min_length=1, max_length=MAX_GROUPS)
     supersampling: int = Field(1, ge=1, le=64)
+
+    @model_validator(mode="after")
+    def _totals(self):
+        faces = sum(len(s.faces or ()) for s in self.surfaces)
+        if faces > MAX_FACES:
+            raise ValueError(f"the groups have {faces} control faces together, over the limit of {MAX_FACES}")
+        surfaces = sum(s.count for s in self.surfaces)
+        if surfaces > MAX_SURFACES:
+            raise ValueError(f"the groups have {surfaces} surfaces together, over the limit of {MAX_SURFACES}")
+        return self
 
 
 class SurfaceGroupInfo(BaseModel):

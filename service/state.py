@@ -1,10 +1,11 @@
-"""Process-wide state of one server: settings, job store, compute pool, auth, metrics."""
+"""Process-wide state of one server: settings, job store, pools, auth, metrics."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 from .auth import TokenAuth
+from .budget import ComputeBudget
 from .compute import ComputePool
 from .config import Settings
 from .metrics import RequestMetrics
@@ -22,6 +23,9 @@ class ServiceState:
     settings : Settings
     store : JobStore
     pool : ComputePool
+        Projections (and other work on jobs).
+    decoder : ComputePool
+        Decoding of request bodies (``.npy``, ``.npz``, multipart, JSON), off the event loop.
     auth : TokenAuth
     requests : RequestMetrics
     ready : bool
@@ -31,6 +35,7 @@ class ServiceState:
     settings: Settings
     store: JobStore
     pool: ComputePool
+    decoder: ComputePool
     auth: TokenAuth
     requests: RequestMetrics = field(default_factory=RequestMetrics)
     ready: bool = False
@@ -38,10 +43,15 @@ class ServiceState:
     @classmethod
     def from_settings(cls, settings):
         """Build the state; reads the token file (``OSError`` if it is unreadable)."""
+        tokens = settings.load_tokens()
+        jobs, nbytes, computations = settings.token_quotas(len(tokens))
+        retry = settings.retry_after_seconds
         return cls(
             settings=settings,
             store=JobStore(settings.job_max_bytes, settings.max_memory_bytes, settings.max_jobs,
-                           settings.job_ttl_seconds),
-            pool=ComputePool(settings.workers, settings.max_queue, settings.retry_after_seconds),
-            auth=TokenAuth(settings.load_tokens()),
+                           settings.job_ttl_seconds, token_max_jobs=jobs, token_max_bytes=nbytes),
+            pool=ComputePool(settings.workers, settings.max_queue, retry, per_owner=computations,
+                             budget=ComputeBudget(settings.max_compute_bytes, retry)),
+            decoder=ComputePool(settings.decode_workers, settings.decode_queue, retry, name="decode"),
+            auth=TokenAuth(tokens),
         )

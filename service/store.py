@@ -21,7 +21,7 @@ def _unknown(job_id):
 
 
 class JobStore:
-    """Jobs by id, with per-job and total memory caps.
+    """Jobs by id, with per-job, per-owner and total memory caps.
 
     Parameters
     ----------
@@ -33,12 +33,17 @@ class JobStore:
         Most jobs at once (507 beyond it).
     ttl : float
         Seconds a job may stay unused before :meth:`expire` removes it.
+    token_max_jobs, token_max_bytes : int, optional
+        Jobs and bytes one owner (token) may hold (507 beyond them); default:
+        the global caps.
     """
 
-    def __init__(self, job_max_bytes, max_memory_bytes, max_jobs, ttl):
+    def __init__(self, job_max_bytes, max_memory_bytes, max_jobs, ttl, token_max_jobs=None, token_max_bytes=None):
         self.job_max_bytes = int(job_max_bytes)
         self.max_memory_bytes = int(max_memory_bytes)
         self.max_jobs = int(max_jobs)
+        self.token_max_jobs = int(token_max_jobs or max_jobs)
+        self.token_max_bytes = int(token_max_bytes or max_memory_bytes)
         self.ttl = float(ttl)
         self._jobs = {}
         self.created_total = 0
@@ -54,22 +59,33 @@ class JobStore:
         """Bytes held by all jobs' arrays."""
         return sum(job.nbytes() for job in self._jobs.values())
 
-    def admit(self, new_bytes, replacing=0):
+    def owner_bytes(self, owner):
+        """Bytes held by the jobs of ``owner``."""
+        return sum(job.nbytes() for job in self.owned(owner))
+
+    def admit(self, new_bytes, replacing=0, owner=None):
         """Check that a job of ``new_bytes`` (replacing one of ``replacing``) fits the caps.
 
         Raises
         ------
         APIError
-            413 over the per-job cap, 507 over the server-wide cap.
+            413 over the per-job cap; 507 over the owner's quota or the server-wide cap.
         """
         if new_bytes > self.job_max_bytes:
             raise APIError(413, f"the job would hold {new_bytes} bytes, over the per-job cap of "
-                                f"{self.job_max_bytes} bytes (BUBSUB_JOB_MAX_BYTES)", "job_too_large")
+                                f"{self.job_max_bytes} bytes (BUBSUB_JOB_MAX_BYTES) by "
+                                f"{new_bytes - self.job_max_bytes} bytes", "job_too_large")
         total = self.memory_bytes - replacing + new_bytes
         if total > self.max_memory_bytes:
             raise APIError(507, f"the server holds {self.memory_bytes} bytes of jobs; {new_bytes - replacing} "
                                 f"more would pass its cap of {self.max_memory_bytes} bytes "
                                 f"(BUBSUB_MAX_MEMORY_BYTES); delete jobs or retry later", "server_full")
+        if owner is not None:
+            mine = self.owner_bytes(owner) - replacing + new_bytes
+            if mine > self.token_max_bytes:
+                raise APIError(507, f"this token's jobs would hold {mine} bytes, over its quota of "
+                                    f"{self.token_max_bytes} bytes (BUBSUB_TOKEN_MAX_MEMORY_BYTES) by "
+                                    f"{mine - self.token_max_bytes} bytes; delete jobs", "token_quota")
 
     # -- jobs ----------------------------------------------------------------------
     @staticmethod
@@ -79,10 +95,14 @@ class JobStore:
 
     def add(self, job):
         """Store ``job`` after checking the caps."""
+        mine = len(self.owned(job.owner))
+        if mine >= self.token_max_jobs:
+            raise APIError(507, f"this token holds {mine} jobs, its quota (BUBSUB_TOKEN_MAX_JOBS); delete jobs",
+                           "token_quota")
         if len(self._jobs) >= self.max_jobs:
             raise APIError(507, f"the server holds its maximum of {self.max_jobs} jobs (BUBSUB_MAX_JOBS); "
                                 f"delete jobs or retry later", "server_full")
-        self.admit(job.nbytes())
+        self.admit(job.nbytes(), owner=job.owner)
         self._jobs[job.id] = job
         self.created_total += 1
         return job

@@ -22,6 +22,7 @@ from bubsub.clients.remote.client import ProjectorClient
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
 from bubsub.service.app import create_app
 from bubsub.service.config import Settings
+from bubsub.service.server import uvicorn_config
 
 
 def free_socket(port=0):
@@ -50,7 +51,8 @@ class ServerThread:
         self.port = self.sock.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}"
         self.app = create_app(self.settings)
-        self.server = uvicorn.Server(uvicorn.Config(self.app, log_level="warning", timeout_graceful_shutdown=10))
+        config = uvicorn_config(self.app, self.settings, log_level="warning", timeout_graceful_shutdown=10)
+        self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
         self.thread.start()
         end = time.monotonic() + 20

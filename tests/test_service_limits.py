@@ -29,8 +29,8 @@ def small():
 
 @pytest.fixture(scope="module")
 def capped():
-    """A server with jobs capped at 250 kB each and 300 kB in all."""
-    with ServerThread(job_max_bytes=250_000, max_memory_bytes=300_000) as s:
+    """A server with jobs capped at 250 kB each and 300 kB in all (computations: 10 MB)."""
+    with ServerThread(job_max_bytes=250_000, max_memory_bytes=300_000, job_compute_max_bytes=10_000_000) as s:
         yield s
 
 

@@ -22,7 +22,8 @@ def test_sigterm_not_ready_first_then_drains():
     port = sock.getsockname()[1]
     sock.close()
     # the slower ray-casting backend and 6 x 6 sub-rays keep one call busy past the grace period
-    env = {**os.environ, "BUBSUB_BACKEND": "embreex", "BUBSUB_SHUTDOWN_GRACE_SECONDS": "1.0", "BUBSUB_WORKERS": "1", "BUBSUB_LOG_LEVEL": "warning"}
+    env = {**os.environ, "BUBSUB_BACKEND": "embreex", "BUBSUB_SHUTDOWN_GRACE_SECONDS": "1.0", "BUBSUB_WORKERS": "1", "BUBSUB_LOG_LEVEL": "warning",
+           "BUBSUB_JOB_COMPUTE_MAX_BYTES": str(3 << 30)}  # 6 x 6 sub-rays are over the default estimate
     proc = subprocess.Popen([sys.executable, "-m", "bubsub.service", "--host", "127.0.0.1", "--port", str(port)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"

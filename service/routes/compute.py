@@ -6,7 +6,9 @@ import time
 
 from fastapi import APIRouter, Request, Response
 
-from ..codec import NPY, NPZ, content_type, decode_arrays, encode_npy, encode_npz
+from ..budget import check_job, estimate
+from ..codec import NPY, NPZ, content_type, encode_npy, encode_npz
+from ..decoding import decode_compute_body
 from ..deps import BodyDep, JobDep, StateDep
 from ..errors import APIError
 from ..openapi import binary_body, binary_response, errors
@@ -17,12 +19,12 @@ _VERTICES = "stacked control vertices of all the job's surfaces, float (n_contro
 _ERRORS = errors(400, 401, 404, 409, 413, 415, 422, 503, 507)
 
 
-async def _compute(state, job, op, fn, *args):
-    """Run ``fn`` in the compute pool for ``job``, mapping core errors to 422."""
+async def _compute(state, job, op, fn, arrays, need):
+    """Run ``fn(job, arrays)`` in the compute pool within its memory estimate, mapping core errors to 422."""
     job.active += 1
     t0 = time.perf_counter()
     try:
-        return await state.pool.run(op, fn, *args)
+        return await state.pool.run(op, fn, job, arrays, owner=job.owner, nbytes=need.total)
     except APIError:
         raise
     except (ValueError, TypeError, IndexError) as exc:
@@ -36,28 +38,35 @@ async def _compute(state, job, op, fn, *args):
         job.touch()
 
 
-def _arrays(request: Request, body: bytes, state, allowed, required):
+def _decode(job, op, settings, body, ctype, params, allowed, required):
+    """Arrays of the request with the vertices checked, and the memory estimate (413 over the job's cap)."""
+    arrays = decode_compute_body(body, ctype, params, settings.max_body_bytes, allowed, required)
+    arrays["vertices"] = job.check_vertices(arrays["vertices"])
+    need = estimate(job, op, settings.crossings_per_ray, arrays["vertices"])
+    check_job(need, settings.compute_cap)
+    return arrays, need
+
+
+async def _arrays(request: Request, body: bytes, state, job, op, allowed, required):
+    """The request's arrays and its estimate, decoded off the event loop (cheap checks first)."""
+    check_job(estimate(job, op, state.settings.crossings_per_ray), state.settings.compute_cap)
     ctype, params = content_type(request.headers.get("content-type"))
-    arrays = decode_arrays(body, ctype, params, state.settings.max_body_bytes, allowed)
-    missing = [k for k in required if k not in arrays]
-    if missing:
-        raise APIError(422, f"missing arrays {missing}; send {NPZ} or multipart with {list(allowed)}",
-                       "missing_array")
-    return arrays
+    return await state.decoder.run("decode", _decode, job, op, state.settings, body, ctype, params, allowed,
+                                   required)
 
 
 def _forward(job, arrays):
-    return encode_npy(job.forward(job.check_vertices(arrays["vertices"])))
+    return encode_npy(job.forward(arrays["vertices"]))
 
 
 def _vjp(job, arrays):
-    x = job.check_vertices(arrays["vertices"])
+    x = arrays["vertices"]
     r = job.check_projection(arrays["residual"], "residual")
     return encode_npy(job.vjp(x, r))
 
 
 def _objective(job, arrays):
-    x = job.check_vertices(arrays["vertices"])
+    x = arrays["vertices"]
     data = arrays.get("data")
     if data is not None:
         data = job.check_projection(data, "data")
@@ -70,8 +79,8 @@ def _objective(job, arrays):
              responses={**binary_response("float32 projections of the job's projection shape"), **_ERRORS})
 async def forward(request: Request, job: JobDep, state: StateDep, body: BodyDep) -> Response:
     """Project the subdivided surfaces: returns float32 `.npy` of shape (angle, row, col) / (angle, col)."""
-    arrays = _arrays(request, body, state, ("vertices",), ("vertices",))
-    return Response(await _compute(state, job, "forward", _forward, job, arrays), media_type=NPY)
+    arrays, need = await _arrays(request, body, state, job, "forward", ("vertices",), ("vertices",))
+    return Response(await _compute(state, job, "forward", _forward, arrays, need), media_type=NPY)
 
 
 @router.post("/vjp", response_class=Response, summary="Vector-Jacobian product",
@@ -82,8 +91,8 @@ async def forward(request: Request, job: JobDep, state: StateDep, body: BodyDep)
              responses={**binary_response("float64 gradient, shape of the vertices"), **_ERRORS})
 async def vjp(request: Request, job: JobDep, state: StateDep, body: BodyDep) -> Response:
     """Gradient of `<forward(vertices), residual>` with respect to the control vertices (float64 `.npy`)."""
-    arrays = _arrays(request, body, state, ("vertices", "residual"), ("vertices", "residual"))
-    return Response(await _compute(state, job, "vjp", _vjp, job, arrays), media_type=NPY)
+    arrays, need = await _arrays(request, body, state, job, "vjp", ("vertices", "residual"), ("vertices", "residual"))
+    return Response(await _compute(state, job, "vjp", _vjp, arrays, need), media_type=NPY)
 
 
 @router.post("/objective", response_class=Response, summary="Objective and gradient",
@@ -99,6 +108,6 @@ async def objective(request: Request, job: JobDep, state: StateDep, body: BodyDe
     The target is the posted `data` if given, otherwise the job's data minus its background.
     The value is also in the `X-Objective` header (exact decimal repr).
     """
-    arrays = _arrays(request, body, state, ("vertices", "data"), ("vertices",))
-    f, payload = await _compute(state, job, "objective", _objective, job, arrays)
+    arrays, need = await _arrays(request, body, state, job, "objective", ("vertices", "data"), ("vertices",))
+    f, payload = await _compute(state, job, "objective", _objective, arrays, need)
     return Response(payload, media_type=NPZ, headers={"X-Objective": repr(float(f))})

@@ -5,9 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from fastapi import APIRouter, Request
-from pydantic import ValidationError
 
-from ..codec import JSON, NPY, NPZ, content_type, decode_npy, decode_npz
+from ..codec import JSON, NPY, content_type, decode_npy, decode_npz
+from ..decoding import decode_upload_body
 from ..deps import BodyDep, JobDep, StateDep
 from ..errors import APIError
 from ..openapi import errors
@@ -37,19 +37,27 @@ def _upload_body(what):
 
 
 def _resolve(settings, spec: DataFile) -> Path:
+    """The file ``spec`` names inside the scan directory (422 for anything else, never a 500)."""
     if settings.scan_dir is None:
         raise APIError(422, "this server has no scan directory (BUBSUB_SCAN_DIR); upload the array as "
                             f"{NPY} instead", "no_scan_dir")
-    root = Path(settings.scan_dir).resolve()
-    path = (root / spec.file).resolve()
-    if not path.is_relative_to(root):
+    try:
+        root = Path(settings.scan_dir).resolve()
+        path = (root / spec.file).resolve()
+        inside = path.is_relative_to(root)
+        is_file = inside and path.is_file()
+    except (ValueError, OSError, RuntimeError) as exc:
+        # NUL bytes (ValueError), names over NAME_MAX (OSError), symlink loops (RuntimeError/OSError)
+        raise APIError(422, f"file {spec.file!r} cannot be used: {exc}", "bad_path") from None
+    if not inside:
         raise APIError(422, f"file {spec.file!r} is outside the scan directory", "bad_path")
-    if not path.is_file():
+    if not is_file:
         raise APIError(422, f"file {spec.file!r} not found in the scan directory", "bad_path")
     return path
 
 
-def _read_file(path: Path, spec: DataFile, limit: int):
+def _read_file(settings, spec: DataFile, limit: int):
+    path = _resolve(settings, spec)
     size = path.stat().st_size
     if size > limit:
         raise APIError(413, f"file {spec.file!r} has {size} bytes, over the per-job cap of {limit}", "job_too_large")
@@ -64,27 +72,21 @@ def _read_file(path: Path, spec: DataFile, limit: int):
     return decode_npy(raw, spec.file)
 
 
-async def _array_from_request(request: Request, body: bytes, state, which: str):
-    ctype, _ = content_type(request.headers.get("content-type"))
-    if ctype == NPY:
-        return decode_npy(body, which)
-    if ctype == JSON:
-        try:
-            spec = DataFile.model_validate_json(body)
-        except ValidationError as exc:
-            raise APIError(422, f"invalid file reference: {exc.errors()[0]['msg']}", "invalid") from None
-        path = _resolve(state.settings, spec)
-        return await state.pool.run("load", _read_file, path, spec, state.settings.job_max_bytes)
-    raise APIError(415, f"unsupported Content-Type {ctype or '(none)'!r}; send {NPY} (or {JSON} naming a "
-                        f"file in the scan directory)" + ("; one array only, not .npz" if ctype == NPZ else ""),
-                   "unsupported_media_type")
+def _checked(job, which, raw):
+    """The upload as float32 and the job's arrays with it (run in the pool: it touches the whole array)."""
+    arr = job.check_projection(raw, which)
+    return arr, job.arrays_with(**{which: arr})
 
 
 async def _put(which: str, request: Request, body: bytes, job, state) -> JobInfo:
-    raw = await _array_from_request(request, body, state, which)
-    arr = await state.pool.run("upload", job.check_projection, raw, which)
-    state.store.admit(job.nbytes(**{which: arr}), replacing=job.nbytes())
-    job.set_arrays(**{which: arr})
+    settings = state.settings
+    ctype, _ = content_type(request.headers.get("content-type"))
+    raw = await state.decoder.run("decode", decode_upload_body, body, ctype, which, settings.max_json_bytes)
+    if isinstance(raw, DataFile):
+        raw = await state.pool.run("load", _read_file, settings, raw, settings.job_max_bytes, owner=job.owner)
+    arr, (data, background, target) = await state.pool.run("upload", _checked, job, which, raw, owner=job.owner)
+    state.store.admit(job.nbytes(**{which: arr}), replacing=job.nbytes(), owner=job.owner)
+    job.data, job.background, job.target = data, background, target
     return job_info(job, state.store.ttl)
 
 

@@ -5,18 +5,16 @@ from __future__ import annotations
 import time
 
 from fastapi import APIRouter, Request, Response
-from pydantic import ValidationError
 
-from ..codec import JSON, MULTIPART, content_type, decode_npy, parse_multipart
+from ..budget import check_job, estimate
+from ..codec import JSON, content_type
+from ..decoding import check_json_size, decode_job_body
 from ..deps import BodyDep, JobDep, OwnerDep, StateDep
-from ..errors import APIError
 from ..jobs import Job, build_job, topology_bytes
 from ..openapi import errors, job_create_body
 from ..schemas import JobCreate, JobInfo, JobList, SurfaceGroupInfo
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
-
-_PARTS = ("job", "vertices", "data", "background")
 
 
 def job_info(job: Job, ttl: float) -> JobInfo:
@@ -35,17 +33,6 @@ def job_info(job: Job, ttl: float) -> JobInfo:
         memory_bytes=job.nbytes(), created=job.created, idle_seconds=idle,
         expires_in_seconds=max(0.0, ttl - idle), calls=job.calls, compute_seconds=job.compute_seconds,
     )
-
-
-def _parse_spec(raw: bytes) -> JobCreate:
-    try:
-        return JobCreate.model_validate_json(raw)
-    except ValidationError as exc:
-        errs = exc.errors()
-        if any(e["type"] == "json_invalid" for e in errs):
-            raise APIError(400, f"job metadata is not valid JSON: {errs[0]['msg']}", "bad_json") from None
-        msgs = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'job'}: {e['msg']}" for e in errs[:10])
-        raise APIError(422, f"invalid job metadata: {msgs}", "invalid") from None
 
 
 def _estimate(spec: JobCreate, arrays: dict) -> int:
@@ -73,31 +60,17 @@ async def create_job(request: Request, response: Response, state: StateDep, owne
     The server subdivides the surfaces itself; compute requests then send only
     the stacked control vertices. The `Location` header names the new job.
     """
+    settings = state.settings
     ctype, params = content_type(request.headers.get("content-type"))
-    arrays = {}
     if ctype == JSON:
-        raw = body
-    elif ctype == MULTIPART:
-        parts = {}
-        for part in parse_multipart(body, params.get("boundary")):
-            if part.name not in _PARTS:
-                raise APIError(422, f"unexpected multipart part {part.name!r}; expected {list(_PARTS)}",
-                               "unknown_array")
-            if part.name in parts:
-                raise APIError(400, f"multipart part {part.name!r} given twice", "bad_multipart")
-            parts[part.name] = part
-        if "job" not in parts:
-            raise APIError(422, "multipart body needs a 'job' part with the JSON metadata", "invalid")
-        raw = parts.pop("job").data
-        arrays = {name: decode_npy(p.data, name) for name, p in parts.items()}
-    else:
-        raise APIError(415, f"unsupported Content-Type {ctype or '(none)'!r}; send {JSON} or {MULTIPART} "
-                            f"(a 'job' JSON part and .npy parts)", "unsupported_media_type")
-    spec = _parse_spec(raw)
-    state.store.admit(_estimate(spec, arrays))
+        check_json_size(body, settings.max_json_bytes)  # before a thread is taken for it
+    spec, arrays = await state.decoder.run("decode", decode_job_body, body, ctype, params, settings.max_json_bytes)
+    state.store.admit(_estimate(spec, arrays), owner=owner)
     job_id = state.store.new_id()
-    job = await state.pool.run("create", build_job, job_id, owner, spec, state.settings,
-                               arrays.get("vertices"), arrays.get("data"), arrays.get("background"))
+    job = await state.pool.run("create", build_job, job_id, owner, spec, settings,
+                               arrays.get("vertices"), arrays.get("data"), arrays.get("background"), owner=owner)
+    # a job none of whose computations would fit is refused now, not on its first request
+    check_job(estimate(job, "forward", settings.crossings_per_ray), settings.compute_cap)
     state.store.add(job)
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return job_info(job, state.store.ttl)

@@ -1,23 +1,26 @@
-"""``python -m bubsub.bench [projector|remote|prepare|cluster] [options]``: print benchmark tables."""
+"""``python -m bubsub.bench NAME [options]``: print benchmark tables (``bubsub bench`` runs the same)."""
 
+import importlib
 import sys
+
+#: Benchmark name -> (module in bubsub.bench, what it measures). ``bubsub bench --help`` lists these.
+BENCHMARKS = {
+    "projector": ("projector", "forward, gradient and objective of the mesh projector per backend, scaling, peak memory"),
+    "remote": ("remote", "a fit against a local projector server versus in-process: HTTP overhead per iteration"),
+    "prepare": ("prepare", "raw-data preparation: DDI/MSE with and without each step, peak memory of a prepare"),
+    "cluster": ("cluster", "4D and experiment runs in-process versus on a Dask LocalCluster"),
+    "attacks": ("attacks", "bounded attacks on a projector server: status codes, memory rise, health latency"),
+}
 
 
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     name = argv.pop(0) if argv and not argv[0].startswith("-") else "projector"
-    if name == "projector":
-        from .projector import main as run
-    elif name == "remote":
-        from .remote import main as run
-    elif name == "prepare":
-        from .prepare import main as run
-    elif name == "cluster":
-        from .cluster import main as run
-    else:
-        print(f"unknown benchmark {name!r}; choose 'projector', 'remote', 'prepare' or 'cluster'", file=sys.stderr)
+    if name not in BENCHMARKS:
+        print(f"unknown benchmark {name!r}; choose one of {', '.join(BENCHMARKS)}", file=sys.stderr)
         return 2
-    return run(argv)
+    module = importlib.import_module(f"bubsub.bench.{BENCHMARKS[name][0]}")
+    return module.main(argv)
 
 
 if __name__ == "__main__":

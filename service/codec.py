@@ -152,6 +152,9 @@ def decode_npz(body, max_bytes, name="body", max_members=16):
     dict of str to numpy.ndarray
         Keyed by member name without the ``.npy`` suffix.
     """
+    declared = _zip_entries(body)
+    if declared is not None and declared > max_members:
+        raise APIError(422, f"{name}: .npz has {declared} members, over the limit of {max_members}", "bad_npz")
     try:
         zf = zipfile.ZipFile(io.BytesIO(body))
     except (zipfile.BadZipFile, ValueError, OSError) as exc:
@@ -175,6 +178,19 @@ def decode_npz(body, max_bytes, name="body", max_members=16):
                                "bad_npz") from None
             out[key] = decode_npy(raw, f"{name}[{key}]")
     return out
+
+
+def _zip_entries(body):
+    """Entry count from a zip's end-of-central-directory record (None if not found).
+
+    Read before :class:`zipfile.ZipFile` parses the whole central directory,
+    which for a zip of many tiny members is most of the cost.
+    """
+    tail = bytes(memoryview(body)[-(22 + 65535):])
+    at = tail.rfind(b"PK\x05\x06")
+    if at < 0 or at + 22 > len(tail):
+        return None
+    return int.from_bytes(tail[at + 10:at + 12], "little")  # 0xFFFF for zip64: over any limit here
 
 
 @dataclass(frozen=True)

@@ -100,8 +100,11 @@ class Settings(BaseSettings):
     max_json_bytes : int
         Largest JSON document (job metadata, file reference); larger: 413.
     max_connections : int
-        Open connections and requests at once (uvicorn ``limit_concurrency``);
-        requests over it get 503.
+        Open connections and requests at once (uvicorn ``limit_concurrency``):
+        a connection beyond it is closed at once, a request beyond it gets
+        503. Lowered to the file-descriptor limit minus ``backlog`` minus 64.
+    backlog : int
+        Pending connections the kernel queues (and asyncio accepts in one go).
     header_timeout_seconds : float
         A connection must deliver a complete request head within this time
         (from connecting, or from the end of the previous response); else it
@@ -145,6 +148,7 @@ class Settings(BaseSettings):
     decode_queue: int = Field(32, ge=0)
     max_json_bytes: int = Field(8 * MiB, ge=1024)
     max_connections: int = Field(200, ge=1)
+    backlog: int = Field(128, ge=1, le=65535)
     header_timeout_seconds: float = Field(10.0, gt=0)
     body_timeout_seconds: float = Field(120.0, gt=0)
     keepalive_timeout_seconds: int = Field(5, ge=1)

@@ -6,34 +6,49 @@ head (h11's ``max_incomplete_event_size``), but it waits forever for the head
 of a request that trickles in. :class:`HeaderTimeoutProtocol` closes a
 connection that has not sent a complete request head within
 ``BUBSUB_HEADER_TIMEOUT_SECONDS`` of connecting (or of its previous
-response). The body has its own deadline (``read_body``).
+response), and closes at once a connection beyond ``max_connections``, so
+that the process never runs out of file descriptors (at that point asyncio's
+accept loop retries in a busy loop and no timer, not even these, runs). The
+body has its own deadline (``read_body``).
 """
 
 from __future__ import annotations
+
+import resource
 
 import h11
 import uvicorn
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-__all__ = ["HeaderTimeoutProtocol", "protocol_class", "uvicorn_config", "MAX_HEADER_BYTES"]
+__all__ = ["HeaderTimeoutProtocol", "protocol_class", "connection_limit", "uvicorn_config", "MAX_HEADER_BYTES",
+           "FD_RESERVE"]
 
 #: largest request head (request line and headers); h11 answers 400 beyond it
 MAX_HEADER_BYTES = 16 * 1024
+#: file descriptors kept for the process itself (not connections)
+FD_RESERVE = 64
 
 
 class HeaderTimeoutProtocol(H11Protocol):
     """h11 protocol that drops connections whose request head is not complete in time.
 
-    ``header_timeout`` (seconds) and ``metrics`` (a :class:`RequestMetrics`
-    or None) are class attributes, set by :func:`protocol_class`.
+    ``header_timeout`` (seconds), ``max_connections`` and ``metrics`` (a
+    :class:`RequestMetrics` or None) are class attributes, set by
+    :func:`protocol_class`.
     """
 
     header_timeout = 10.0
+    max_connections = None
     metrics = None
 
     def connection_made(self, transport):
         super().connection_made(transport)
         self._head_timer = None
+        if self.max_connections is not None and len(self.connections) > self.max_connections:
+            if self.metrics is not None:
+                self.metrics.refuse("connections")
+            transport.close()
+            return
         self._arm_head_timer()
 
     def _arm_head_timer(self):
@@ -68,10 +83,23 @@ class HeaderTimeoutProtocol(H11Protocol):
         super().connection_lost(exc)
 
 
-def protocol_class(header_timeout, metrics=None):
+def protocol_class(header_timeout, max_connections=None, metrics=None):
     """A :class:`HeaderTimeoutProtocol` subclass with these settings (uvicorn takes a class)."""
     return type("BubsubH11Protocol", (HeaderTimeoutProtocol,),
-                {"header_timeout": float(header_timeout), "metrics": metrics})
+                {"header_timeout": float(header_timeout), "max_connections": max_connections, "metrics": metrics})
+
+
+def connection_limit(settings):
+    """``max_connections``, lowered to fit the process's file-descriptor limit.
+
+    Up to ``backlog`` connections are accepted in one go before any is
+    looked at, and the process needs descriptors of its own (files, pipes,
+    the listening socket): those are kept free.
+    """
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY:
+        return settings.max_connections
+    return max(1, min(settings.max_connections, soft - settings.backlog - FD_RESERVE))
 
 
 def uvicorn_config(app, settings, **overrides):
@@ -86,6 +114,7 @@ def uvicorn_config(app, settings, **overrides):
         Further ``uvicorn.Config`` arguments (``log_level``, ``host`` ...).
     """
     state = getattr(app.state, "service", None)
+    limit = connection_limit(settings)
     kwargs = dict(
         host=settings.host,
         port=settings.port,
@@ -93,8 +122,9 @@ def uvicorn_config(app, settings, **overrides):
         timeout_graceful_shutdown=settings.shutdown_timeout_seconds,
         proxy_headers=True,
         server_header=False,
-        http=protocol_class(settings.header_timeout_seconds, state.requests if state is not None else None),
-        limit_concurrency=settings.max_connections,
+        http=protocol_class(settings.header_timeout_seconds, limit, state.requests if state is not None else None),
+        limit_concurrency=limit,
+        backlog=settings.backlog,
         timeout_keep_alive=settings.keepalive_timeout_seconds,
         h11_max_incomplete_event_size=MAX_HEADER_BYTES,
     )

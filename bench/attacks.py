@@ -1,0 +1,488 @@
+"""Benchmark "attacks": bounded attacks on a projection server, before and after hardening.
+
+``python -m bubsub.bench attacks [--before DIR] [--only NAME,...]``
+
+Each attack starts its own server process on 127.0.0.1 (``python -m
+bubsub.service``, small memory caps), measures the server's peak resident
+memory rise (``VmHWM`` after resetting it through ``/proc/PID/clear_refs``)
+and the worst ``/healthz`` latency while the attack runs, and records the
+status codes the attack got. ``--before DIR`` runs every attack a second time
+against the package found in ``DIR/bubsub`` (e.g. ``git archive c212297``
+unpacked there) and prints both side by side. The attacks are scaled to run
+in about a minute each on a small machine; the issue's sizes are noted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import http.client
+import io
+import json
+import os
+import re
+import resource
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import zipfile
+from collections import Counter
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+__all__ = ["ServerProcess", "ATTACKS", "main"]
+
+MiB = 1 << 20
+
+#: caps of the attacked servers (small, so that refusals and damage show quickly)
+BASE_ENV = {
+    "BUBSUB_WORKERS": "2",
+    "BUBSUB_LOG_LEVEL": "critical",
+    "BUBSUB_JOB_MAX_BYTES": str(256 * MiB),
+    "BUBSUB_MAX_MEMORY_BYTES": str(512 * MiB),
+    "BUBSUB_MAX_COMPUTE_BYTES": str(1024 * MiB),
+    "BUBSUB_HEADER_TIMEOUT_SECONDS": "2",
+    "BUBSUB_BODY_TIMEOUT_SECONDS": "5",
+}
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """``python -m bubsub.service`` on a free loopback port, with its memory measured.
+
+    Parameters
+    ----------
+    src : str or None
+        Directory holding the ``bubsub`` package to run (None: the installed one).
+    nofile : int, optional
+        File-descriptor limit of the server.
+    **env
+        ``BUBSUB_*`` settings on top of :data:`BASE_ENV`.
+    """
+
+    def __init__(self, src=None, nofile=None, **env):
+        self.port = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        full = {**os.environ, **BASE_ENV, **{k: str(v) for k, v in env.items()}}
+        if src:
+            full["PYTHONPATH"] = os.pathsep.join([str(src), full.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+
+        def limits():
+            if nofile:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
+
+        self.proc = subprocess.Popen([sys.executable, "-m", "bubsub.service", "--host", "127.0.0.1", "--port",
+                                      str(self.port)], env=full, preexec_fn=limits, cwd=tempfile.gettempdir(),
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        end = time.monotonic() + 120
+        while True:
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            if self.proc.poll() is not None or time.monotonic() > end:
+                raise RuntimeError(f"server did not start: {self.proc.stderr.read().decode()[-2000:]}")
+            time.sleep(0.1)
+
+    def _status(self, key):
+        text = Path(f"/proc/{self.proc.pid}/status").read_text()
+        return int(re.search(rf"^{key}:\s+(\d+) kB", text, re.M).group(1)) * 1024
+
+    def reset_peak(self):
+        """Start a new peak-RSS measurement; returns the current RSS."""
+        Path(f"/proc/{self.proc.pid}/clear_refs").write_text("5")
+        return self._status("VmRSS")
+
+    def peak(self):
+        """Peak RSS since :meth:`reset_peak` (bytes)."""
+        return self._status("VmHWM")
+
+    def stop(self):
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+class HealthProbe:
+    """Polls ``/healthz`` in a thread; ``worst`` is the slowest answer (s), ``failed`` the failures."""
+
+    def __init__(self, url, interval=0.05):
+        self.url, self.interval = url, interval
+        self.worst, self.failed, self.count = 0.0, 0, 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        with httpx.Client(timeout=30) as h:
+            while not self._stop.is_set():
+                t0 = time.perf_counter()
+                try:
+                    ok = h.get(f"{self.url}/healthz").status_code == 200
+                except httpx.HTTPError:
+                    ok = False
+                self.worst = max(self.worst, time.perf_counter() - t0)
+                self.failed += not ok
+                self.count += 1
+                time.sleep(self.interval)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join(60)
+
+
+# -- request bodies -----------------------------------------------------------------------
+
+def npy(a):
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return buf.getvalue()
+
+
+def raw_npy(shape_literal, payload=b""):
+    """A ``.npy`` file whose header declares ``shape_literal`` verbatim."""
+    head = f"{{'descr': '<f8', 'fortran_order': False, 'shape': {shape_literal}, }}".encode()
+    head += b" " * (63 - (10 + len(head)) % 64) + b"\n"
+    return b"\x93NUMPY\x01\x00" + len(head).to_bytes(2, "little") + head + payload
+
+
+NPY = {"content-type": "application/x-npy"}
+
+
+def sphere_job(rows, cols, n_angles=1, supersampling=1):
+    """JSON of a 3D parallel job with one 42-vertex sphere, and its control vertices."""
+    from bubsub.core import ScanGeometry, sphere_surface
+
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, n_angles, endpoint=False), pixel_size=0.01, cols=cols,
+                              rows=rows)
+    s = sphere_surface((0, 0, 0), 1.0, 0.1)
+    spec = {"geometry": {"kind": g.kind, "vectors": g.vectors.tolist(), "det_rows": rows, "det_cols": cols},
+            "surfaces": [{"n_control": len(s.control.vertices), "faces": np.asarray(s.control_faces).tolist(),
+                          "levels": s.levels, "attenuation": 0.1}], "supersampling": supersampling}
+    return spec, s.control.vertices
+
+
+def small_2d_job():
+    from bubsub.core import ScanGeometry
+
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 8, endpoint=False), pixel_size=1.0, cols=32)
+    return {"geometry": {"kind": g.kind, "vectors": g.vectors.tolist(), "det_rows": None, "det_cols": 32},
+            "surfaces": [{"n_control": 6, "levels": 2, "attenuation": 1.0}]}, g
+
+
+def _codes(responses):
+    """Status codes in order of first appearance, with counts (``200 503x4``)."""
+    c = Counter(r if isinstance(r, (int, str)) else r.status_code for r in responses)
+    return " ".join(f"{k}x{n}" if n > 1 else str(k) for k, n in c.items())
+
+
+# -- attacks --------------------------------------------------------------------------------
+# Each takes a started ServerProcess (and its httpx client) and returns (codes, note).
+
+def big_detector(srv, h):
+    """A 1 x 8000 x 8000 detector, no data, one forward call (issue: 14000^2 -> +2.2 GB)."""
+    spec, x = sphere_job(8000, 8000)
+    r = h.post(f"{srv.url}/v1/jobs", json=spec)
+    out = [r]
+    if r.status_code == 201:
+        out.append(h.post(f"{srv.url}/v1/jobs/{r.json()['id']}/forward", content=npy(x), headers=NPY))
+    return out, ""
+
+
+def many_surfaces(srv, h):
+    """8000 2D triangles at subdivision level 6, vertices included (issue: 20,000 -> +3.1 GB)."""
+    from bubsub.core import ScanGeometry
+
+    n = 8000
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 16, endpoint=False), pixel_size=1.0, cols=256)
+    tri = np.array([[1.0, 0.0], [-0.5, 0.8], [-0.5, -0.8]]) * 0.05
+    x = np.concatenate([tri + [(i % 100) * 0.2 - 10, (i // 100) * 0.2 - 8] for i in range(n)])
+    spec = {"geometry": {"kind": g.kind, "vectors": g.vectors.tolist(), "det_rows": None, "det_cols": 256},
+            "surfaces": [{"n_control": 3, "levels": 6, "attenuation": 1.0, "count": n}]}
+    r = h.post(f"{srv.url}/v1/jobs", files={"job": (None, json.dumps(spec), "application/json"),
+                                             "vertices": ("v.npy", npy(x), "application/x-npy")})
+    out = [r]
+    if r.status_code == 201:
+        out.append(h.post(f"{srv.url}/v1/jobs/{r.json()['id']}/forward", content=npy(x), headers=NPY))
+    return out, f"{len(npy(x)) / MiB:.1f} MiB of vertices"
+
+
+def npz_members(srv, h):
+    """One .npz with 30,000 members to /forward (issue: 95,000 members stalled /healthz 9 s)."""
+    spec, _ = small_2d_job()
+    job = h.post(f"{srv.url}/v1/jobs", json=spec).json()["id"]
+    buf = io.BytesIO()
+    member = npy(np.zeros(1))
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
+        for i in range(30_000):
+            zf.writestr(f"m{i}.npy", member)
+    body = buf.getvalue()
+    r = h.post(f"{srv.url}/v1/jobs/{job}/forward", content=body, headers={"content-type": "application/x-npz"})
+    return [r], f"{len(body) / MiB:.1f} MiB body"
+
+
+def json_amplification(srv, h):
+    """16 MiB of job JSON, nearly all control faces (issue: 64 MiB -> +2.6 GB)."""
+    faces = "[" + ",".join(["[1000,2000,3000]"] * (16 * MiB // 17)) + "]"
+    spec, _ = sphere_job(8, 8)
+    body = json.dumps(spec).replace(json.dumps(spec["surfaces"][0]["faces"]), faces)
+    r = h.post(f"{srv.url}/v1/jobs", content=body.encode(), headers={"content-type": "application/json"})
+    return [r], f"{len(body) / MiB:.0f} MiB JSON"
+
+
+def keepalive_after(port, method, path, body, ctype):
+    """Send one request, then GET /healthz on the same connection.
+
+    Returns
+    -------
+    status : int
+        Status of the first request.
+    kept : bool
+        Whether the second request was answered 200 on the same socket.
+    """
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    try:
+        conn.request(method, path, body=body, headers={"Content-Type": ctype})
+        r = conn.getresponse()
+        r.read()
+        sock = conn.sock
+        if r.will_close or sock is None:
+            return r.status, False
+        try:
+            conn.request("GET", "/healthz")
+            second = conn.getresponse()
+            second.read()
+        except (OSError, http.client.HTTPException):
+            return r.status, False
+        return r.status, second.status == 200 and conn.sock is sock
+    finally:
+        conn.close()
+
+
+def malformed(srv, h):
+    """Negative/boolean .npy dimensions, ragged faces, indices beyond int64, bad scan-file names."""
+    spec, _ = small_2d_job()
+    job = h.post(f"{srv.url}/v1/jobs", json=spec).json()["id"]
+    bad_faces, _ = sphere_job(8, 8)
+    ragged = json.loads(json.dumps(bad_faces))
+    ragged["surfaces"][0]["faces"][0] = [0, 1]
+    huge = json.loads(json.dumps(bad_faces))
+    huge["surfaces"][0]["faces"][0] = [0, 1, 2 ** 70]
+
+    def req(method, path, body, ctype):
+        return method, path, body, ctype
+
+    cases = [
+        req("POST", f"/v1/jobs/{job}/forward", raw_npy("(-1, 2)"), "application/x-npy"),
+        req("POST", f"/v1/jobs/{job}/forward", raw_npy("(True, 2)", b"\0" * 16), "application/x-npy"),
+        req("POST", "/v1/jobs", json.dumps(ragged).encode(), "application/json"),
+        req("POST", "/v1/jobs", json.dumps(huge).encode(), "application/json"),
+        req("PUT", f"/v1/jobs/{job}/data", b'{"file": "a\\u0000b.npy"}', "application/json"),
+        req("PUT", f"/v1/jobs/{job}/data", b'{"file": "loop"}', "application/json"),
+        req("PUT", f"/v1/jobs/{job}/data", json.dumps({"file": "x" * 300}).encode(), "application/json"),
+    ]
+    codes, dropped = [], []
+    for k, c in enumerate(cases):
+        status, alive = keepalive_after(srv.port, *c)
+        codes.append(status)
+        if not alive:
+            dropped.append(k)
+    return codes, f"keep-alive kept {len(cases) - len(dropped)}/{len(cases)}" + (f" (lost: {dropped})" if dropped else "")
+
+
+def float_range(srv, h):
+    """float64 data above float32's range, then an objective (issue: stored as inf, job poisoned)."""
+    spec, g = small_2d_job()
+    job = h.post(f"{srv.url}/v1/jobs", json=spec).json()["id"]
+    r1 = h.put(f"{srv.url}/v1/jobs/{job}/data", content=npy(np.full(g.shape, 1e39)), headers=NPY)
+    a = 2 * np.pi * np.arange(6) / 6
+    x = np.stack([np.cos(a), np.sin(a)], 1) * 5
+    r2 = h.post(f"{srv.url}/v1/jobs/{job}/objective", content=npy(x), headers=NPY)
+    return [r1, r2], "PUT data, then objective"
+
+
+def slow_clients(srv, h):
+    """300 connections that never finish their request head, server limited to 256 descriptors."""
+    socks = []
+    for _ in range(300):
+        try:
+            s = socket.create_connection(("127.0.0.1", srv.port), timeout=2)
+            s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")  # the head never ends
+            socks.append(s)
+        except OSError:
+            break
+    codes = []
+    end = time.monotonic() + 8
+    while time.monotonic() < end:  # normal requests while the slow ones hold their sockets
+        try:
+            codes.append(httpx.get(f"{srv.url}/v1/jobs", timeout=2).status_code)
+        except httpx.HTTPError:
+            codes.append("fail")
+        time.sleep(0.2)
+    for s in socks:
+        s.close()
+    ok = sum(c == 200 for c in codes)
+    return codes, f"{len(socks)} slow connections; {ok}/{len(codes)} normal requests answered 200"
+
+
+def junk_methods(srv, h):
+    """300 requests with made-up HTTP methods, then the size of /metrics."""
+    before = h.get(f"{srv.url}/metrics").text.count("\n")
+    codes = [h.request(f"X{i:04d}", f"{srv.url}/healthz").status_code for i in range(300)]
+    after = h.get(f"{srv.url}/metrics").text.count("\n")
+    return codes, f"/metrics grew by {after - before} lines"
+
+
+def token_quota(srv, h):
+    """Token A fills the server with jobs; then token B tries to create one."""
+    spec, g = small_2d_job()
+    spec["geometry"]["vectors"] = spec["geometry"]["vectors"] * 128  # 1024 angles: 128 kB projections
+    data = npy(np.zeros((1024, 32), np.float32))
+    a = {"authorization": "Bearer alpha"}
+    filled = 0
+    while filled < 200:
+        r = h.post(f"{srv.url}/v1/jobs", headers=a, files={"job": (None, json.dumps(spec), "application/json"),
+                                                            "data": ("d.npy", data, "application/x-npy")})
+        if r.status_code != 201:
+            break
+        filled += 1
+    rb = h.post(f"{srv.url}/v1/jobs", headers={"authorization": "Bearer beta"},
+                files={"job": (None, json.dumps(spec), "application/json"), "data": ("d.npy", data, "application/x-npy")})
+    return [r, rb], f"token A created {filled} jobs, then got {r.status_code}; token B got {rb.status_code}"
+
+
+def shutdown_timeout(srv, h):
+    """SIGTERM during a long computation, with a 1 s shutdown timeout."""
+    from bubsub.core import ScanGeometry, sphere_surface
+
+    g = ScanGeometry.cone(np.linspace(0, 2 * np.pi, 96, endpoint=False), source_origin=150.0, origin_detector=50.0,
+                          pixel_size=0.3, cols=96, rows=96)
+    s = sphere_surface((0.0, 0.0, 0.0), 4.0, 1.0)
+    spec = {"geometry": {"kind": g.kind, "vectors": g.vectors.tolist(), "det_rows": 96, "det_cols": 96},
+            "surfaces": [{"n_control": len(s.control.vertices), "faces": np.asarray(s.control_faces).tolist(),
+                          "levels": 3, "attenuation": 1.0}], "supersampling": 8}
+    job = h.post(f"{srv.url}/v1/jobs", json=spec).json()["id"]
+    out = {}
+
+    def call():
+        try:
+            r = httpx.post(f"{srv.url}/v1/jobs/{job}/forward", content=npy(s.control.vertices), headers=NPY,
+                           timeout=120)
+            out["r"] = f"{r.status_code}" + (f" Retry-After {r.headers['retry-after']}"
+                                             if "retry-after" in r.headers else "")
+        except httpx.HTTPError as exc:
+            out["r"] = type(exc).__name__
+
+    t = threading.Thread(target=call)
+    t.start()
+    time.sleep(1.0)
+    srv.proc.send_signal(signal.SIGTERM)
+    t.join(120)
+    return [out.get("r", "none")], "in-flight forward"
+
+
+#: name -> (attack, extra server settings, whether /healthz is probed)
+ATTACKS = {
+    "big_detector": (big_detector, {}, True),
+    "many_surfaces": (many_surfaces, {}, True),
+    "npz_members": (npz_members, {}, True),
+    "json_amplification": (json_amplification, {}, True),
+    "malformed": (malformed, {"BUBSUB_SCAN_DIR": "{scan_dir}"}, False),
+    "float_range": (float_range, {}, False),
+    "slow_clients": (slow_clients, {"nofile": 256}, False),
+    "junk_methods": (junk_methods, {}, False),
+    "token_quota": (token_quota, {"BUBSUB_TOKENS": "alpha,beta", "BUBSUB_MAX_MEMORY_BYTES": str(16 * MiB)}, False),
+    "shutdown_timeout": (shutdown_timeout, {"BUBSUB_SHUTDOWN_TIMEOUT_SECONDS": "1", "BUBSUB_WORKERS": "1",
+                                            "BUBSUB_BACKEND": "embreex",
+                                            "BUBSUB_JOB_COMPUTE_MAX_BYTES": str(4 << 30),
+                                            "BUBSUB_MAX_COMPUTE_BYTES": str(4 << 30)}, False),
+}
+
+
+def run_attack(name, src=None, scan_dir=None):
+    """Run one attack on a fresh server; returns a dict of codes, note, memory rise (MB), worst health (s)."""
+    fn, extra, probe = ATTACKS[name]
+    env = {k: (v.format(scan_dir=scan_dir) if isinstance(v, str) else v) for k, v in extra.items()}
+    nofile = env.pop("nofile", None)
+    with ServerProcess(src, nofile=nofile, **env) as srv, httpx.Client(timeout=120) as h:
+        base = srv.reset_peak()
+        health = HealthProbe(srv.url) if probe else contextlib.nullcontext()
+        t0 = time.perf_counter()
+        with health:
+            responses, note = fn(srv, h)
+        seconds = time.perf_counter() - t0
+        rise = (srv.peak() - base) / 1e6 if srv.proc.poll() is None else float("nan")
+    return {"attack": name, "codes": _codes(responses), "note": note, "rise_mb": rise, "seconds": seconds,
+            "health_s": health.worst if probe else None}
+
+
+def _cell(r):
+    health = "" if r["health_s"] is None else f", /healthz worst {1e3 * r['health_s']:.0f} ms"
+    note = f"; {r['note']}" if r["note"] else ""
+    return f"{r['codes']}; +{r['rise_mb']:.0f} MB{health}{note}"
+
+
+def format_table(rows):
+    """Markdown table: attack | before | after (or attack | result)."""
+    both = any("before" in r for r in rows)
+    lines = ["| attack | before | after |" if both else "| attack | result |",
+             "| --- | --- | --- |" if both else "| --- | --- |"]
+    for r in rows:
+        if both:
+            lines.append(f"| {r['attack']} | {_cell(r['before'])} | {_cell(r['after'])} |")
+        else:
+            lines.append(f"| {r['attack']} | {_cell(r['after'])} |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m bubsub.bench attacks", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--before", help="directory with the old 'bubsub' package to compare against")
+    parser.add_argument("--only", help="comma-separated attacks (default: all): " + ", ".join(ATTACKS))
+    parser.add_argument("--json", help="also write the results to this file")
+    args = parser.parse_args(argv)
+    names = args.only.split(",") if args.only else list(ATTACKS)
+    unknown = sorted(set(names) - set(ATTACKS))
+    if unknown:
+        parser.error(f"unknown attacks {unknown}")
+    rows = []
+    with tempfile.TemporaryDirectory() as scan_dir:
+        os.symlink("loop", Path(scan_dir, "loop"))  # a symlink loop for the malformed-path attack
+        for name in names:
+            row = {"attack": name}
+            if args.before:
+                row["before"] = run_attack(name, args.before, scan_dir)
+            row["after"] = run_attack(name, None, scan_dir)
+            print(f"{name}: " + " | ".join(f"{k}: {_cell(v)}" for k, v in row.items() if k != "attack"),
+                  flush=True)
+            rows.append(row)
+    print()
+    print(format_table(rows))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0

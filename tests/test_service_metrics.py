@@ -33,3 +33,20 @@ def test_metrics_count_requests_jobs_memory_and_compute(server, client, p2d):  #
     assert _value(text, "bubsub_jobs_created_total") > _value(before, "bubsub_jobs_created_total")
     assert _value(text, "bubsub_ready") == 1
     job.delete()
+
+
+def test_junk_methods_share_one_label_and_refusals_are_counted():
+    """Issue 13: /metrics grew by a label per made-up HTTP method."""
+    from service_support import ServerThread
+
+    with ServerThread(max_body_bytes=4096) as s:
+        for i in range(50):
+            assert httpx.request(f"JUNK{i}", f"{s.url}/healthz").status_code == 405
+        r = httpx.post(f"{s.url}/v1/jobs", content=b"x" * 5000, headers={"content-type": "application/json"})
+        assert r.status_code == 413
+        text = httpx.get(f"{s.url}/metrics").text
+        assert "JUNK" not in text
+        assert _value(text, "bubsub_http_requests_total", '{method="other",route="/healthz",status="405"}') == 50
+        assert _value(text, "bubsub_requests_refused_total", '{reason="too_large"}') == 1
+        methods = set(re.findall(r'method="([^"]*)"', text))
+        assert methods <= {"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH", "other"}, methods

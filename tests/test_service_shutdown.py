@@ -70,3 +70,14 @@ def test_sigterm_not_ready_first_then_drains():
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_computation_cancelled_by_the_shutdown_timeout_answers_503_retry_after():
+    """Issue 13: when the shutdown timeout expired, in-flight computations got 500 (not retried)."""
+    from bubsub.bench.attacks import ATTACKS, ServerProcess, shutdown_timeout
+
+    env = ATTACKS["shutdown_timeout"][1]
+    with ServerProcess(**env) as srv, httpx.Client(timeout=60) as h:
+        (result,), _ = shutdown_timeout(srv, h)
+        assert result == "503 Retry-After 1", result
+        assert srv.proc.wait(30) in (0, -signal.SIGTERM)

@@ -83,10 +83,11 @@ def test_job_json_is_bounded_and_parsed_lists_are_limited():
     with ServerThread(max_json_bytes=64 << 10) as s:
         spec, _ = sphere_job(8, 8)
         spec["surfaces"][0]["faces"] = spec["surfaces"][0]["faces"] * 400  # ~ 100 kB of JSON
-        r = httpx.post(f"{s.url}/v1/jobs", content=json.dumps(spec), headers={"content-type": "application/json"})
+        r = httpx.post(f"{s.url}/v1/jobs", content=json.dumps(spec), headers={"content-type": "application/json"},
+                       timeout=60)
         assert r.status_code == 413 and r.json()["code"] == "json_too_large"
         assert "BUBSUB_MAX_JSON_BYTES" in r.json()["detail"]
         spec, _ = sphere_job(8, 8)
         spec["geometry"]["vectors"][0] = spec["geometry"]["vectors"][0] * 100  # one row of 1200 numbers
-        r = httpx.post(f"{s.url}/v1/jobs", json=spec)
+        r = httpx.post(f"{s.url}/v1/jobs", json=spec, timeout=60)
         assert r.status_code == 422 and "at most 12" in r.json()["detail"], r.text

@@ -30,7 +30,7 @@ def srv(tmp_path_factory):
 @pytest.fixture(scope="module")
 def job(srv):
     spec, g = small_2d_job()
-    r = httpx.post(f"{srv.url}/v1/jobs", json=spec)
+    r = httpx.post(f"{srv.url}/v1/jobs", json=spec, timeout=60)
     assert r.status_code == 201
     return r.json()["id"], g
 
@@ -39,7 +39,7 @@ def _check(srv, method, path, body, ctype, status, code):
     got, kept = keepalive_after(srv.port, method, path, body, ctype)
     assert got == status, (path, got)
     assert kept, "the connection was closed after the error"
-    r = httpx.request(method, f"{srv.url}{path}", content=body, headers={"content-type": ctype})
+    r = httpx.request(method, f"{srv.url}{path}", content=body, headers={"content-type": ctype}, timeout=60)
     assert r.json()["code"] == code, r.text
 
 
@@ -64,16 +64,16 @@ def test_bad_scan_file_names_422(srv, job, name):
 def test_data_outside_float32_range_refused_and_job_stays_usable(srv, job):
     job_id, g = job
     url = f"{srv.url}/v1/jobs/{job_id}"
-    r = httpx.put(f"{url}/data", content=npy(np.full(g.shape, 1e39)), headers={"content-type": NPY})
+    r = httpx.put(f"{url}/data", content=npy(np.full(g.shape, 1e39)), headers={"content-type": NPY}, timeout=60)
     assert r.status_code == 422 and r.json()["code"] == "out_of_range" and "float32" in r.json()["detail"]
     ok = np.full(g.shape, 3e38, np.float32)
-    assert httpx.put(f"{url}/data", content=npy(ok), headers={"content-type": NPY}).status_code == 200
-    r = httpx.put(f"{url}/background", content=npy(-ok), headers={"content-type": NPY})  # 6e38 overflows
+    assert httpx.put(f"{url}/data", content=npy(ok), headers={"content-type": NPY}, timeout=60).status_code == 200
+    r = httpx.put(f"{url}/background", content=npy(-ok), headers={"content-type": NPY}, timeout=60)  # 6e38 overflows
     assert r.status_code == 422 and r.json()["code"] == "out_of_range"
-    assert httpx.put(f"{url}/data", content=npy(np.ones(g.shape)), headers={"content-type": NPY}).status_code == 200
+    assert httpx.put(f"{url}/data", content=npy(np.ones(g.shape)), headers={"content-type": NPY}, timeout=60).status_code == 200
     a = 2 * np.pi * np.arange(6) / 6
     x = np.stack([np.cos(a), np.sin(a)], 1) * 5
-    r = httpx.post(f"{url}/objective", content=npy(x), headers={"content-type": NPY})
+    r = httpx.post(f"{url}/objective", content=npy(x), headers={"content-type": NPY}, timeout=60)
     assert r.status_code == 200 and np.isfinite(float(r.headers["x-objective"]))
 
 
@@ -86,5 +86,5 @@ def test_npz_with_many_members_refused_quickly(srv, job):
         for i in range(5000):
             zf.writestr(f"m{i}.npy", npy(np.zeros(1)))
     r = httpx.post(f"{srv.url}/v1/jobs/{job[0]}/forward", content=buf.getvalue(),
-                   headers={"content-type": "application/x-npz"})
+                   headers={"content-type": "application/x-npz"}, timeout=60)
     assert r.status_code == 422 and "5000 members" in r.json()["detail"]

@@ -32,11 +32,11 @@ def test_default_quotas_are_half_the_caps_with_several_tokens():
 def test_one_token_cannot_take_all_jobs():
     spec, _ = small_2d_job()
     with ServerThread(tokens="alpha,beta", token_max_jobs=3) as s:
-        codes = [httpx.post(f"{s.url}/v1/jobs", json=spec, headers=A).status_code for _ in range(4)]
+        codes = [httpx.post(f"{s.url}/v1/jobs", json=spec, headers=A, timeout=60).status_code for _ in range(4)]
         assert codes == [201, 201, 201, 507]
-        r = httpx.post(f"{s.url}/v1/jobs", json=spec, headers=A)
+        r = httpx.post(f"{s.url}/v1/jobs", json=spec, headers=A, timeout=60)
         assert r.json()["code"] == "token_quota" and "BUBSUB_TOKEN_MAX_JOBS" in r.json()["detail"]
-        assert httpx.post(f"{s.url}/v1/jobs", json=spec, headers=B).status_code == 201
+        assert httpx.post(f"{s.url}/v1/jobs", json=spec, headers=B, timeout=60).status_code == 201
 
 
 def test_one_token_cannot_take_all_memory():
@@ -46,12 +46,12 @@ def test_one_token_cannot_take_all_memory():
     with ServerThread(tokens="alpha,beta", max_memory_bytes=1 << 20, token_max_memory_bytes=10_000) as s:
         codes = []
         while len(codes) < 50 and (not codes or codes[-1] == 201):
-            codes.append(httpx.post(f"{s.url}/v1/jobs", files=files, headers=A).status_code)
+            codes.append(httpx.post(f"{s.url}/v1/jobs", files=files, headers=A, timeout=60).status_code)
         assert codes[-1] == 507 and 1 < len(codes) < 50, codes
-        r = httpx.post(f"{s.url}/v1/jobs", files=files, headers=A)
+        r = httpx.post(f"{s.url}/v1/jobs", files=files, headers=A, timeout=60)
         assert r.json()["code"] == "token_quota" and "BUBSUB_TOKEN_MAX_MEMORY_BYTES" in r.json()["detail"]
         assert s.state.store.memory_bytes < (1 << 20)  # the server-wide cap was never the limit
-        assert httpx.post(f"{s.url}/v1/jobs", files=files, headers=B).status_code == 201
+        assert httpx.post(f"{s.url}/v1/jobs", files=files, headers=B, timeout=60).status_code == 201
 
 
 def test_concurrent_computations_per_token():

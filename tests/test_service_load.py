@@ -5,7 +5,7 @@ import time
 
 import httpx
 
-from bubsub.clients.client import ProjectorClient
+from bubsub.clients.remote.client import ProjectorClient
 from service_support import ServerThread, phantom_2d
 
 

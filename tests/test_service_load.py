@@ -14,10 +14,9 @@ def test_eight_clients_on_one_worker_all_succeed_and_health_stays_fast():
     with ServerThread(workers=1, max_queue=2) as s:
         with ProjectorClient(s.url) as c:
             job = c.create_job(p.geometry, data=p.data, surfaces=p.init)
+        job.client = ProjectorClient(s.url, retry_timeout=60, backoff=0.02)  # shared: httpx is thread-safe
         expected = job.objective(p.init)[0]
         values, worst, stop = [], [0.0], threading.Event()
-
-        job.client = ProjectorClient(s.url, retry_timeout=60, backoff=0.02)  # shared: httpx is thread-safe
 
         def fit_like():
             for _ in range(5):

@@ -4,17 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-_EPILOG = """\
-benchmarks:
-  projector   forward and gradient of the mesh projector: ms per call, rays/s,
-              per backend (native, embreex) and against trimesh
-  remote      a fit against a local projector server versus in-process:
-              the HTTP overhead per iteration
+from bubsub.bench.__main__ import BENCHMARKS
 
-Each benchmark has its own options; list them with
-  bubsub bench projector --help
-  bubsub bench remote --help
-"""
+
+def _epilog():
+    lines = ["benchmarks:"]
+    lines += [f"  {name:<11} {what}" for name, (_, what) in BENCHMARKS.items()]
+    lines += ["", "Each benchmark has its own options; list them with", "  bubsub bench NAME --help"]
+    return "\n".join(lines)
 
 
 def cmd_bench(args):
@@ -25,10 +22,10 @@ def cmd_bench(args):
 
 def register(sub):
     """Add the command's parser to ``sub`` (argparse subparsers)."""
-    p = sub.add_parser("bench", help="print a benchmark table (projector or remote)",
-                       description="Print a benchmark table.", epilog=_EPILOG,
+    p = sub.add_parser("bench", help="print a benchmark table (" + ", ".join(BENCHMARKS) + ")",
+                       description="Print a benchmark table.", epilog=_epilog(),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("name", nargs="?", choices=("projector", "remote"), default="projector",
+    p.add_argument("name", nargs="?", choices=tuple(BENCHMARKS), default="projector",
                    help="which benchmark (default projector)")
     p.add_argument("options", nargs=argparse.REMAINDER,
                    help="options of that benchmark (bubsub bench NAME --help lists them)")

@@ -213,3 +213,15 @@ def test_bubbles_at_the_edge_of_the_field_of_view_are_flagged():
     inside = circle_surface([0.5, 0.0], 0.5, -0.1, 9).fine()
     cut = circle_surface([1.7, 0.0], 0.5, -0.1, 9).fine()
     assert truncated_flags([inside, cut], field_of_view(shifted), 0.01) == [0, 1]
+
+
+def test_sigterm_during_prepare_leaves_no_file(raw, tmp_path, monkeypatch, capsys):
+    import os
+    import signal
+
+    out = tmp_path / "scan.h5"
+    monkeypatch.setattr(prepare_module, "radial_background", lambda *a, **k: os.kill(os.getpid(), signal.SIGTERM))
+    code, text = run(["prepare", str(raw), "--out", str(out), "--quiet"], capsys)
+    assert code == 130 and "interrupted" in text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["raw.h5"]
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # restored

@@ -25,6 +25,24 @@ def _contrast(text):
     return v
 
 
+def _with_sigterm_as_interrupt(func, *args, **kwargs):
+    """Run ``func`` with SIGTERM (a batch system's time limit, ``kill``) raising KeyboardInterrupt, so the
+    atomic output removes its temporary file as it does on Ctrl-C."""
+    import signal
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:  # not the main thread: leave the signal alone
+        return func(*args, **kwargs)
+    try:
+        return func(*args, **kwargs)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def cmd_prepare(args):
     from bubsub.core.prep.options import prepare_options
     from bubsub.core.prep.pipeline import prepare
@@ -40,7 +58,7 @@ def cmd_prepare(args):
     )
     if options.background == "reproject" and options.foam_radius is None:
         raise ValueError("--background reproject needs --foam-radius (mm): the region the foam fills")
-    report = prepare(args.raw, args.out, options, progress=not args.quiet)
+    report = _with_sigterm_as_interrupt(prepare, args.raw, args.out, options, progress=not args.quiet)
     steps = {s["step"]: s for s in report["steps"]}
     shape = steps["bin"]["output_shape"]
     centre = steps["center"]

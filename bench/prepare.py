@@ -10,8 +10,10 @@ data, so a consistency measure, not comparable across preparations),
 background error (mean |background - analytic container projection| over
 the foam's columns), axis error (raw pixels), estimated contrast (truth -0.1/mm).
 
-``--memory``: peak RSS of preparing a raw file several times the slab size
-(run in a fresh process per size).
+``--memory``: peak RSS of preparing raw files several times the slab size
+(run in a fresh process per size); the files grow by their number of rows,
+so the sinograms (which the centre search, the background and the contrast
+estimate hold whole, ``n_angles x cols``) stay the same.
 """
 
 from __future__ import annotations
@@ -128,7 +130,7 @@ def run_memory(out, *, sizes=(1, 4), slab_mb=32.0, background="auto"):
                           capture_output=True, text=True, check=True)
     baseline = float(base.stdout.strip())
     for k in sizes:
-        n, rows, cols = 360 * k, 64, 1024
+        n, rows, cols = 360, 64 * k, 1024  # more rows: a larger file, the same sinograms
         raw = out / f"raw_{k}.h5"
         x = np.arange(cols) - cols / 2 + 3.3
         with h5py.File(raw, "w") as f:

@@ -76,7 +76,8 @@ def test_separate_leaves_the_film(ndim):
     a2, b2 = separate(a, b, gap=0.05)
     assert check_bubbles([a2, b2]) == []
     # convex hull property: the fine surfaces keep the film between them along the centre line
-    assert b2.fine().vertices[:, 0].min() - a2.fine().vertices[:, 0].max() >= 0.05 - 1e-9
+    film = b2.fine().vertices[:, 0].min() - a2.fine().vertices[:, 0].max()
+    assert 0.05 - 1e-9 <= film <= 0.05 + 1e-3  # and no wider: the control vertices move only as far as needed
 
 
 def test_repair_rounds_separates_and_drops_until_valid():
@@ -89,7 +90,7 @@ def test_repair_rounds_separates_and_drops_until_valid():
     assert check_bubbles(kept) == [] and summary["violations_remaining"] == []
     assert len(kept) == 4 and summary["dropped"] == 1
     done = {a["action"] for a in summary["actions"]}
-    assert done == {"rounded", "separated", "dropped"}
+    assert done in ({"rounded", "separated", "dropped"}, {"smoothed", "separated", "dropped"})
     assert {v["kind"] for v in summary["violations_found"]} == {"self_intersection", "overlap"}
 
 
@@ -105,3 +106,19 @@ def test_check_and_repair_with_a_refit_returns_valid_bubbles_closer_to_the_data(
     assert projector.objective(kept, data)[0] < projector.objective(start, data)[0]
     only, report = check_and_repair(start, projector, data, repair=False)
     assert only == start and report["violations_remaining"] == report["violations_found"] != []
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_untangling_keeps_a_folded_bubble_in_place_and_of_its_size(ndim):
+    from bubsub.clients.pipeline.repair import untangled
+
+    s = circle_surface([0.3, -0.2], 1.0, MU) if ndim == 2 else sphere_surface([0.3, -0.2, 0.1], 1.0, MU)
+    v = s.vertices.copy()
+    v[0] = s.vertices.mean(axis=0) - 1.3 * (s.vertices[0] - s.vertices.mean(axis=0))  # one vertex folded through
+    bad = s.with_vertices(v)
+    assert self_crossings(bad.control) > 0
+    fixed, how = untangled(bad)
+    assert how == "smoothed" and check_bubbles([fixed]) == []
+    size = (lambda f: f.area if ndim == 2 else f.volume)
+    assert size(fixed.fine()) == pytest.approx(size(s.fine()), rel=0.3)
+    assert np.allclose(fixed.fine().centroid, s.fine().centroid, atol=0.45)  # one of 9 (42) points was moved 2.3 mm

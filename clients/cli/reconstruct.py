@@ -59,6 +59,7 @@ def cmd_reconstruct(args):
         iterations=args.iterations, control_points=args.control_points, levels=args.levels,
         radius=args.radius, estimate_radii=not args.no_radius_estimation, supersampling=args.supersampling,
         holdout=args.holdout, progress=not args.quiet, background_subtracted=args.background_subtracted,
+        preview=args.preview, topology=not args.no_topology, repair=not args.no_repair,
     )
     check_settings(settings, scan.ndim)
     if args.holdout and scan.n_angles < 2:
@@ -101,8 +102,25 @@ def cmd_reconstruct(args):
     if "holdout_mse" in r:
         print(f"held-out projection MSE ({r['holdout_projections']} projections): {r['holdout_mse']:.4g}"
               + (f" (voxel BB reference: {r['holdout_mse_voxel_bb']:.4g})" if "holdout_mse_voxel_bb" in r else ""))
+    _print_changes(r)
     print(f"wrote {out}: " + ", ".join(p.name for p in files.values()))
     return 130 if r["interrupted"] else 0
+
+
+def _print_changes(r):
+    """One line each for topology changes and validity repairs (details in report.json)."""
+    from collections import Counter
+
+    if r.get("topology") and r["topology"]["changes"]:
+        kinds = Counter(c["change"] for c in r["topology"]["changes"])
+        print("topology: " + ", ".join(f"{n} {k}" for k, n in sorted(kinds.items())))
+    v = r.get("validity") or {}
+    if v.get("violations_found"):
+        acts = Counter(a["action"] for a in v["actions"])
+        left = len(v["violations_remaining"])
+        print(f"validity: {len(v['violations_found'])} violation(s) found"
+              + (": " + ", ".join(f"{n} {k}" for k, n in sorted(acts.items())) if acts else "")
+              + (f"; {left} remain (see report.json)" if left else "; none remain"))
 
 
 def register(sub):
@@ -122,6 +140,12 @@ def register(sub):
                    help="initial radius of every bubble in mm (default: from the voxel preview)")
     p.add_argument("--no-radius-estimation", action="store_true",
                    help="skip the radius-only pre-fit (paper eq. 4-5) before the full fit")
+    p.add_argument("--preview", choices=("box", "sirt"), default="box",
+                   help="voxel preview for the initial bubbles: box-constrained (default) or SIRT (x >= 0 only)")
+    p.add_argument("--no-topology", action="store_true",
+                   help="keep the number of bubbles: no adding, removing, merging or splitting after the fit")
+    p.add_argument("--no-repair", action="store_true",
+                   help="only report self-intersecting or overlapping bubbles (report.json), do not repair them")
     p.add_argument("--init", type=existing_file,
                    help="initial control mesh: a previous reconstruction's control.ply / control.json")
     p.add_argument("--holdout", choices=("odd", "even"),

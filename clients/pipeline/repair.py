@@ -6,13 +6,17 @@ would be wrong) or two bubbles that share gas (counted twice). After the fit,
 :func:`repair_bubbles` checks (:func:`bubsub.core.projection.validity.check_bubbles`)
 and acts:
 
-* a self-intersecting bubble is replaced by a round one with its centre and
-  its root-mean-square radius ("rounded");
+* a self-intersecting bubble is untangled by Laplacian smoothing of its control
+  vertices, its size kept ("smoothed"), or, where a dozen smoothing steps do
+  not untangle it, replaced by a round one with its centre and root-mean-square
+  radius ("rounded");
 * two interpenetrating bubbles are separated by a plane halfway through their
   overlap, perpendicular to the line between their centres: the control
-  vertices beyond it are moved back onto it, leaving a film of ``gap`` mm
-  ("separated"). Loop and cubic B-spline subdivision are convex combinations
-  of control vertices, so the fine surfaces then lie on their own sides too;
+  vertices beyond a plane parallel to it are moved onto that plane, which is
+  placed (by bisection) so that each fine surface ends ``gap / 2`` short of
+  the middle one ("separated"). Loop and cubic B-spline subdivision are
+  convex combinations of control vertices, so clipping at the middle plane
+  itself would always suffice; the bisection only moves less;
 * a bubble wholly inside another, or turned inside out, is dropped ("dropped").
 
 Then a short refit lets the data reshape the repaired bubbles; the refit may
@@ -27,9 +31,9 @@ from __future__ import annotations
 import numpy as np
 
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
-from bubsub.core.projection.validity import check_bubbles
+from bubsub.core.projection.validity import check_bubbles, self_crossings
 
-__all__ = ["check_and_repair", "repair_bubbles", "rounded", "separate"]
+__all__ = ["check_and_repair", "repair_bubbles", "rounded", "untangled", "separate"]
 
 
 def _centre_radius(surface):
@@ -56,8 +60,80 @@ def rounded(surface):
     return surface.with_vertices(new.vertices) if new.vertices.shape == surface.vertices.shape else new
 
 
+def _neighbour_mean(surface):
+    v = surface.vertices
+    if surface.ndim == 2:
+        return 0.5 * (np.roll(v, 1, axis=0) + np.roll(v, -1, axis=0))
+    f = surface.control_faces
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    total = np.zeros_like(v)
+    np.add.at(total, e[:, 0], v[e[:, 1]])
+    count = np.bincount(e[:, 0], minlength=len(v))[:, None]
+    return total / np.maximum(count, 1)
+
+
+def untangled(surface, steps=12, weight=0.5):
+    """Laplacian smoothing of the control vertices until neither surface crosses itself, else :func:`rounded`.
+
+    Smoothing removes the fold that makes an outline cross itself while
+    keeping the bubble's size and position, and mostly its shape (a dense
+    foam's flattened faces); rounding is the fallback.
+
+    Returns
+    -------
+    (SubdivisionSurface, str)
+        The repaired bubble and ``"smoothed"`` or ``"rounded"``.
+    """
+    s = surface
+    for _ in range(steps):
+        s = s.with_vertices(s.vertices + weight * (_neighbour_mean(s) - s.vertices))
+        if not self_crossings(s.control) and not self_crossings(s.fine()):
+            # smoothing shrinks: restore the control vertices' RMS distance from their mean
+            # (the tangled fine surface's own size is what is wrong)
+            def rms(v):
+                return float(np.sqrt(np.mean(np.sum((v - v.mean(axis=0)) ** 2, axis=1))))
+
+            c = s.vertices.mean(axis=0)
+            scale = rms(surface.vertices) / rms(s.vertices)
+            return s.with_vertices(c + (s.vertices - c) * scale), "smoothed"
+    return rounded(surface), "rounded"
+
+
+def _clip_below(surface, n, limit, steps=20):
+    """Move control vertices onto the plane ``x . n = c`` for the largest ``c`` that keeps the fine surface at ``<= limit``.
+
+    Control vertices lie outside the subdivided surface, so clipping them at
+    ``limit`` itself would flatten the fine surface short of it; bisection on
+    the clipping plane leaves the fine surface just touching ``limit``.
+    """
+    v = surface.vertices
+    proj = v @ n
+    S = surface.S
+
+    def clipped(c):
+        w = v.copy()
+        t = proj - c
+        w[t > 0] -= t[t > 0, None] * n
+        return w
+
+    if float(np.max(S @ proj)) <= limit:
+        return surface
+    lo, hi = limit, float(proj.max())  # clipping at lo keeps the fine surface below limit (convex hull)
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        if float(np.max(S @ (clipped(mid) @ n))) <= limit:
+            lo = mid
+        else:
+            hi = mid
+    return surface.with_vertices(clipped(lo))
+
+
 def separate(a, b, gap=0.0):
     """Move the control vertices of two overlapping bubbles apart across a plane.
+
+    The plane is perpendicular to the line between the bubbles' centres,
+    halfway through their overlap; each bubble's fine surface ends up
+    ``gap / 2`` short of it, moved no further than that needs.
 
     Parameters
     ----------
@@ -75,11 +151,7 @@ def separate(a, b, gap=0.0):
     n = n / length if length > 0 else np.eye(a.ndim)[0]
     # the plane halfway through the overlap along n
     p = 0.5 * (float(np.max(fa @ n)) + float(np.min(fb @ n)))
-    va, vb = a.vertices.copy(), b.vertices.copy()
-    ta, tb = va @ n - (p - gap / 2), vb @ n - (p + gap / 2)
-    va[ta > 0] -= ta[ta > 0, None] * n
-    vb[tb < 0] -= tb[tb < 0, None] * n
-    return a.with_vertices(va), b.with_vertices(vb)
+    return _clip_below(a, n, p - gap / 2), _clip_below(b, -n, -(p + gap / 2))
 
 
 def _size(surface):
@@ -99,8 +171,8 @@ def _repair_once(surfaces, violations, gap, actions, round_no):
             drop.add(v.bubbles[0])
             actions.append({"round": round_no, "action": "dropped", "bubble": v.bubbles[0], "reason": "inside out"})
     for i, which in sorted(tangled.items()):
-        surfaces[i] = rounded(surfaces[i])
-        actions.append({"round": round_no, "action": "rounded", "bubble": i, "surfaces": which})
+        surfaces[i], how = untangled(surfaces[i])
+        actions.append({"round": round_no, "action": how, "bubble": i, "surfaces": which})
     for v in violations:
         if v.kind != "overlap":
             continue

@@ -44,6 +44,22 @@ def test_radius_estimation_finds_the_radius():
         assert np.linalg.norm(fine - fine.mean(axis=0), axis=1).mean() == pytest.approx(r, rel=0.01)
 
 
+def test_radius_estimation_keeps_to_its_evaluation_cap(scene2d):
+    P, truth, data = scene2d
+    calls = []
+
+    class Counting:
+        def objective(self, surfaces, d):
+            calls.append(1)
+            return P.objective(surfaces, d)
+
+    init = [circle_surface([0.9, 0.3], 0.2, -0.1), circle_surface([-1.0, -0.5], 1.2, -0.1)]
+    f0 = P.objective(init, data)[0]
+    est = estimate_radii(Counting(), init, data, iterations=3)
+    assert 1 <= len(calls) <= 3 + 5
+    assert P.objective(est, data)[0] < f0  # the best radii seen, not the last trial
+
+
 def test_interrupt_returns_the_best_iterate(scene2d):
     P, truth, data = scene2d
     init = [circle_surface([0.9, 0.3], 0.5, -0.1), circle_surface([-1.0, -0.5], 0.6, -0.1)]

@@ -288,7 +288,8 @@ def estimate_radii(projector, surfaces, data=None, iterations=20, *, progress=Fa
 
     Each bubble keeps its centre (the mean of its control vertices) and its
     shape; only the scale ``r_k`` of ``x_k(r) = c_k + r_k u_k`` changes, with
-    ``dg/dr_k = sum_i grad_x_ki . u_ki``.
+    ``dg/dr_k = sum_i grad_x_ki . u_ki``. At most ``iterations + 5``
+    objective evaluations (each one projection) are made.
 
     Returns
     -------
@@ -303,16 +304,29 @@ def estimate_radii(projector, surfaces, data=None, iterations=20, *, progress=Fa
     def build(r):
         return [s.with_vertices(c + rk * u) for s, c, rk, u in zip(surfaces, centres, r, units)]
 
+    # scipy's maxfun is only checked between iterations, so a line search can run past it:
+    # stop at the cap here, and return the best radii seen
+    cap = int(iterations) + 5
+    best = {"f": np.inf, "r": r0, "evals": 0}
+
+    class _Budget(Exception):
+        pass
+
     def fun(r):
+        if best["evals"] >= cap:
+            raise _Budget
+        best["evals"] += 1
         f, grads = evaluate(build(r))
+        if f < best["f"]:
+            best["f"], best["r"] = f, r.copy()
         return f, np.array([np.sum(np.asarray(g) * u) for g, u in zip(grads, units)])
 
     with phase("radius estimation", iterations, enabled=progress) as bar:
-        res = minimize(
-            fun, r0, jac=True, method="L-BFGS-B", bounds=[(1e-3 * r, 10 * r) for r in r0],
-            callback=lambda _: bar.update(1),
-            # each evaluation is a full projection: bound the line-search evaluations too
-            options={"maxiter": int(iterations), "maxfun": int(iterations) + 5},
-        )
-        bar.close(_lbfgs_reason(res, bar.n, iterations))
-    return build(res.x)
+        try:
+            res = minimize(fun, r0, jac=True, method="L-BFGS-B", bounds=[(1e-3 * r, 10 * r) for r in r0],
+                           callback=lambda _: bar.update(1), options={"maxiter": int(iterations), "maxfun": cap})
+            reason = _lbfgs_reason(res, bar.n, iterations)
+        except _Budget:
+            reason = "evaluation limit"
+        bar.close(reason)
+    return build(best["r"])

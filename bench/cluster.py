@@ -88,7 +88,7 @@ def main(argv=None):
             reports = {}
             for r in range(args.repeats):
                 for name, kw in configs.items():
-                    sec, reports[name] = _run(scan, tmp / f"{r}-{len(times[name])}-{name[:12].strip()}", **kw)
+                    sec, reports[name] = _run(scan, tmp / f"run-{r}-{list(configs).index(name)}", **kw)
                     times[name].append(sec)
             round_trip, per_task = _overhead(client)
     med = {k: statistics.median(v) for k, v in times.items()}

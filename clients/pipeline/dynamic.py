@@ -60,6 +60,11 @@ class DynamicSettings:
     voxel_baseline : bool
         Also run the paper's voxel baseline (30 BB iterations, non-negative)
         on each subscan and record its held-out MSE.
+    warm_rtol, warm_window : float, int
+        A warm-started fit stops early once ``warm_window`` iterations have
+        lowered the objective by less than ``warm_rtol`` of its value (it
+        starts near the optimum and would spend its remaining iterations on
+        the noise); ``warm_rtol=0`` always runs ``iterations``.
     progress : bool
     """
 
@@ -72,6 +77,8 @@ class DynamicSettings:
     supersampling: int = 1
     min_radius: float | None = None
     voxel_baseline: bool = False
+    warm_rtol: float = 1e-3
+    warm_window: int = 5
     progress: bool = True
 
     def __post_init__(self):
@@ -185,7 +192,7 @@ def _cold(scan, settings):
     r = rec.report
     report = {"start": "cold", "iterations": r["iterations"], "objective": r["final_objective"],
               "initial_objective": r["initial_objective"], "bubbles_dropped_at_start": r["bubbles_dropped"],
-              "interrupted": r["interrupted"], "holdout_mse": r.get("holdout_mse")}
+              "interrupted": r["interrupted"], "holdout_mse": r.get("holdout_mse"), "stop_reason": r.get("stop_reason")}
     ids = range(len(rec.surfaces))
     return BubbleState.from_surfaces(ids, rec.surfaces, scan.bubble_contrast, settings.levels), report, \
         rec.preview, rec.preview_extent
@@ -218,8 +225,16 @@ def _warm(scan, previous, settings):
     if not starts:
         return BubbleState.from_surfaces([], [], scan.bubble_contrast, settings.levels), report, ended
     projector = MeshProjector(g_fit, supersampling=settings.supersampling)
+    seen = []
+
+    def plateau(_, objective, __):
+        seen.append(objective)
+        w = settings.warm_window
+        return len(seen) > w and seen[-w - 1] - seen[-1] < settings.warm_rtol * seen[-1]
+
     try:
-        result = fit(projector, starts, d_fit, iterations=settings.iterations, progress=settings.progress)
+        result = fit(projector, starts, d_fit, iterations=settings.iterations, progress=settings.progress,
+                     callback=plateau if settings.warm_rtol > 0 else None)
         if not np.isfinite(result.objective):
             raise FloatingPointError(f"objective {result.objective}")
     except (RuntimeError, ValueError, FloatingPointError) as exc:
@@ -227,6 +242,7 @@ def _warm(scan, previous, settings):
         report.update(diverged=True, error=str(exc))
         return previous, report, {}
     report.update(iterations=result.iterations, objective=result.objective, interrupted=result.interrupted,
+                  stop_reason="objective plateau" if result.stop_reason == "stopped by callback" else result.stop_reason,
                   initial_objective=result.history[0]["objective"] if result.history else result.objective)
     kept_ids, kept = [], []
     for i, s in zip(ids, result.surfaces):
@@ -342,7 +358,8 @@ def run_chain(get_scan, indices, settings, *, start=None, step=reconstruct_subsc
 def _run_record(scan, layout, settings):
     return {"scan": str(scan.path) if scan.path else None, "projections_per_subscan": layout.per_subscan,
             "subscans": [layout.selected.start, layout.selected.stop], "holdout": settings.holdout,
-            "dimension": scan.ndim, "levels": settings.levels}
+            "dimension": scan.ndim, "levels": settings.levels, "iterations": settings.iterations,
+            "warm_rtol": settings.warm_rtol, "warm_window": settings.warm_window}
 
 
 def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False,

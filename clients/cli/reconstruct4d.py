@@ -19,7 +19,8 @@ def cmd_reconstruct4d(args):
     out = Path(args.out) if args.resume else check_output_folder(args.out, overwrite=args.overwrite)
     scan = read_scan(args.scan)
     settings = DynamicSettings(iterations=args.iterations, control_points=args.control_points, levels=args.levels,
-                               holdout=args.holdout, voxel_baseline=args.voxel_baseline, progress=not args.quiet)
+                               holdout=args.holdout, voxel_baseline=args.voxel_baseline, warm_rtol=args.warm_rtol,
+                               progress=not args.quiet)
     with open_client(spec_from_args(args)) as client:
         report = reconstruct_dynamic(scan, out, settings, projections_per_subscan=args.projections_per_subscan,
                                      subscans=args.subscans, resume=args.resume, overwrite=args.overwrite,
@@ -52,6 +53,9 @@ def register(sub):
     p.add_argument("--iterations", type=int, default=80, metavar="N", help="BFGS iterations per subscan (default 80)")
     p.add_argument("--control-points", type=positive_int, metavar="N", help="control points per bubble (3D default 42, 2D 9)")
     p.add_argument("--levels", type=int, default=2, metavar="N", help="subdivision levels (default 2)")
+    p.add_argument("--warm-rtol", type=float, default=1e-3, metavar="R",
+                   help="a warm-started fit stops once 5 iterations lowered the objective by less than this "
+                        "fraction (default 1e-3; 0 runs all --iterations)")
     p.add_argument("--voxel-baseline", action="store_true",
                    help="also run the voxel baseline (30 Barzilai-Borwein iterations, x >= 0) per subscan "
                         "and plot its held-out MSE")

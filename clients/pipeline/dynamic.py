@@ -86,6 +86,8 @@ class DynamicSettings:
             raise ValueError(f"iterations must be a non-negative integer, got {self.iterations!r}")
         if self.holdout not in (None, "odd", "even"):
             raise ValueError(f"holdout must be None, 'odd' or 'even', got {self.holdout!r}")
+        if not self.warm_rtol >= 0:
+            raise ValueError(f"warm_rtol must be >= 0, got {self.warm_rtol!r}")
         if not 0 < self.shrink <= 1.5:
             raise ValueError(f"shrink must be in (0, 1.5], got {self.shrink!r}")
 

@@ -162,7 +162,7 @@ def main(argv=None):
                 times.append(_objective_time(MeshProjector(geom, threads=args.threads, backend=name), items,
                                              max(1, args.repeats // 2)))
             base = base or dict(zip(backends, times))
-            ntri = sum(len(s.fine_faces) for s in items)
+            ntri = sum(len(s.fine().faces) for s in items)
             rows.append([label, f"{ntri:,}"] + [f"{t:.3f}" for t in times] +
                         [f"{t / base[n]:.1f} x" for n, t in zip(backends, times)])
         _print_table(header, rows)

@@ -1,11 +1,16 @@
-"""The package layout: README imports work, no import cycles."""
+"""The package layout: README imports work, no import cycles, modules stay small."""
 
+import ast
 import pathlib
 import re
 import subprocess
 import sys
 
+import pytest
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+#: Above this many lines a module must say at its top why it is one module.
+MAX_LINES = 520
 SOURCES = {"core": "bubsub.core", "clients": "bubsub.clients", "service": "bubsub.service", "bench": "bubsub.bench"}
 
 
@@ -48,3 +53,12 @@ def test_every_module_imports_first_without_a_cycle():
     )
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+@pytest.mark.parametrize("path,name", list(_modules()), ids=lambda x: str(x) if isinstance(x, str) else "")
+def test_large_modules_state_why(path, name):
+    n = len(path.read_text().splitlines())
+    if n <= MAX_LINES:
+        return
+    doc = ast.get_docstring(ast.parse(path.read_text())) or ""
+    assert "on purpose" in doc, f"{name} has {n} lines; split it or say at its top why it is one module ('on purpose')"

@@ -1,6 +1,6 @@
 """Reconstruction outputs: bubble meshes (PLY), bubble polygons (JSON), bubble tables (CSV).
 
-One module of about 550 lines on purpose: the three writers share the id and
+One module of about 630 lines on purpose: the three writers share the id and
 attenuation bookkeeping (``_resolve``, ``_ids``) and their readers must round-trip
 exactly what the writers emit, which the tests check pairwise.
 

@@ -1,5 +1,10 @@
 """HDF5 scan files in the Data Exchange layout.
 
+One module of about 620 lines on purpose: the :class:`Scan` object's
+validation, the writer and the reader (static, dynamic and raw-count files)
+must agree on every dataset, shape and attribute listed below; keeping them
+together keeps that list in one place.
+
 A scan file holds, for one scan::
 
     /exchange/data         float32 line integrals, (angle, row, col) in 3D, (angle, col) in 2D

@@ -114,3 +114,22 @@ def test_dense_foam_is_dense_disjoint_and_keeps_its_films(make, ndim):
     assert min(gaps) >= film - 1e-9
     assert np.median(gaps) < 1.5 * film
     assert make(3, **kw).bubbles[0].vertices.tolist() == ph.bubbles[0].vertices.tolist()  # seeded
+
+
+def test_footprint_matches_the_dense_projection_it_replaces():
+    from bubsub.clients.pipeline.topology import _Footprint, _others_removed
+
+    rng = np.random.default_rng(3)
+    p = np.zeros((5, 7, 9), np.float32)
+    p[1:3, 2:5, 4:8] = rng.random((2, 3, 4))
+    q = np.zeros_like(p)
+    q[2:4, 1:3, 1:3] = rng.random((2, 2, 2))
+    residual = rng.standard_normal(p.shape)
+    fp, fq = _Footprint(p), _Footprint(q)
+    assert len(fp.index) == 24  # only the support is stored
+    dense_gain = 0.5 * np.sum((residual - p) ** 2) - 0.5 * np.sum(residual ** 2)
+    assert fp.removal_gain(residual) == pytest.approx(dense_gain, rel=1e-12)
+    np.testing.assert_allclose(_others_removed(residual, fp, fq), p + q - residual, rtol=0, atol=1e-12)
+    r = residual.copy()
+    fp.add_to(r, -1.0)
+    np.testing.assert_allclose(r, residual - p, rtol=0, atol=1e-12)

@@ -233,7 +233,7 @@ def test_reconstruct4d_outputs_and_tracks(sim, rec):
     assert all(0 < p["voxel_holdout_mse"] < 1e-2 for p in per.values())
     with open(rec / "tracks.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert list(rows[0]) == ["subscan", "time", "bubble_id", "centroid_x_mm", "centroid_y_mm", "area_mm2",
+    assert list(rows[0]) == ["subscan", "time_s", "bubble_id", "centroid_x_mm", "centroid_y_mm", "area_mm2",
                              "perimeter_mm", "equivalent_diameter_mm"]
     ids = {k: {int(r["bubble_id"]) for r in rows if int(r["subscan"]) == k} for k in range(3)}
     assert ids[0] <= ids[1] <= ids[2] and len(ids[2]) == 6

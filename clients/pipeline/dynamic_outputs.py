@@ -9,8 +9,9 @@ trusts it). ``tracks.csv`` has one row per (subscan, bubble):
 column                 unit    meaning
 =====================  ======  =============================================
 subscan                        subscan index in the scan
-time                   s       mid-time of the subscan (``/exchange/time``);
-                               the subscan index when the scan has no times
+time_s | time_subscan  s       mid-time of the subscan (``/exchange/time``);
+                               ``time_subscan``: the subscan index when the scan
+                               has no times
 bubble_id                      track id (kept through time)
 centroid_x_mm, _y_mm   mm      centroid of the refined surface
 [, centroid_z_mm]
@@ -31,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
-from bubsub.core.io.meshio import bubble_table, read_ply, read_polygons_json, write_csv
+from bubsub.core.io.meshio import bubble_table, read_ply, read_polygons_json, unit_column, write_csv
 
 __all__ = ["subscan_dir", "write_subscan", "read_subscan_result", "complete_subscans", "track_rows",
            "write_tracks", "write_summary"]
@@ -100,20 +101,26 @@ def complete_subscans(out):
     return sorted(found)
 
 
-def track_rows(results):
+def time_column(time_unit):
+    """The ``tracks.csv`` column of the subscans' mid-times: ``time_s``, or ``time_subscan`` without times."""
+    return unit_column("time", time_unit)
+
+
+def track_rows(results, time_unit):
     """Rows of ``tracks.csv`` (see the module docstring), in time order."""
+    column = time_column(time_unit)
     rows = []
     for res in sorted(results, key=lambda r: r.index):
         fine = [s.fine() for s in res.state.surfaces()]
         for row in bubble_table(fine, list(res.state.ids)):
             bid = row.pop("id")
-            rows.append({"subscan": res.index, "time": res.time, "bubble_id": bid, **row})
+            rows.append({"subscan": res.index, column: res.time, "bubble_id": bid, **row})
     return rows
 
 
-def write_tracks(path, results):
+def write_tracks(path, results, time_unit):
     """Write ``tracks.csv`` (atomically); the one place its columns are decided."""
-    rows = track_rows(results)
+    rows = track_rows(results, time_unit)
     return write_csv(path, rows)
 
 
@@ -122,7 +129,7 @@ def write_summary(out, results, *, layout, time_unit, settings, engine="local", 
     """Write ``tracks.csv``, ``report.json``, ``growth.png`` and ``mse.png`` for the completed subscans."""
     out = Path(out)
     results = sorted(results, key=lambda r: r.index)
-    write_tracks(out / "tracks.csv", results)
+    write_tracks(out / "tracks.csv", results, time_unit)
     per = [dict(r.report) for r in results]
     ended = [i for r in results for i in r.ended]
     warm = [p["seconds"] for p in per if p.get("start") == "warm"]
@@ -145,7 +152,7 @@ def write_summary(out, results, *, layout, time_unit, settings, engine="local", 
     }
     atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=_json_default))
     if results:
-        plot_growth(out / "growth.png", track_rows(results), time_unit)
+        plot_growth(out / "growth.png", track_rows(results, time_unit), time_unit)
         plot_mse(out / "mse.png", per)
     return report
 
@@ -167,21 +174,22 @@ def _figure():
 
 def plot_growth(path, rows, time_unit):
     """Equivalent diameter against time per bubble, and the size distribution at up to four times."""
+    column = time_column(time_unit)
     plt = _figure()
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=100)
     by_id = {}
     for r in rows:
-        by_id.setdefault(r["bubble_id"], []).append((r["time"], r["equivalent_diameter_mm"]))
+        by_id.setdefault(r["bubble_id"], []).append((r[column], r["equivalent_diameter_mm"]))
     for pts in by_id.values():
         t, d = np.array(sorted(pts)).T
         a.plot(t, d, lw=0.8, marker=".", ms=3)
     a.set_xlabel(f"time ({time_unit})")
     a.set_ylabel("equivalent diameter (mm)")
     a.set_title(f"{len(by_id)} bubble tracks", fontsize=10)
-    times = sorted({r["time"] for r in rows})
+    times = sorted({r[column] for r in rows})
     pick = [times[int(round(i))] for i in np.linspace(0, len(times) - 1, min(4, len(times)))]
     for t in dict.fromkeys(pick):
-        d = [r["equivalent_diameter_mm"] for r in rows if r["time"] == t]
+        d = [r["equivalent_diameter_mm"] for r in rows if r[column] == t]
         b.hist(d, bins=12, histtype="step", label=f"t = {t:.3g} {time_unit}")
     b.set_xlabel("equivalent diameter (mm)")
     b.set_ylabel("bubbles")

@@ -58,7 +58,7 @@ __all__ = [
 
 #: How a unit is written at the end of a column name (``volume`` in mm^3 is ``volume_mm3``).
 UNIT_SUFFIXES = {"": "", "mm": "mm", "mm^2": "mm2", "mm^3": "mm3", "1/mm": "per_mm", "s": "s", "deg": "deg",
-                 "1": ""}
+                 "subscan": "subscan", "1": ""}
 
 
 def unit_column(quantity, unit):

@@ -72,7 +72,8 @@ def test_redirected_reconstruct_prints_one_line_per_phase(tmp_path, capsys, monk
     assert rc == 0
     err = capsys.readouterr().err.strip().splitlines()
     names = [line.split(":")[0] for line in err]
-    assert names[0].startswith("voxel preview (2D") and names[1:] == ["radius estimation", "BubSub fit"]
-    assert "iteration limit" in err[-1]
+    assert names[0].startswith("voxel preview (2D") and names[1:] == ["radius estimation", "BubSub fit", "pictures"]
+    assert "iteration limit" in err[-2]
+    assert err[-1].startswith("pictures: 2 pictures")  # overlay and size histogram (2D)
     report = json.loads((tmp_path / "rec" / "report.json").read_text())
     assert report["stop_reason"] == "iteration limit" and report["iterations"] == 5

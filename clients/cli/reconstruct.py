@@ -95,7 +95,7 @@ def cmd_reconstruct(args):
 
         ref = voxel_baseline(scan, args.holdout)
         rec.report["holdout_mse_voxel_bb"] = ref["holdout_mse"]
-    files = write_outputs(out, rec, scan_path=args.scan)
+    files = write_outputs(out, rec, scan_path=args.scan, progress=not args.quiet)
     r = rec.report
     print(f"{r['bubbles']} bubbles, {r['iterations']} iterations ({r.get('stop_reason', 'done')}), objective "
           f"{r['initial_objective']:.4g} -> {r['final_objective']:.4g}, {r['seconds_total']:.1f} s")

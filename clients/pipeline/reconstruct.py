@@ -383,7 +383,7 @@ def prune(surfaces, min_radius):
     return kept, len(surfaces) - len(kept)
 
 
-def write_outputs(out_dir, rec, scan_path=None):
+def write_outputs(out_dir, rec, scan_path=None, *, progress=False):
     """Write ``bubbles.ply|json``, ``control.ply|json``, ``bubbles.csv`` and its column sidecar,
     ``report.json`` and the pictures of :func:`write_figures`.
 
@@ -392,6 +392,7 @@ def write_outputs(out_dir, rec, scan_path=None):
     removed (:func:`bubsub.clients.pipeline.outputs.finish_outputs`). Callers
     that must not replace earlier results check the folder first
     (:func:`bubsub.clients.pipeline.outputs.check_output_folder`).
+    ``progress`` shows the pictures as a phase (seconds for 3D meshes).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -423,7 +424,7 @@ def write_outputs(out_dir, rec, scan_path=None):
     report = dict(rec.report)
     if scan_path is not None:
         report["scan"] = str(scan_path)
-    files.update(write_figures(out, rec, fine, rows))
+    files.update(write_figures(out, rec, fine, rows, progress=progress))
     report["files"] = {k: v.name for k, v in files.items()}
     files["report"] = out / "report.json"
     with atomic_path(files["report"]) as tmp:
@@ -433,23 +434,29 @@ def write_outputs(out_dir, rec, scan_path=None):
     return files
 
 
-def write_figures(out, rec, fine, rows):
+def write_figures(out, rec, fine, rows, *, progress=False):
     """``overlay.png`` (preview slices with outlines), ``sizes.png`` and, in 3D, ``meshes.png``."""
     from bubsub.clients.pipeline.figures import write_mesh_view, write_overlay, write_size_histogram
 
     out = Path(out)
     ids = [r["id"] for r in rows]
     files = {}
-    if rec.preview is not None:
-        files["overlay"] = out / "overlay.png"
-        write_overlay(files["overlay"], rec.preview, rec.preview_extent, fine, ids)
-    files["sizes"] = out / "sizes.png"
-    write_size_histogram(files["sizes"], [r["equivalent_diameter_mm"] for r in rows], rec.report["dimension"])
-    if rec.report["dimension"] == 3:
-        # mplot3d draws every face: very many bubbles are shown by their control meshes
-        shown = fine if sum(len(m.faces) for m in fine) <= 60000 else [s.control for s in rec.surfaces]
-        files["meshes"] = out / "meshes.png"
-        write_mesh_view(files["meshes"], shown, ids)
+    three_d = rec.report["dimension"] == 3
+    total = 1 + (rec.preview is not None) + three_d
+    with phase("pictures", total, unit="picture", enabled=progress) as bar:
+        if rec.preview is not None:
+            files["overlay"] = out / "overlay.png"
+            write_overlay(files["overlay"], rec.preview, rec.preview_extent, fine, ids)
+            bar.update()
+        files["sizes"] = out / "sizes.png"
+        write_size_histogram(files["sizes"], [r["equivalent_diameter_mm"] for r in rows], rec.report["dimension"])
+        bar.update()
+        if three_d:
+            # mplot3d draws every face: very many bubbles are shown by their control meshes
+            shown = fine if sum(len(m.faces) for m in fine) <= 60000 else [s.control for s in rec.surfaces]
+            files["meshes"] = out / "meshes.png"
+            write_mesh_view(files["meshes"], shown, ids)
+            bar.update()
     return files
 
 

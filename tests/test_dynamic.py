@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from bubsub.clients.cli import main
+# imported before any test patches bubsub.clients.optimise.fit.fit: its module-level `fit` must stay the real one
+from bubsub.clients.pipeline import reconstruct as _static_pipeline  # noqa: F401
 from bubsub.clients.pipeline.dynamic import BubbleState, DynamicSettings, reconstruct_subscan
 from bubsub.core import Mesh, ScanGeometry, circle_surface, sphere_surface
 from bubsub.core.foam.expanding import expanding2d
@@ -65,6 +67,8 @@ def test_geometry_rows_that_do_not_match_are_named(tmp_path):
         del f["exchange/theta"]
     with pytest.raises(ValueError, match="one geometry row per projection"):
         read_scan(path)
+    with pytest.raises(ValueError, match="one geometry row per projection"):  # the same scan made in memory
+        Scan(data=scan.data, geometry=scan.geometry[:4], bubble_contrast=-0.1, projections_per_subscan=4)
 
 
 def test_subscan_slices_are_the_right_projections():
@@ -167,6 +171,9 @@ def test_subscan_step_is_picklable_and_keeps_track_ids(small):
     res = pickle.loads(pickle.dumps(res))
     assert res.state.ids == (7, 3, 5) and res.report["start"] == "warm" and res.ended == ()
     assert res.report["objective"] < res.report["initial_objective"]
+    parts = res.report["seconds_parts"]  # what the subscan's time is made of
+    assert set(parts) == {"remesh", "fit"} and 0 < sum(parts.values()) <= res.report["seconds"]
+    assert res.report["evaluations"] >= res.report["iterations"] and res.report["cpu_seconds"] > 0
     for s, r in zip(res.state.surfaces(), truth.radii):
         assert np.sqrt(s.fine().area / np.pi) == pytest.approx(r, rel=0.1)
 
@@ -281,6 +288,67 @@ def test_reconstruct4d_bad_inputs(sim, tmp_path, capsys):
     assert "contradicts" in capsys.readouterr().err
 
 
+@pytest.fixture(scope="module")
+def three():
+    """The 3-bubble foam over three subscans of 12 projections, and starts near its last state."""
+    from bubsub.core.foam.expanding import simulate_expanding
+
+    foam = expanding2d(2, n_bubbles=3, size=4.0, radius_range=(0.4, 0.6))
+    g = ScanGeometry.parallel(np.tile(np.linspace(0, np.pi, 12, endpoint=False), 3), pixel_size=6.0 / 150, cols=150)
+    scan, mid = simulate_expanding(foam, g, projections_per_subscan=12)
+    truth = foam.at(mid[2])
+    return scan, [circle_surface(c, 1.1 * r, -0.1) for c, r in zip(truth.centres, truth.radii)]
+
+
+def test_a_diverged_subscan_is_kept_flagged_and_the_chain_goes_on(three, tmp_path, monkeypatch):
+    from bubsub.clients.optimise import fit as fit_module
+    from bubsub.clients.pipeline import dynamic_outputs
+    from bubsub.clients.pipeline.dynamic import run_chain
+
+    scan, starts = three
+    layout = subscan_layout(scan)
+    real, calls = fit_module.fit, []
+
+    def nan_in_subscan_1(*a, **k):  # the second fit of the chain (subscan 1) ends with a NaN objective
+        calls.append(1)
+        res = real(*a, **k)
+        if len(calls) == 2:
+            res.objective = float("nan")
+        return res
+
+    monkeypatch.setattr(fit_module, "fit", nan_in_subscan_1)
+    settings = DynamicSettings(iterations=15, progress=False, holdout="odd")
+    results, interrupted = run_chain(
+        lambda k: subscan(scan, layout, k), [2, 1, 0], settings, start=BubbleState.from_surfaces([7, 3, 5], starts),
+        on_result=lambda r: dynamic_outputs.write_subscan(tmp_path, r, 2))
+    assert not interrupted and [r.index for r in results] == [2, 1, 0] and len(calls) == 3
+    r2, r1, r0 = results
+    assert not r2.report["diverged"] and not r0.report["diverged"]
+    assert r1.report["diverged"] is True and "nan" in r1.report["error"]
+    assert r1.state is r2.state and r1.ended == ()  # kept: the last good state, ids and all
+    assert r0.state.ids == (7, 3, 5) and np.isfinite(r0.report["objective"])
+    assert r0.report["objective"] < r0.report["initial_objective"]  # the chain went on from subscan 2's bubbles
+    assert sorted(dynamic_outputs.complete_subscans(tmp_path)) == [0, 1, 2]
+    report = dynamic_outputs.write_summary(tmp_path, results, layout=layout, time_unit="s", settings=settings)
+    assert report["totals"]["subscans_diverged"] == 1 and report["totals"]["tracks"] == 3
+    assert [p["diverged"] for p in json.loads((tmp_path / "report.json").read_text())["subscans"]] == [
+        False, True, False]
+
+
+def test_projections_per_subscan_that_does_not_divide_runs_the_complete_subscans(three, tmp_path):
+    from bubsub.clients.pipeline.dynamic import reconstruct_dynamic
+
+    scan, starts = three
+    plain = Scan(data=scan.data, geometry=scan.geometry, bubble_contrast=scan.bubble_contrast,
+                 background=scan.background)  # no projections_per_subscan attribute: it must be given
+    with pytest.warns(UserWarning, match="does not divide the scan's 36 projections: 2 complete subscans"):
+        report = reconstruct_dynamic(plain, tmp_path, DynamicSettings(iterations=3, progress=False),
+                                     projections_per_subscan=16, subscans="1:2")
+    assert (report["projections_per_subscan"], report["subscans_in_scan"], report["projections_ignored"]) == (16, 2, 4)
+    assert [p["subscan"] for p in report["subscans"]] == [1]
+    assert sorted(p.name for p in tmp_path.glob("subscan_*")) == ["subscan_0001"]
+
+
 def test_ctrl_c_leaves_finished_subscans_complete(sim, tmp_path, monkeypatch):
     from bubsub.clients.pipeline import dynamic
 
@@ -359,6 +427,10 @@ def test_fig6_quick(tmp_path):
     with open(tmp_path / "fig6.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert sorted({r["method"] for r in rows}) == ["bb", "bubsub", "sirt"] and len(rows) == 6
+    ours = [r for r in rows if r["method"] == "bubsub"]
+    assert [r["start"] for r in ours] == ["warm", "cold"] and all(int(r["iterations"]) > 0 for r in ours)
+    assert summary["warm_to_cold_cpu_time"] == pytest.approx(
+        float(ours[0]["cpu_seconds"]) / float(ours[1]["cpu_seconds"]))
     assert summary["mean_ddi"]["bubsub"] < 0.5 * summary["mean_ddi"]["sirt"]
     assert summary["mean_holdout_mse"]["bubsub"] < summary["mean_holdout_mse"]["bb"]
     assert summary["right_track_fraction"] == 1.0

@@ -68,7 +68,7 @@ def _score_subscan(sim_dir, rec_dir, k, shape, extent, report_k):
     from bubsub.core.voxel.raster import bubble_mask
     from bubsub.core.voxel.segment import binarise
 
-    from bubsub.clients.pipeline.voxel4d import voxel_baseline
+    from bubsub.clients.pipeline.voxel4d import BB_ITERATIONS, voxel_baseline
 
     scan = read_scan(Path(sim_dir) / "scan.h5")
     ndim = scan.ndim
@@ -80,9 +80,11 @@ def _score_subscan(sim_dir, rec_dir, k, shape, extent, report_k):
     rec = bubble_mask(reader(Path(rec_dir) / f"subscan_{k:04d}" / f"bubbles{ext}"), shape, extent)
     rows = [
         {"subscan": k, "method": "bubsub", "ddi": dice_dissimilarity(rec, truth),
-         "holdout_mse": report_k["holdout_mse"], "seconds": report_k["seconds"], "start": report_k["start"]},
+         "holdout_mse": report_k["holdout_mse"], "seconds": report_k["seconds"], "start": report_k["start"],
+         "iterations": report_k["iterations"], "stop_reason": report_k.get("stop_reason"),
+         "cpu_seconds": report_k.get("cpu_seconds")},
         {"subscan": k, "method": "bb", "ddi": dice_dissimilarity(bb_mask, truth), "holdout_mse": bb["holdout_mse"],
-         "seconds": bb["seconds"], "start": ""},
+         "seconds": bb["seconds"], "start": "", "iterations": BB_ITERATIONS},
     ]
     if ndim == 2:  # SIRT 200 iterations + Otsu, the issue's 2D reference (too slow to run per 3D subscan)
         t_sirt = time.perf_counter()
@@ -132,7 +134,9 @@ def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, co
         atomic_write_text(out / "sim" / "phantom.json", json.dumps(meta, indent=2))
     t_sim = time.perf_counter() - t0
     scan = read_scan(out / "sim" / "scan.h5")
-    settings = DynamicSettings(iterations=cfg["iterations"], holdout="odd", progress=progress)
+    # config "warm_rtol": the warm fits' plateau stop (0: every warm fit runs all iterations)
+    settings = DynamicSettings(iterations=cfg["iterations"], holdout="odd", progress=progress,
+                               **{k: cfg[k] for k in ("warm_rtol",) if k in cfg})
     rec_dir = out / "bubsub"
     report = reconstruct_dynamic(scan, rec_dir, settings, resume=rec_dir.exists())
     shape, extent = _grid(meta, cfg)
@@ -160,8 +164,11 @@ def _summarise(rows, score, report, t_sim, t_total, cfg, ndim, quick, seed, phot
         vals = [r[key] for r in rows if r["method"] == method and r[key] is not None]
         return float(np.mean(vals)) if vals else None
 
-    warm = [r["seconds"] for r in rows if r["method"] == "bubsub" and r["start"] == "warm"]
-    cold = [r["seconds"] for r in rows if r["method"] == "bubsub" and r["start"] == "cold"]
+    def seconds(start, key="seconds"):
+        return [r[key] for r in rows if r["method"] == "bubsub" and r["start"] == start and r.get(key) is not None]
+
+    warm, cold = seconds("warm"), seconds("cold")
+    warm_cpu, cold_cpu = seconds("warm", "cpu_seconds"), seconds("cold", "cpu_seconds")
     ddi = {m: mean(m, "ddi") for m in ("bubsub", "bb", "sirt")}
     return {
         "ndim": ndim, "quick": quick, "seed": seed, "photons": photons, "config": cfg,
@@ -171,6 +178,9 @@ def _summarise(rows, score, report, t_sim, t_total, cfg, ndim, quick, seed, phot
         "seconds_cold": float(np.sum(cold)) if cold else None,
         "seconds_warm_median": float(np.median(warm)) if warm else None,
         "warm_to_cold_time": float(np.median(warm) / np.sum(cold)) if warm and cold else None,
+        "cpu_seconds_cold": float(np.sum(cold_cpu)) if cold_cpu else None,
+        "cpu_seconds_warm_median": float(np.median(warm_cpu)) if warm_cpu else None,
+        "warm_to_cold_cpu_time": float(np.median(warm_cpu) / np.sum(cold_cpu)) if warm_cpu and cold_cpu else None,
         "tracks_ended": report["totals"]["tracks_ended"], "seconds_simulation": t_sim, "seconds_total": t_total,
     }
 
@@ -178,7 +188,9 @@ def _summarise(rows, score, report, t_sim, t_total, cfg, ndim, quick, seed, phot
 def _write(out, rows, summary, panels, extent):
     from bubsub.core.io.meshio import write_csv
 
-    write_csv(out / "fig6.csv", rows, ["subscan", "method", "start", "ddi", "holdout_mse", "seconds"])
+    columns = ["subscan", "method", "start", "iterations", "stop_reason", "ddi", "holdout_mse", "seconds",
+               "cpu_seconds"]
+    write_csv(out / "fig6.csv", [{c: r.get(c) for c in columns} for r in rows], columns)
     atomic_write_text(out / "fig6.json", json.dumps(summary, indent=2))
     import matplotlib
 

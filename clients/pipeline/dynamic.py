@@ -155,10 +155,17 @@ class SubscanResult:
         Track ids that end here (collapsed or failed), with the reason in
         ``report["ended"]``.
     report : dict
-        ``start`` (cold/warm), ``iterations``, ``objective``,
-        ``initial_objective``, ``seconds``, ``holdout_mse`` (with a holdout),
-        ``bubbles``, ``diverged``, ``interrupted`` and for the cold start the
-        static pipeline's report fields.
+        ``start`` (cold/warm), ``iterations``, ``evaluations`` (projections
+        with gradient the fit made), ``objective``,
+        ``initial_objective``, ``seconds`` (wall clock of the whole step:
+        everything below, not the writing of the subscan folder),
+        ``cpu_seconds`` (CPU time of this process over the step),
+        ``seconds_parts`` (cold: ``preview_and_centres``, ``fit``, ``other``
+        = radius estimation, topology rounds, repair, held-out MSE; warm:
+        ``remesh``, ``fit``, ``holdout``; ``voxel_baseline`` when run),
+        ``holdout_mse`` (with a holdout), ``bubbles``, ``diverged``,
+        ``interrupted`` and for the cold start the static pipeline's report
+        fields.
     preview, preview_extent : ndarray, tuple, optional
         The voxel preview of a cold start (for ``overlay.png``).
     """
@@ -192,9 +199,13 @@ def _cold(scan, settings):
 
     rec = reconstruct(scan, _static_settings(settings))
     r = rec.report
-    report = {"start": "cold", "iterations": r["iterations"], "objective": r["final_objective"],
+    report = {"start": "cold", "iterations": r["iterations"], "evaluations": r["evaluations"],
+              "objective": r["final_objective"],
               "initial_objective": r["initial_objective"], "bubbles_dropped_at_start": r["bubbles_dropped"],
-              "interrupted": r["interrupted"], "holdout_mse": r.get("holdout_mse"), "stop_reason": r.get("stop_reason")}
+              "interrupted": r["interrupted"], "holdout_mse": r.get("holdout_mse"), "stop_reason": r.get("stop_reason"),
+              # radius estimation, topology rounds, validity check and repair, held-out MSE: the rest
+              "seconds_parts": {"preview_and_centres": r["seconds_initialisation"], "fit": r["seconds_fit"],
+                                "other": r["seconds_total"] - r["seconds_initialisation"] - r["seconds_fit"]}}
     ids = range(len(rec.surfaces))
     return BubbleState.from_surfaces(ids, rec.surfaces, scan.bubble_contrast, settings.levels), report, \
         rec.preview, rec.preview_extent
@@ -215,6 +226,7 @@ def _warm(scan, previous, settings):
     min_radius = settings.min_radius or preview_voxel_size(g_fit)
     ended = {}
     ids, starts = [], []
+    t0 = _time.perf_counter()
     for i, s in zip(previous.ids, previous.surfaces()):
         try:
             starts.append(warm_start(s.with_attenuation(scan.bubble_contrast), shrink=settings.shrink,
@@ -223,7 +235,7 @@ def _warm(scan, previous, settings):
         except ValueError as exc:
             ended[i] = f"no warm start: {exc}"
     report = {"start": "warm", "iterations": 0, "objective": None, "initial_objective": None,
-              "interrupted": False, "diverged": False}
+              "interrupted": False, "diverged": False, "seconds_parts": {"remesh": _time.perf_counter() - t0}}
     if not starts:
         return BubbleState.from_surfaces([], [], scan.bubble_contrast, settings.levels), report, ended
     projector = MeshProjector(g_fit, supersampling=settings.supersampling)
@@ -243,7 +255,9 @@ def _warm(scan, previous, settings):
         # a diverged fit is kept and flagged; the chain goes on from the last good state
         report.update(diverged=True, error=str(exc))
         return previous, report, {}
-    report.update(iterations=result.iterations, objective=result.objective, interrupted=result.interrupted,
+    report["seconds_parts"]["fit"] = result.seconds
+    report.update(iterations=result.iterations, evaluations=result.evaluations, objective=result.objective,
+                  interrupted=result.interrupted,
                   stop_reason="objective plateau" if result.stop_reason == "stopped by callback" else result.stop_reason,
                   initial_objective=result.history[0]["objective"] if result.history else result.objective)
     kept_ids, kept = [], []
@@ -280,7 +294,7 @@ def reconstruct_subscan(scan, previous, settings, index=0, time=0.0):
     -------
     SubscanResult
     """
-    t0 = _time.perf_counter()
+    t0, cpu0 = _time.perf_counter(), _time.process_time()
     preview = extent = None
     if previous is None:
         state, report, preview, extent = _cold(scan, settings)
@@ -288,17 +302,23 @@ def reconstruct_subscan(scan, previous, settings, index=0, time=0.0):
         report["diverged"] = False
     else:
         state, report, ended = _warm(scan, previous, settings)
+    parts = report.setdefault("seconds_parts", {})
     _, _, g_val, d_val = _split(scan, settings.holdout)
     if g_val is not None and report.get("holdout_mse") is None:
+        t1 = _time.perf_counter()
         pred = MeshProjector(g_val, supersampling=settings.supersampling).forward(state.surfaces()) \
             if len(state) else np.zeros(g_val.shape, np.float32)
         report["holdout_mse"] = projection_mse(pred, d_val)
+        parts["holdout"] = _time.perf_counter() - t1
     if settings.voxel_baseline and g_val is not None:
         from bubsub.clients.pipeline.voxel4d import voxel_baseline
 
-        report["voxel_holdout_mse"] = voxel_baseline(scan, settings.holdout)["holdout_mse"]
+        baseline = voxel_baseline(scan, settings.holdout)
+        report["voxel_holdout_mse"] = baseline["holdout_mse"]
+        parts["voxel_baseline"] = baseline["seconds"]
     report.update(subscan=int(index), time=float(time), bubbles=len(state),
-                  ended={str(k): v for k, v in sorted(ended.items())}, seconds=_time.perf_counter() - t0)
+                  ended={str(k): v for k, v in sorted(ended.items())}, seconds=_time.perf_counter() - t0,
+                  cpu_seconds=_time.process_time() - cpu0)
     return SubscanResult(int(index), float(time), state, tuple(sorted(ended)), report, preview, extent)
 
 

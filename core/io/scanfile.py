@@ -208,6 +208,13 @@ class Scan:
 
 
 # -- validation helpers ---------------------------------------------------------------
+def _dynamic_hint(shape, geometry):
+    """A hint when ``shape`` looks like several rotations of a geometry given once (a dynamic scan)."""
+    if len(shape) == len(geometry.shape) and shape[0] > geometry.n_angles and shape[0] % geometry.n_angles == 0:
+        return " (a dynamic scan needs one geometry row per projection, in acquisition order)"
+    return ""
+
+
 def _projection_array(a, name, geometry):
     try:
         arr = np.asarray(a)
@@ -216,7 +223,8 @@ def _projection_array(a, name, geometry):
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         raise ValueError(f"{name} must be a numeric array, got dtype {arr.dtype}")
     if arr.shape != geometry.shape:
-        raise ValueError(f"{name} has shape {arr.shape} but the geometry needs {_shape_words(geometry)}")
+        raise ValueError(f"{name} has shape {arr.shape} but the geometry needs {_shape_words(geometry)}"
+                         f"{_dynamic_hint(arr.shape, geometry)}")
     arr = np.ascontiguousarray(arr, dtype=np.float32)
     _check_finite(arr, name)
     return arr
@@ -559,12 +567,9 @@ def _read_geometry(f, p):
 def _read_dataset(f, name, geometry, p):
     ds = f[name]
     if ds.shape != geometry.shape:
-        hint = ""
-        if len(ds.shape) == len(geometry.shape) and ds.shape[0] > geometry.n_angles and ds.shape[0] % geometry.n_angles == 0:
-            hint = " (a dynamic scan needs one geometry row per projection, in acquisition order)"
         raise ValueError(
             f"{p.name}: '/{name}' has shape {ds.shape} but '/geometry/vectors' describes "
-            f"{_shape_words(geometry)}{hint}"
+            f"{_shape_words(geometry)}{_dynamic_hint(ds.shape, geometry)}"
         )
     if not (np.issubdtype(ds.dtype, np.floating) or np.issubdtype(ds.dtype, np.integer)):
         raise ValueError(f"{p.name}: '/{name}' must be numeric, got dtype {ds.dtype}")

@@ -3,6 +3,7 @@
 import csv
 import json
 import pickle
+import re
 import shutil
 import warnings
 
@@ -421,8 +422,10 @@ def test_track_check_catches_swapped_ids(sim, rec, tmp_path):
     assert score["rows"] == 18 and score["right_track_fraction"] == pytest.approx(16 / 18)
 
 
-def test_fig6_quick(tmp_path):
+def test_fig6_quick(tmp_path, capsys):
     assert main(["experiment", "fig6", "--quick", "--out", str(tmp_path), "--quiet"]) == 0
+    assert re.search(r"median warm / cold subscan time: \d+\.\d{3} \(wall\), \d+\.\d{3} \(CPU\)",
+                     capsys.readouterr().out)
     summary = json.loads((tmp_path / "fig6.json").read_text())
     with open(tmp_path / "fig6.csv") as fh:
         rows = list(csv.DictReader(fh))

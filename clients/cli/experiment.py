@@ -44,8 +44,10 @@ def _fig6(args):
     ratio = s["ddi_ratio_bubsub_to_sirt_otsu"]
     print("mean DDI: " + ", ".join(f"{m} {v:.4f}" for m, v in s["mean_ddi"].items() if v is not None)
           + (f" (BubSub / SIRT+Otsu = {ratio:.3f})" if ratio is not None else ""))
+    ratios = [f"{s[k]:.3f} ({what})" for k, what in (("warm_to_cold_time", "wall"), ("warm_to_cold_cpu_time", "CPU"))
+              if s.get(k) is not None]
     print(f"rows on the right track: {s['right_track_fraction']:.3f} of {s['track_rows']}; "
-          f"warm / cold subscan time: {s['warm_to_cold_time']}")
+          f"median warm / cold subscan time: {', '.join(ratios) or 'n/a (no warm subscan)'}")
     print(f"wrote {args.out}/fig6.csv, fig6.json, fig6.png, fig7.png")
     return 0
 

@@ -71,9 +71,15 @@ class Frames:
             if bad.size:
                 raise ValueError(f"projection {bad[0]}: the rays run parallel to the detector plane")
             return
-        for p in range(self.n):
-            src = self.s[p] - scene.centre
-            h = (self.d[p] - self.s[p]) @ nrm[p]
+        src_all = self.s - scene.centre
+        h_all = np.einsum("ij,ij->i", self.d - self.s, nrm)
+        # the scene's bounding sphere (about the origin of the shifted frame) wholly in front
+        # of a source settles that projection without visiting the vertices
+        radius = float(np.linalg.norm(scene.half)) * (1 + 1e-9)
+        clear = -np.einsum("ij,ij->i", src_all, nrm) * np.sign(h_all) > radius * np.linalg.norm(nrm, axis=1)
+        for p in np.flatnonzero(~clear):
+            src = src_all[p]
+            h = h_all[p]
             if h == 0:
                 raise ValueError(f"projection {p}: the cone source lies in the detector plane")
             depth = (scene.vertices - src) @ nrm[p]

@@ -28,6 +28,17 @@ Exact and watertight
 * Cone and fan beams need every vertex in front of the source (projected
   triangles are only meaningful there); the projector refuses other scenes.
 
+Speed
+-----
+Per projection the vertices are projected once, with the projection's
+constants out of the loop. A first, branch-free pass over the faces keeps
+the candidates: those whose box holds a lattice point, less those whose
+single lattice point is clearly outside (by far more than any rounding);
+at fine subdivision most triangles hold no point, and a mispredicted
+branch per triangle costs more than the test. The forward pass marks, per
+projection, one bit per face that it found crossed; the gradient pass
+visits only those faces.
+
 Gradient
 --------
 ``face_sums`` rasterises again and adds ``w[pixel] mu b_j / |n.d|`` per face
@@ -134,16 +145,21 @@ class _Job:
         self.threads = max(1, min(int(threads), n))
         edges = np.linspace(0, n, self.threads + 1).round().astype(int)
         self.groups = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+        # per projection, one bit per face: whether the forward pass found a crossing on it, so
+        # the gradient pass visits only those (a projection's row is written by one thread)
+        self.hit = np.zeros((n, (len(f) + 7) // 8 if scene.ndim == 3 else 1), np.uint8)
 
     def run(self, group, values, weights, acc):
         """Forward (``values`` given) or face sums (``weights``, ``acc`` given) for projections ``group``."""
         p0, p1 = group
         grad = acc is not None
         dummy1, dummy2 = np.zeros(1), np.zeros((1, 1))
-        kernel = _state["raster3d"] if self.scene.ndim == 3 else _state["raster2d"]
-        return kernel(p0, p1, self.vertices, self.faces, self.normals, self.offset, self.face_mu, *self.frames,
-                      self.cone, self.rows, self.cols, self.k, values if not grad else dummy1,
-                      weights if grad else dummy1, acc if grad else dummy2, grad)
+        args = (p0, p1, self.vertices, self.faces, self.normals, self.offset, self.face_mu, *self.frames,
+                self.cone, self.rows, self.cols, self.k, values if not grad else dummy1,
+                weights if grad else dummy1, acc if grad else dummy2, grad)
+        if self.scene.ndim == 3:
+            return _state["raster3d"](*args, self.hit)
+        return _state["raster2d"](*args)
 
 
 def _compile():
@@ -151,24 +167,6 @@ def _compile():
 
     # numpy error model: float division by zero gives inf instead of a checked exception
     jit = cached(numba.njit, nogil=True, error_model="numpy")
-
-    @jit
-    def lattice(x, p, cone, S, D, N, Au, Bv, rows, cols, k):
-        """Lattice coordinates (column, row) and projective depth of point x in projection p."""
-        if cone:
-            e0, e1, e2 = x[0] - S[p, 0], x[1] - S[p, 1], x[2] - S[p, 2]
-            w = e0 * N[p, 0] + e1 * N[p, 1] + e2 * N[p, 2]
-            h = (D[p, 0] - S[p, 0]) * N[p, 0] + (D[p, 1] - S[p, 1]) * N[p, 1] + (D[p, 2] - S[p, 2]) * N[p, 2]
-            lam = h / w
-            r0, r1, r2 = S[p, 0] + lam * e0 - D[p, 0], S[p, 1] + lam * e1 - D[p, 1], S[p, 2] + lam * e2 - D[p, 2]
-        else:
-            w = 1.0
-            rn = S[p, 0] * N[p, 0] + S[p, 1] * N[p, 1] + S[p, 2] * N[p, 2]
-            m = ((D[p, 0] - x[0]) * N[p, 0] + (D[p, 1] - x[1]) * N[p, 1] + (D[p, 2] - x[2]) * N[p, 2]) / rn
-            r0, r1, r2 = x[0] + m * S[p, 0] - D[p, 0], x[1] + m * S[p, 1] - D[p, 1], x[2] + m * S[p, 2] - D[p, 2]
-        a = r0 * Au[p, 0] + r1 * Au[p, 1] + r2 * Au[p, 2]
-        b = r0 * Bv[p, 0] + r1 * Bv[p, 1] + r2 * Bv[p, 2]
-        return (a + 0.5 * cols) * k - 0.5, (b + 0.5 * rows) * k - 0.5, w
 
     @jit
     def ray_length(p, col, row, cone, S, D, U, V, rows, cols, kc, kr):
@@ -186,21 +184,36 @@ def _compile():
         return np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
 
     @jit
-    def keeps_ties(dx, dy):
-        """Whether a point exactly on a (counter-clockwise) edge of direction (dx, dy) is inside.
-
-        The point moved by (+e, +e^2) is inside when cross((dx, dy), (e, e^2)) > 0.
-        """
-        return dy < 0.0 or (dy == 0.0 and dx > 0.0)
+    def face_box(faces, f, X, Y, fc0, fc1, fr0, fr1):
+        """A face's vertices, their lattice coordinates, and the lattice box ``c0..c1, r0..r1`` it covers."""
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        x0, x1, x2, y0, y1, y2 = X[i0], X[i1], X[i2], Y[i0], Y[i1], Y[i2]
+        c0 = max(int(np.ceil(min(x0, x1, x2))), fc0)
+        c1 = min(int(np.floor(max(x0, x1, x2))), fc1)
+        r0 = max(int(np.ceil(min(y0, y1, y2))), fr0)
+        r1 = min(int(np.floor(max(y0, y1, y2))), fr1)
+        return i0, i1, i2, x0, x1, x2, y0, y1, y2, c0, c1, r0, r1
 
     @jit
     def edge_setup(ia, ib, sig, X, Y):
-        """An edge as seen from its lower-indexed vertex: base, direction, orientation sign, tie rule."""
-        s = sig
-        if ib < ia:
-            ia, ib, s = ib, ia, -sig
-        dx, dy = X[ib] - X[ia], Y[ib] - Y[ia]
-        return X[ia], Y[ia], dx, dy, s, keeps_ties(s * dx, s * dy)
+        """An edge as seen from its lower-indexed vertex: base, direction, orientation sign, tie rule.
+
+        Written with selects rather than branches: the vertex order is random
+        from face to face, and mispredicted branches cost more than the
+        arithmetic of a triangle that covers one lattice point or none.
+        """
+        swap = ib < ia
+        lo = ib if swap else ia
+        hi = ia if swap else ib
+        s = -sig if swap else sig
+        dx, dy = X[hi] - X[lo], Y[hi] - Y[lo]
+        sdx, sdy = s * dx, s * dy
+        return X[lo], Y[lo], dx, dy, s, (sdy < 0.0) | ((sdy == 0.0) & (sdx > 0.0))
+
+    @jit
+    def passes(g, tie):
+        """An edge function's verdict: inside, or exactly on the edge and keeping ties (no branches)."""
+        return (g > 0.0) | ((g == 0.0) & tie)
 
     @jit
     def footprint(X, Y, n_cols, n_rows):
@@ -222,17 +235,81 @@ def _compile():
 
     @jit
     def project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, iW):
-        for i in range(verts.shape[0]):
-            X[i], Y[i], w = lattice(verts[i], p, cone, S, D, N, Au, Bv, rows, cols, k)
-            iW[i] = 1.0 / w
+        """Every vertex's lattice coordinates (column ``X``, row ``Y``) in projection p, and ``iW``:
+        1 / projective depth (cone; 1 for parallel beams).
+
+        The projection's constants are taken out of the loop: at fine
+        subdivision this loop runs over hundreds of thousands of vertices per
+        projection.
+        """
+        sn, au, bv = S[p], Au[p], Bv[p]
+        nn, dd = N[p], D[p]
+        uc, vr = 0.5 * cols, 0.5 * rows
+        if cone:
+            # r = S + (h / w) e - D on the detector, e = x - S, w = e.N
+            h = (dd[0] - sn[0]) * nn[0] + (dd[1] - sn[1]) * nn[1] + (dd[2] - sn[2]) * nn[2]
+            sa = (sn[0] - dd[0]) * au[0] + (sn[1] - dd[1]) * au[1] + (sn[2] - dd[2]) * au[2]
+            sb = (sn[0] - dd[0]) * bv[0] + (sn[1] - dd[1]) * bv[1] + (sn[2] - dd[2]) * bv[2]
+            for i in range(verts.shape[0]):
+                e0, e1, e2 = verts[i, 0] - sn[0], verts[i, 1] - sn[1], verts[i, 2] - sn[2]
+                iw = 1.0 / (e0 * nn[0] + e1 * nn[1] + e2 * nn[2])
+                lam = h * iw
+                X[i] = (sa + lam * (e0 * au[0] + e1 * au[1] + e2 * au[2]) + uc) * k - 0.5
+                Y[i] = (sb + lam * (e0 * bv[0] + e1 * bv[1] + e2 * bv[2]) + vr) * k - 0.5
+                iW[i] = iw
+        else:
+            # r = x + m S - D, m = (D - x).N / S.N: along the ray onto the detector plane
+            irn = 1.0 / (sn[0] * nn[0] + sn[1] * nn[1] + sn[2] * nn[2])
+            dn = dd[0] * nn[0] + dd[1] * nn[1] + dd[2] * nn[2]
+            sa = sn[0] * au[0] + sn[1] * au[1] + sn[2] * au[2]
+            sb = sn[0] * bv[0] + sn[1] * bv[1] + sn[2] * bv[2]
+            da = dd[0] * au[0] + dd[1] * au[1] + dd[2] * au[2]
+            db = dd[0] * bv[0] + dd[1] * bv[1] + dd[2] * bv[2]
+            for i in range(verts.shape[0]):
+                x0, x1, x2 = verts[i, 0], verts[i, 1], verts[i, 2]
+                m = (dn - (x0 * nn[0] + x1 * nn[1] + x2 * nn[2])) * irn
+                X[i] = (x0 * au[0] + x1 * au[1] + x2 * au[2] - da + m * sa + uc) * k - 0.5
+                Y[i] = (x0 * bv[0] + x1 * bv[1] + x2 * bv[2] - db + m * sb + vr) * k - 0.5
+                iW[i] = 1.0
+
+    @jit
+    def candidates(faces, X, Y, fc0, fc1, fr0, fr1, out):
+        """Faces that may hold a lattice point, into ``out``; returns how many.
+
+        Written without branches (the verdicts are written and the count moves
+        by 0 or 1): at fine subdivision most triangles hold no lattice point,
+        and a mispredicted branch per triangle would cost more than the test.
+        A triangle is dropped when its box holds no lattice point, or when it
+        holds one that is outside by far more than the rounding of any
+        evaluation of the edge functions; the exact test decides the rest.
+        """
+        n = 0
+        for f in range(faces.shape[0]):
+            _, _, _, x0, x1, x2, y0, y1, y2, c0, c1, r0, r1 = face_box(faces, f, X, Y, fc0, fc1, fr0, fr1)
+            area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+            px, py = c0 + 0.0, r0 + 0.0
+            tol = 1e-12 * (abs(x0) + abs(x1) + abs(x2) + abs(y0) + abs(y1) + abs(y2)) ** 2
+            e0 = ((x1 - x0) * (py - y0) - (y1 - y0) * (px - x0)) * area2
+            e1 = ((x2 - x1) * (py - y1) - (y2 - y1) * (px - x1)) * area2
+            e2 = ((x0 - x2) * (py - y2) - (y0 - y2) * (px - x2)) * area2
+            a = abs(area2) * tol
+            single = (c0 == c1) & (r0 == r1)
+            outside = single & ((e0 < -a) | (e1 < -a) | (e2 < -a))
+            keep = (c0 <= c1) & (r0 <= r1) & (area2 != 0.0) & ~outside
+            out[n] = f
+            n += keep
+        return n
 
     @jit
     def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
-                 values, weights, acc, grad):
+                 values, weights, acc, grad, hit):
         nv, nf = verts.shape[0], faces.shape[0]
         X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
+        cand = np.empty(nf, np.int64)
         C, R = cols * k, rows * k
         npix = rows * cols
+        ik = 1.0 / k
+        a_off, b_off = 0.5 * ik - 0.5 * cols, 0.5 * ik - 0.5 * rows  # detector coordinates of lattice point 0
         L = np.zeros((R, C))  # per lattice point: sum of mu t / |e| (forward) or w |e| (gradient)
         count = 0
         for p in range(p0, p1):
@@ -247,55 +324,66 @@ def _compile():
                             p, col, row, cone, S, D, U, V, rows, cols, k, k)
                     else:
                         L[row, col] = 0.0
-            for f in range(nf):
-                i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-                area2 = (X[i1] - X[i0]) * (Y[i2] - Y[i0]) - (Y[i1] - Y[i0]) * (X[i2] - X[i0])
+            if grad:  # only the faces on which the forward pass found a crossing
+                n_cand = 0
+                for byte in range(hit.shape[1]):
+                    bits = hit[p, byte]
+                    if bits == 0:
+                        continue
+                    for t in range(8):
+                        cand[n_cand] = byte * 8 + t
+                        n_cand += (bits >> t) & 1
+            else:
+                n_cand = candidates(faces, X, Y, fc0, fc1, fr0, fr1, cand)
+            for j in range(n_cand):
+                f = cand[j]
+                i0, i1, i2, x0, x1, x2, y0, y1, y2, c0, c1, r0, r1 = face_box(faces, f, X, Y, fc0, fc1, fr0, fr1)
+                area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
                 if area2 == 0.0:
                     continue  # seen edge-on: no ray crosses it in a single point
                 sig = 1.0 if area2 > 0 else -1.0
-                c0 = max(int(np.ceil(min(X[i0], X[i1], X[i2]))), fc0)
-                c1 = min(int(np.floor(max(X[i0], X[i1], X[i2]))), fc1)
-                r0 = max(int(np.ceil(min(Y[i0], Y[i1], Y[i2]))), fr0)
-                r1 = min(int(np.floor(max(Y[i0], Y[i1], Y[i2]))), fr1)
-                if c0 > c1 or r0 > r1:
-                    continue
                 bx0, by0, dx0, dy0, s0, t0 = edge_setup(i0, i1, sig, X, Y)
                 bx1, by1, dx1, dy1, s1, t1 = edge_setup(i1, i2, sig, X, Y)
                 bx2, by2, dx2, dy2, s2, t2 = edge_setup(i2, i0, sig, X, Y)
-                n0, n1, n2 = nrm[f, 0], nrm[f, 1], nrm[f, 2]
-                nU = n0 * U[p, 0] + n1 * U[p, 1] + n2 * U[p, 2]
-                nV = n0 * V[p, 0] + n1 * V[p, 1] + n2 * V[p, 2]
-                mu = fmu[f]
-                if cone:
-                    # t = n.(x0 - S) |e| / |n.e| along e = D - S + a U + b V
-                    num = offset[f] - (n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
-                    nDS = n0 * (D[p, 0] - S[p, 0]) + n1 * (D[p, 1] - S[p, 1]) + n2 * (D[p, 2] - S[p, 2])
-                    nr = 0.0
-                else:
-                    # t = n.(x0 - P) / |n.r| from the pixel point P = D + a U + b V
-                    num = offset[f] - (n0 * D[p, 0] + n1 * D[p, 1] + n2 * D[p, 2])
-                    nDS = 0.0
-                    nr = abs(n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
-                    if nr == 0.0:
-                        continue
+                # the face's plane terms wait for its first lattice point: at fine
+                # subdivision most triangles whose box holds a point hold none
+                ready = False
+                nU = nV = num = nDS = nr = mu = 0.0
                 sum0 = sum1 = sum2 = 0.0
                 for row in range(r0, r1 + 1):
-                    b = (row + 0.5) / k - 0.5 * rows
                     h0, h1, h2 = dx0 * (row - by0), dx1 * (row - by1), dx2 * (row - by2)
-                    lin = nDS + b * nV if cone else num - b * nV
+                    lin = 0.0
                     seen = False
                     for col in range(c0, c1 + 1):
                         # the same operations for both triangles of an edge: the same number
                         g0 = s0 * (h0 - dy0 * (col - bx0))
                         g1 = s1 * (h1 - dy1 * (col - bx1))
                         g2 = s2 * (h2 - dy2 * (col - bx2))
-                        if (g0 < 0.0 or (g0 == 0.0 and not t0) or g1 < 0.0 or (g1 == 0.0 and not t1)
-                                or g2 < 0.0 or (g2 == 0.0 and not t2)):
+                        if not (passes(g0, t0) & passes(g1, t1) & passes(g2, t2)):
                             if seen:
                                 break  # each edge test is monotonic along a row: the span is over
                             continue
-                        seen = True
-                        den, val = crossing((col + 0.5) / k - 0.5 * cols, cone, lin, num, nU, nr)
+                        if not seen:
+                            seen = True
+                            if not ready:
+                                ready = True
+                                n0, n1, n2 = nrm[f, 0], nrm[f, 1], nrm[f, 2]
+                                nU = n0 * U[p, 0] + n1 * U[p, 1] + n2 * U[p, 2]
+                                nV = n0 * V[p, 0] + n1 * V[p, 1] + n2 * V[p, 2]
+                                mu = fmu[f]
+                                if cone:
+                                    # t = n.(x0 - S) |e| / |n.e| along e = D - S + a U + b V
+                                    num = offset[f] - (n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
+                                    nDS = n0 * (D[p, 0] - S[p, 0]) + n1 * (D[p, 1] - S[p, 1]) + n2 * (D[p, 2] - S[p, 2])
+                                else:
+                                    # t = n.(x0 - P) / |n.r| from the pixel point P = D + a U + b V
+                                    num = offset[f] - (n0 * D[p, 0] + n1 * D[p, 1] + n2 * D[p, 2])
+                                    nr = abs(n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
+                                if not grad:
+                                    hit[p, f >> 3] |= np.uint8(1 << (f & 7))
+                            b = row * ik + b_off
+                            lin = nDS + b * nV if cone else num - b * nV
+                        den, val = crossing(col * ik + a_off, cone, lin, num, nU, nr)
                         if den == 0.0:
                             continue
                         count += 1

@@ -378,7 +378,7 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     """
     from bubsub.core import MeshProjector
     from bubsub.core.projection.subdivision import circle_surface, sphere_surface
-    from bubsub.clients.pipeline.reconstruct import voxel_preview
+    from bubsub.clients.pipeline.reconstruct import preview_grid, resample_image, voxel_preview
 
     ndim = surfaces[0].ndim
     k = len(surfaces[0].vertices)
@@ -392,8 +392,16 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
         def new_bubble(c, r):
             return sphere_surface(c, r, contrast, control=k, levels=levels)
 
+    # In 3D the residual is reconstructed, and blobs are searched, on voxels twice as large:
+    # an added bubble is at least 3 preview voxels in radius, and a full-size residual
+    # preview with its blob search cost as much as the first fit and 400 MB of scale space
+    coarse = 2 * voxel if ndim == 3 else settings.voxel_size
+    if ndim == 3:
+        shape_c, extent_c = preview_grid(geometry, coarse)
+        image, extent = resample_image(image, extent, shape_c, extent_c), extent_c
+
     def preview(projections):
-        return voxel_preview(projections, geometry, contrast, settings.voxel_size, method=settings.preview)
+        return voxel_preview(projections, geometry, contrast, coarse, method=settings.preview, coarse_3d=False)
 
     size = extent[1] - extent[0]
     return adapt_topology(MeshProjector(geometry, supersampling=settings.supersampling), surfaces, data,

@@ -135,7 +135,7 @@ class MeshProjector:
         scene = self._scene(meshes)
         traversal = self._trace(scene)
         # the float32 projection is what forward() returns; f and the gradient use it too
-        residual = self._projection(traversal).astype(np.float64) - d
+        residual = np.subtract(self._projection(traversal), d, dtype=np.float64)
         f = 0.5 * float(np.dot(residual.ravel(), residual.ravel()))
         return f, self._gradient(scene, traversal, residual)
 
@@ -163,7 +163,7 @@ class MeshProjector:
             raise ValueError(f"{name} must be a real float array, got dtype {a.dtype}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"{name} contains NaN or inf")
-        return a.astype(np.float64, copy=False)
+        return a  # not cast here: a float32 data set is used as it is, without a float64 copy per call
 
     def _projection(self, traversal):
         k2 = self._sub.shape[0]
@@ -172,5 +172,5 @@ class MeshProjector:
 
     def _gradient(self, scene, traversal, residual):
         k2 = self._sub.shape[0]
-        w = residual.ravel() / k2 if k2 > 1 else residual.ravel()
+        w = residual.ravel() / k2 if k2 > 1 else residual.ravel().astype(np.float64, copy=False)
         return scene.item_gradients(vertex_gradient(scene, traversal.face_sums(w)))

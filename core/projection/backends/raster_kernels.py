@@ -1,0 +1,331 @@
+"""The raster backend's compiled kernels (numba), at module level so that numba's disk cache hits.
+
+Kept apart from :mod:`.raster` so that numba is imported only when the
+backend is used. Defined at module level rather than in a factory: numba's
+cache key hashes a closure's captured variables, and captured dispatchers
+serialise differently in every process, so closures were compiled again in
+each one (about 2.5 s per process).
+See :mod:`bubsub.core.projection.backends.raster` for the method.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from bubsub.core.projection.backends.jit import cached
+
+__all__ = ["raster3d", "raster2d"]
+
+# numpy error model: float division by zero gives inf instead of a checked exception
+jit = cached(numba.njit, nogil=True, error_model="numpy")
+
+
+@jit
+def ray_length(p, col, row, cone, S, D, U, V, rows, cols, kc, kr):
+    """Source-to-detector length of the ray through lattice point (col, row); 1 for parallel beams.
+
+    ``kc``, ``kr``: lattice points per pixel along the columns and the rows.
+    """
+    if not cone:
+        return 1.0
+    a = (col + 0.5) / kc - 0.5 * cols
+    b = (row + 0.5) / kr - 0.5 * rows
+    e0 = D[p, 0] - S[p, 0] + a * U[p, 0] + b * V[p, 0]
+    e1 = D[p, 1] - S[p, 1] + a * U[p, 1] + b * V[p, 1]
+    e2 = D[p, 2] - S[p, 2] + a * U[p, 2] + b * V[p, 2]
+    return np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+
+
+@jit
+def face_box(faces, f, X, Y, fc0, fc1, fr0, fr1):
+    """A face's vertices, their lattice coordinates, and the lattice box ``c0..c1, r0..r1`` it covers."""
+    i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+    x0, x1, x2, y0, y1, y2 = X[i0], X[i1], X[i2], Y[i0], Y[i1], Y[i2]
+    c0 = max(int(np.ceil(min(x0, x1, x2))), fc0)
+    c1 = min(int(np.floor(max(x0, x1, x2))), fc1)
+    r0 = max(int(np.ceil(min(y0, y1, y2))), fr0)
+    r1 = min(int(np.floor(max(y0, y1, y2))), fr1)
+    return i0, i1, i2, x0, x1, x2, y0, y1, y2, c0, c1, r0, r1
+
+
+@jit
+def edge_setup(ia, ib, sig, X, Y):
+    """An edge as seen from its lower-indexed vertex: base, direction, orientation sign, tie rule.
+
+    Written with selects rather than branches: the vertex order is random
+    from face to face, and mispredicted branches cost more than the
+    arithmetic of a triangle that covers one lattice point or none.
+    """
+    swap = ib < ia
+    lo = ib if swap else ia
+    hi = ia if swap else ib
+    s = -sig if swap else sig
+    dx, dy = X[hi] - X[lo], Y[hi] - Y[lo]
+    sdx, sdy = s * dx, s * dy
+    return X[lo], Y[lo], dx, dy, s, (sdy < 0.0) | ((sdy == 0.0) & (sdx > 0.0))
+
+
+@jit
+def passes(g, tie):
+    """An edge function's verdict: inside, or exactly on the edge and keeping ties (no branches)."""
+    return (g > 0.0) | ((g == 0.0) & tie)
+
+
+@jit
+def footprint(X, Y, n_cols, n_rows):
+    """Lattice box (c0, c1, r0, r1) covering every projected vertex, clipped to the detector."""
+    c0 = max(int(np.ceil(X.min())), 0)
+    c1 = min(int(np.floor(X.max())), n_cols - 1)
+    r0 = max(int(np.ceil(Y.min())), 0)
+    r1 = min(int(np.floor(Y.max())), n_rows - 1)
+    return c0, c1, r0, r1
+
+
+@jit
+def crossing(a, cone, lin, num, nU, nr):
+    """``(den, value)`` of a face's crossing at detector coordinate ``a``: ``|n.e|`` and ``n.(x0 - S) / |n.e|``
+    (cone; times the ray length later), or ``|n.r|`` and ``n.(x0 - P) / |n.r|`` (parallel)."""
+    if cone:
+        den = abs(lin + a * nU)
+        return den, num / den
+    return nr, (lin - a * nU) / nr
+
+
+@jit
+def project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, iW):
+    """Every vertex's lattice coordinates (column ``X``, row ``Y``) in projection p, and ``iW``:
+    1 / projective depth (cone; 1 for parallel beams).
+
+    The projection's constants are taken out of the loop: at fine
+    subdivision this loop runs over hundreds of thousands of vertices per
+    projection.
+    """
+    sn, au, bv = S[p], Au[p], Bv[p]
+    nn, dd = N[p], D[p]
+    uc, vr = 0.5 * cols, 0.5 * rows
+    if cone:
+        # r = S + (h / w) e - D on the detector, e = x - S, w = e.N
+        h = (dd[0] - sn[0]) * nn[0] + (dd[1] - sn[1]) * nn[1] + (dd[2] - sn[2]) * nn[2]
+        sa = (sn[0] - dd[0]) * au[0] + (sn[1] - dd[1]) * au[1] + (sn[2] - dd[2]) * au[2]
+        sb = (sn[0] - dd[0]) * bv[0] + (sn[1] - dd[1]) * bv[1] + (sn[2] - dd[2]) * bv[2]
+        for i in range(verts.shape[0]):
+            e0, e1, e2 = verts[i, 0] - sn[0], verts[i, 1] - sn[1], verts[i, 2] - sn[2]
+            iw = 1.0 / (e0 * nn[0] + e1 * nn[1] + e2 * nn[2])
+            lam = h * iw
+            X[i] = (sa + lam * (e0 * au[0] + e1 * au[1] + e2 * au[2]) + uc) * k - 0.5
+            Y[i] = (sb + lam * (e0 * bv[0] + e1 * bv[1] + e2 * bv[2]) + vr) * k - 0.5
+            iW[i] = iw
+    else:
+        # r = x + m S - D, m = (D - x).N / S.N: along the ray onto the detector plane
+        irn = 1.0 / (sn[0] * nn[0] + sn[1] * nn[1] + sn[2] * nn[2])
+        dn = dd[0] * nn[0] + dd[1] * nn[1] + dd[2] * nn[2]
+        sa = sn[0] * au[0] + sn[1] * au[1] + sn[2] * au[2]
+        sb = sn[0] * bv[0] + sn[1] * bv[1] + sn[2] * bv[2]
+        da = dd[0] * au[0] + dd[1] * au[1] + dd[2] * au[2]
+        db = dd[0] * bv[0] + dd[1] * bv[1] + dd[2] * bv[2]
+        for i in range(verts.shape[0]):
+            x0, x1, x2 = verts[i, 0], verts[i, 1], verts[i, 2]
+            m = (dn - (x0 * nn[0] + x1 * nn[1] + x2 * nn[2])) * irn
+            X[i] = (x0 * au[0] + x1 * au[1] + x2 * au[2] - da + m * sa + uc) * k - 0.5
+            Y[i] = (x0 * bv[0] + x1 * bv[1] + x2 * bv[2] - db + m * sb + vr) * k - 0.5
+            iW[i] = 1.0
+
+
+@jit
+def candidates(faces, X, Y, fc0, fc1, fr0, fr1, out):
+    """Faces that may hold a lattice point, into ``out``; returns how many.
+
+    Written without branches (the verdicts are written and the count moves
+    by 0 or 1): at fine subdivision most triangles hold no lattice point,
+    and a mispredicted branch per triangle would cost more than the test.
+    A triangle is dropped when its box holds no lattice point, or when it
+    holds one that is outside by far more than the rounding of any
+    evaluation of the edge functions; the exact test decides the rest.
+    """
+    n = 0
+    for f in range(faces.shape[0]):
+        _, _, _, x0, x1, x2, y0, y1, y2, c0, c1, r0, r1 = face_box(faces, f, X, Y, fc0, fc1, fr0, fr1)
+        area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+        px, py = c0 + 0.0, r0 + 0.0
+        tol = 1e-12 * (abs(x0) + abs(x1) + abs(x2) + abs(y0) + abs(y1) + abs(y2)) ** 2
+        e0 = ((x1 - x0) * (py - y0) - (y1 - y0) * (px - x0)) * area2
+        e1 = ((x2 - x1) * (py - y1) - (y2 - y1) * (px - x1)) * area2
+        e2 = ((x0 - x2) * (py - y2) - (y0 - y2) * (px - x2)) * area2
+        a = abs(area2) * tol
+        single = (c0 == c1) & (r0 == r1)
+        outside = single & ((e0 < -a) | (e1 < -a) | (e2 < -a))
+        keep = (c0 <= c1) & (r0 <= r1) & (area2 != 0.0) & ~outside
+        out[n] = f
+        n += keep
+    return n
+
+
+@jit
+def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
+             values, weights, acc, grad, hit):
+    nv, nf = verts.shape[0], faces.shape[0]
+    X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
+    cand = np.empty(nf, np.int64)
+    C, R = cols * k, rows * k
+    npix = rows * cols
+    ik = 1.0 / k
+    a_off, b_off = 0.5 * ik - 0.5 * cols, 0.5 * ik - 0.5 * rows  # detector coordinates of lattice point 0
+    L = np.zeros((R, C))  # per lattice point: sum of mu t / |e| (forward) or w |e| (gradient)
+    count = 0
+    for p in range(p0, p1):
+        project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, iW)
+        fc0, fc1, fr0, fr1 = footprint(X, Y, C, R)
+        if fc0 > fc1 or fr0 > fr1:
+            continue
+        for row in range(fr0, fr1 + 1):
+            for col in range(fc0, fc1 + 1):
+                if grad:
+                    L[row, col] = weights[p * npix + (row // k) * cols + col // k] * ray_length(
+                        p, col, row, cone, S, D, U, V, rows, cols, k, k)
+                else:
+                    L[row, col] = 0.0
+        if grad:  # only the faces on which the forward pass found a crossing
+            n_cand = 0
+            for byte in range(hit.shape[1]):
+                bits = hit[p, byte]
+                if bits == 0:
+                    continue
+                for t in range(8):
+                    cand[n_cand] = byte * 8 + t
+                    n_cand += (bits >> t) & 1
+        else:
+            n_cand = candidates(faces, X, Y, fc0, fc1, fr0, fr1, cand)
+        for j in range(n_cand):
+            f = cand[j]
+            i0, i1, i2, x0, x1, x2, y0, y1, y2, c0, c1, r0, r1 = face_box(faces, f, X, Y, fc0, fc1, fr0, fr1)
+            area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+            if area2 == 0.0:
+                continue  # seen edge-on: no ray crosses it in a single point
+            sig = 1.0 if area2 > 0 else -1.0
+            bx0, by0, dx0, dy0, s0, t0 = edge_setup(i0, i1, sig, X, Y)
+            bx1, by1, dx1, dy1, s1, t1 = edge_setup(i1, i2, sig, X, Y)
+            bx2, by2, dx2, dy2, s2, t2 = edge_setup(i2, i0, sig, X, Y)
+            # the face's plane terms wait for its first lattice point: at fine
+            # subdivision most triangles whose box holds a point hold none
+            ready = False
+            nU = nV = num = nDS = nr = mu = 0.0
+            sum0 = sum1 = sum2 = 0.0
+            for row in range(r0, r1 + 1):
+                h0, h1, h2 = dx0 * (row - by0), dx1 * (row - by1), dx2 * (row - by2)
+                lin = 0.0
+                seen = False
+                for col in range(c0, c1 + 1):
+                    # the same operations for both triangles of an edge: the same number
+                    g0 = s0 * (h0 - dy0 * (col - bx0))
+                    g1 = s1 * (h1 - dy1 * (col - bx1))
+                    g2 = s2 * (h2 - dy2 * (col - bx2))
+                    if not (passes(g0, t0) & passes(g1, t1) & passes(g2, t2)):
+                        if seen:
+                            break  # each edge test is monotonic along a row: the span is over
+                        continue
+                    if not seen:
+                        seen = True
+                        if not ready:
+                            ready = True
+                            n0, n1, n2 = nrm[f, 0], nrm[f, 1], nrm[f, 2]
+                            nU = n0 * U[p, 0] + n1 * U[p, 1] + n2 * U[p, 2]
+                            nV = n0 * V[p, 0] + n1 * V[p, 1] + n2 * V[p, 2]
+                            mu = fmu[f]
+                            if cone:
+                                # t = n.(x0 - S) |e| / |n.e| along e = D - S + a U + b V
+                                num = offset[f] - (n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
+                                nDS = n0 * (D[p, 0] - S[p, 0]) + n1 * (D[p, 1] - S[p, 1]) + n2 * (D[p, 2] - S[p, 2])
+                            else:
+                                # t = n.(x0 - P) / |n.r| from the pixel point P = D + a U + b V
+                                num = offset[f] - (n0 * D[p, 0] + n1 * D[p, 1] + n2 * D[p, 2])
+                                nr = abs(n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
+                            if not grad:
+                                hit[p, f >> 3] |= np.uint8(1 << (f & 7))
+                        b = row * ik + b_off
+                        lin = nDS + b * nV if cone else num - b * nV
+                    den, val = crossing(col * ik + a_off, cone, lin, num, nU, nr)
+                    if den == 0.0:
+                        continue
+                    count += 1
+                    if not grad:
+                        L[row, col] += mu * val
+                        continue
+                    w = L[row, col]
+                    if w == 0.0:
+                        continue
+                    # barycentric weight of a vertex: the opposite edge's function over its depth
+                    l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
+                    scale = w * mu / (den * (l0 + l1 + l2))
+                    sum0 += scale * l0
+                    sum1 += scale * l1
+                    sum2 += scale * l2
+            if grad:
+                acc[f, 0] += sum0
+                acc[f, 1] += sum1
+                acc[f, 2] += sum2
+        if not grad:
+            for row in range(fr0, fr1 + 1):
+                for col in range(fc0, fc1 + 1):
+                    if L[row, col] != 0.0:
+                        values[p * npix + (row // k) * cols + col // k] += L[row, col] * ray_length(
+                            p, col, row, cone, S, D, U, V, rows, cols, k, k)
+    return count
+
+
+@jit
+def raster2d(p0, p1, verts, segs, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
+             values, weights, acc, grad):
+    nv, ns = verts.shape[0], segs.shape[0]
+    X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
+    C = cols * k
+    L = np.zeros(C)
+    count = 0
+    for p in range(p0, p1):
+        project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, iW)
+        fc0, fc1, _, _ = footprint(X, X, C, C)
+        if fc0 > fc1:
+            continue
+        for col in range(fc0, fc1 + 1):
+            L[col] = weights[p * cols + col // k] * ray_length(p, col, 0, cone, S, D, U, V, 1, cols, k, 1) if grad else 0.0
+        for f in range(ns):
+            i0, i1 = segs[f, 0], segs[f, 1]
+            lo, hi = min(X[i0], X[i1]), max(X[i0], X[i1])
+            c0 = max(int(np.ceil(lo)), fc0)
+            c1 = min(int(np.ceil(hi)) - 1, fc1)  # [lo, hi): the last point below hi
+            if c0 > c1:
+                continue
+            n0, n1 = nrm[f, 0], nrm[f, 1]
+            nU = n0 * U[p, 0] + n1 * U[p, 1]
+            mu = fmu[f]
+            if cone:
+                num = offset[f] - (n0 * S[p, 0] + n1 * S[p, 1])
+                lin = n0 * (D[p, 0] - S[p, 0]) + n1 * (D[p, 1] - S[p, 1])
+                nr = 0.0
+            else:
+                num = offset[f] - (n0 * D[p, 0] + n1 * D[p, 1])
+                lin = num
+                nr = abs(n0 * S[p, 0] + n1 * S[p, 1])
+                if nr == 0.0:
+                    continue
+            for col in range(c0, c1 + 1):
+                den, val = crossing((col + 0.5) / k - 0.5 * cols, cone, lin, num, nU, nr)
+                if den == 0.0:
+                    continue
+                count += 1
+                if not grad:
+                    L[col] += mu * val
+                    continue
+                w = L[col]
+                if w == 0.0:
+                    continue
+                t = (col - X[i0]) / (X[i1] - X[i0])
+                l0, l1 = (1.0 - t) * iW[i0], t * iW[i1]
+                scale = w * mu / (den * (l0 + l1))
+                acc[f, 0] += scale * l0
+                acc[f, 1] += scale * l1
+        if not grad:
+            for col in range(fc0, fc1 + 1):
+                if L[col] != 0.0:
+                    values[p * cols + col // k] += L[col] * ray_length(p, col, 0, cone, S, D, U, V, 1, cols, k, 1)
+    return count

@@ -283,13 +283,18 @@ def _lbfgs_reason(res, done, limit):
     return "converged"
 
 
-def estimate_radii(projector, surfaces, data=None, iterations=20, *, progress=False):
+def estimate_radii(projector, surfaces, data=None, iterations=20, *, ftol=1e-4, progress=False):
     """Improve an initial guess by optimising one radius per bubble (paper eq. 4-5).
 
     Each bubble keeps its centre (the mean of its control vertices) and its
     shape; only the scale ``r_k`` of ``x_k(r) = c_k + r_k u_k`` changes, with
     ``dg/dr_k = sum_i grad_x_ki . u_ki``. At most ``iterations + 5``
-    objective evaluations (each one projection) are made.
+    objective evaluations (each one projection) are made; the search stops
+    earlier once an iteration lowers the objective by less than ``ftol``
+    (relative), since the full fit refines the radii anyway. Each radius
+    stays within ``[0.001, 3]`` times its initial value: the preview's radii
+    are within a factor of two, and a first line-search step to ten times
+    the radius (the bound before) cost as much as ten evaluations.
 
     Returns
     -------
@@ -323,8 +328,9 @@ def estimate_radii(projector, surfaces, data=None, iterations=20, *, progress=Fa
 
     with phase("radius estimation", iterations, enabled=progress) as bar:
         try:
-            res = minimize(fun, r0, jac=True, method="L-BFGS-B", bounds=[(1e-3 * r, 10 * r) for r in r0],
-                           callback=lambda _: bar.update(1), options={"maxiter": int(iterations), "maxfun": cap})
+            res = minimize(fun, r0, jac=True, method="L-BFGS-B", bounds=[(1e-3 * r, 3 * r) for r in r0],
+                           callback=lambda _: bar.update(1),
+                           options={"maxiter": int(iterations), "maxfun": cap, "ftol": float(ftol)})
             reason = _lbfgs_reason(res, bar.n, iterations)
         except _Budget:
             reason = "evaluation limit"

@@ -24,6 +24,8 @@ projector multiplies by ``n_f`` and scatters to the vertices.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from bubsub.core.projection.mesh import Mesh, Polygon
@@ -88,12 +90,8 @@ class Scene:
         else:
             verts = [np.c_[p.vertices, np.zeros(len(p.vertices))] for p in resolved]
             faces = [np.stack([np.arange(len(p.vertices)), np.roll(np.arange(len(p.vertices)), -1)], 1) for p in resolved]
-        counts = np.array([len(v) for v in verts])
-        self.vertex_offset = np.concatenate([[0], np.cumsum(counts)])
-        nface = np.array([len(f) for f in faces])
-        self.face_item = np.repeat(np.arange(len(resolved)), nface)
+        self.faces, self.face_item, self.vertex_offset = _joined_faces(faces, [len(v) for v in verts])
         vertices = np.concatenate(verts)
-        self.faces = np.concatenate([f + o for f, o in zip(faces, self.vertex_offset[:-1])])
         self.mu = np.array([m.attenuation for m in resolved])
         lo, hi = vertices.min(axis=0), vertices.max(axis=0)
         self.centre = 0.5 * (lo + hi)
@@ -101,15 +99,19 @@ class Scene:
         self.half = 0.5 * (hi - lo)
         if self.prisms:
             self.half[2] = self.half_height
-        if self.faces.shape[1] == 3:
-            a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
-            n = np.cross(b - a, c - a)
+        v, f = self.vertices, self.faces
+        a = v[f[:, 0]]
+        e = v[f[:, 1]] - a
+        n = np.empty_like(e)
+        if f.shape[1] == 3:  # e x (c - a), written out: np.cross costs several times more
+            w = v[f[:, 2]] - a
+            n[:, 0] = e[:, 1] * w[:, 2] - e[:, 2] * w[:, 1]
+            n[:, 1] = e[:, 2] * w[:, 0] - e[:, 0] * w[:, 2]
+            n[:, 2] = e[:, 0] * w[:, 1] - e[:, 1] * w[:, 0]
         else:  # outward normal of a counter-clockwise polygon's segment: the edge turned clockwise
-            e = self.vertices[self.faces[:, 1]] - self.vertices[self.faces[:, 0]]
-            n = np.c_[e[:, 1], -e[:, 0], np.zeros(len(e))]
-        norm = np.linalg.norm(n, axis=1)
-        n[norm > 0] /= norm[norm > 0, None]
-        self.normals = n
+            n[:, 0], n[:, 1], n[:, 2] = e[:, 1], -e[:, 0], 0.0
+        norm = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+        self.normals = np.divide(n, norm, out=n, where=norm > 0)
 
     def item_gradients(self, vertex_grad):
         """Split per-vertex gradients into one array per item (chain S and the prism)."""
@@ -123,6 +125,32 @@ class Scene:
                 g = item.S.T @ g
             out.append(np.asarray(g))
         return out
+
+
+_JOINED_LOCK = threading.Lock()
+_JOINED = []  # the last few (face arrays, counts) -> joined faces; an optimiser projects one topology many times
+
+
+def _joined_faces(faces, counts):
+    """All items' faces as one array into the joined vertices, each face's item, and each item's first vertex.
+
+    Cached on the identity of the face arrays (a subdivision surface keeps
+    its fine faces, a Mesh its faces) and the vertex counts: a fit projects
+    the same topology at every evaluation.
+    """
+    key = tuple(id(f) for f in faces) + tuple(counts)
+    with _JOINED_LOCK:
+        for _, k, value in _JOINED:
+            if k == key:
+                return value
+    offset = np.concatenate([[0], np.cumsum(counts)])
+    face_item = np.repeat(np.arange(len(faces)), [len(f) for f in faces])
+    joined = np.concatenate([f + o for f, o in zip(faces, offset[:-1])])
+    value = (joined, face_item, offset)  # shared by the scenes of one topology: never written to
+    with _JOINED_LOCK:
+        _JOINED.insert(0, (list(faces), key, value))  # holding the arrays keeps their ids from being reused
+        del _JOINED[4:]
+    return value
 
 
 def _prism(poly, h):

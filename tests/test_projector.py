@@ -396,6 +396,32 @@ def test_backends_agree_on_a_foam(rng, backend):
         np.testing.assert_allclose(x, y, rtol=1e-3, atol=1e-4 * np.abs(y).max())
 
 
+@pytest.mark.parametrize("kind", ["cone", "parallel3d"])
+def test_gradient_is_the_same_from_stored_and_from_rasterised_crossings(rng, monkeypatch, kind):
+    """The raster forward pass keeps crossings for the gradient within BUBSUB_RASTER_STORE_MB; a full,
+    an overflowing (groups fall back) and a disabled store give the same objective and gradient
+    (the other backends ignore the setting)."""
+    g = random_geometry(rng, kind, rows=24, cols=32, pixel=0.12, n_angles=5)
+    items = [sphere_surface(c, 0.5, -0.2) for c in ([-0.7, 0.1, 0.0], [0.6, -0.2, 0.1])]
+    items = [s.with_vertices(s.vertices + 0.03 * rng.normal(size=s.vertices.shape)) for s in items]
+    data = MeshProjector(g).forward(items) * np.float32(0.9)
+    results = {}
+    for mb in ("", "0.001", "0"):  # default (all kept), a store too small for one group, none
+        monkeypatch.setenv("BUBSUB_RASTER_STORE_MB", mb)
+        results[mb] = MeshProjector(g, threads=2).objective(items, data)
+    f0, g0 = results[""]
+    assert np.abs(g0[0]).max() > 0
+    for mb in ("0.001", "0"):
+        f, grads = results[mb]
+        assert f == pytest.approx(f0, rel=1e-12)
+        for x, y in zip(grads, g0):
+            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12 * np.abs(y).max())
+    monkeypatch.setenv("BUBSUB_RASTER_STORE_MB", "lots")
+    if MeshProjector(g).backend == "raster":
+        with pytest.raises(ValueError, match="BUBSUB_RASTER_STORE_MB"):
+            MeshProjector(g).objective(items, data)
+
+
 def test_a_ray_through_hundreds_of_meshes_keeps_every_crossing():
     """260 crossings on one ray: more than the native backend's first hit buffer holds."""
     corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * 0.1 - 0.05

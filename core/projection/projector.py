@@ -121,7 +121,7 @@ class MeshProjector:
         """
         r = self._check_array(residual, "residual")
         scene = self._scene(meshes)
-        return self._gradient(scene, self._trace(scene), r)
+        return self._gradient(scene, self._trace(scene, gradient=True), r)
 
     def objective(self, meshes, data):
         """``f = 0.5 ||forward(meshes) - data||^2`` and its gradient, from one traversal.
@@ -133,7 +133,7 @@ class MeshProjector:
         """
         d = self._check_array(data, "data")
         scene = self._scene(meshes)
-        traversal = self._trace(scene)
+        traversal = self._trace(scene, gradient=True)
         # the float32 projection is what forward() returns; f and the gradient use it too
         residual = np.subtract(self._projection(traversal), d, dtype=np.float64)
         f = 0.5 * float(np.dot(residual.ravel(), residual.ravel()))
@@ -151,8 +151,8 @@ class MeshProjector:
         self._frames.check_scene(scene)
         return scene
 
-    def _trace(self, scene):
-        return self._backend.trace(scene, self._frames, self._sub, self.threads)
+    def _trace(self, scene, gradient=False):
+        return self._backend.trace(scene, self._frames, self._sub, self.threads, gradient)
 
     def _check_array(self, a, name):
         if not isinstance(a, np.ndarray):

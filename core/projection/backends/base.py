@@ -245,7 +245,7 @@ class Backend:
     name = ""
     prisms_2d = True
 
-    def trace(self, scene, frames, sub, threads):
+    def trace(self, scene, frames, sub, threads, gradient=False):
         """Cast every sub-ray of every pixel through ``scene``.
 
         Parameters
@@ -255,6 +255,9 @@ class Backend:
         sub : (k2, 2) float
             Sub-ray offsets in pixel units (``(0, 0)`` without supersampling).
         threads : int
+        gradient : bool
+            Whether ``face_sums`` will be called (a backend may then keep
+            what it found, within a memory bound).
 
         Returns
         -------

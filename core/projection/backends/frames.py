@@ -207,7 +207,7 @@ class RayCaster(Backend):
 
     prisms_2d = True
 
-    def trace(self, scene, frames, sub, threads):
+    def trace(self, scene, frames, sub, threads, gradient=False):
         size = float(np.max(scene.half[:scene.ndim])) * 2.0
         eps = EPS_REL * max(size, 1e-3)
         caster = self.prepare(scene, eps)

@@ -41,10 +41,16 @@ visits only those faces.
 
 Gradient
 --------
-``face_sums`` rasterises again and adds ``w[pixel] mu b_j / |n.d|`` per face
-corner; ``b_j`` are the 3D barycentric weights of the crossing, from the 2D
-ones corrected for perspective (``b_j ~ lambda_j / depth_j``). Nothing per
-crossing is stored: memory is O(detector + vertices) per thread.
+``face_sums`` adds ``w[pixel] mu b_j / |n.d|`` per face corner; ``b_j`` are
+the 3D barycentric weights of the crossing, from the 2D ones corrected for
+perspective (``b_j ~ lambda_j / depth_j``). When a gradient will follow
+(``objective``, ``vjp``), the forward pass keeps each crossing's face, pixel
+and three coefficients (32 bytes) within a fixed budget
+(:func:`store_bytes`, ``BUBSUB_RASTER_STORE_MB``, default 160 MB), and
+``face_sums`` is then one pass over them (a tenth of a rasterisation); a
+group of projections whose crossings do not fit, or a plain ``forward``,
+keeps nothing and rasterises again. Memory is O(detector + vertices) per
+thread plus at most that budget.
 
 Threads: projections are split into contiguous groups, one per worker thread
 (compiled code releases the GIL); values are written per projection and face
@@ -52,6 +58,8 @@ sums are accumulated per group, then added, so there are no races.
 """
 
 from __future__ import annotations
+
+import os
 
 import numpy as np
 
@@ -89,13 +97,28 @@ class RasterBackend(Backend):
     name = "raster"
     prisms_2d = False
 
-    def trace(self, scene, frames, sub, threads):
+    def trace(self, scene, frames, sub, threads, gradient=False):
         if not _load():
             raise RuntimeError(f"the raster backend is unavailable: {unavailable_reason()}")
-        job = _Job(scene, frames, sub, threads)
+        job = _Job(scene, frames, sub, threads, store=gradient)
         values = np.zeros(frames.n * frames.rows * frames.cols)
         counts = thread_map(lambda g: job.run(g, values, None, None), job.groups, job.threads)
         return _RasterTraversal(values, sum(counts), job)
+
+
+def store_bytes():
+    """Most bytes the forward pass may use to store crossings for the gradient: ``BUBSUB_RASTER_STORE_MB``
+    (default 160; 0 always rasterises again for the gradient). 32 bytes per crossing."""
+    text = os.environ.get("BUBSUB_RASTER_STORE_MB", "").strip()
+    if not text:
+        return 160 * 2**20
+    try:
+        mb = float(text)
+    except ValueError:
+        mb = -1.0
+    if not mb >= 0:
+        raise ValueError(f"BUBSUB_RASTER_STORE_MB must be a number of megabytes >= 0, got {text!r}")
+    return int(mb * 2**20)
 
 
 class _RasterTraversal(Traversal):
@@ -109,7 +132,11 @@ class _RasterTraversal(Traversal):
 
         def group(g):
             acc = np.zeros((nf, k))
-            job.run(g, None, weights, acc)
+            face, pix, coef, n = job.stores[g]
+            if n >= 0:  # the forward pass kept this group's crossings
+                _state["stored_face_sums"](face, pix, coef, n, weights, acc)
+            else:
+                job.run(g, None, weights, acc)
             return acc
 
         return sum(thread_map(group, job.groups, job.threads), np.zeros((nf, k)))
@@ -118,7 +145,7 @@ class _RasterTraversal(Traversal):
 class _Job:
     """Per-projection frames in the scene's shifted coordinates, and the kernel's arguments."""
 
-    def __init__(self, scene, frames, sub, threads):
+    def __init__(self, scene, frames, sub, threads, store=False):
         self.scene = scene
         k2 = sub.shape[0]
         self.k = int(round(np.sqrt(k2))) if scene.ndim == 3 else k2
@@ -147,6 +174,15 @@ class _Job:
         # per projection, one bit per face: whether the forward pass found a crossing on it, so
         # the gradient pass visits only those (a projection's row is written by one thread)
         self.hit = np.zeros((n, (len(f) + 7) // 8 if scene.ndim == 3 else 1), np.uint8)
+        # Crossings kept by the forward pass for the gradient (face, pixel, 3 coefficients: 32
+        # bytes each) while they fit in store_bytes(), shared among the groups by projections;
+        # a group that overflows rasterises again in face_sums. Pages are touched only as used.
+        npix = n * self.rows * self.cols
+        per_projection = store_bytes() // 32 // n if store and scene.ndim == 3 and npix < 2**31 else 0
+        self.stores = {}
+        for g in self.groups:
+            m = per_projection * (g[1] - g[0])
+            self.stores[g] = [np.empty(m, np.int32), np.empty(m, np.int32), np.empty((m, 3)), -1]
 
     def run(self, group, values, weights, acc):
         """Forward (``values`` given) or face sums (``weights``, ``acc`` given) for projections ``group``."""
@@ -157,11 +193,16 @@ class _Job:
                 self.cone, self.rows, self.cols, self.k, values if not grad else dummy1,
                 weights if grad else dummy1, acc if grad else dummy2, grad)
         if self.scene.ndim == 3:
-            return _state["raster3d"](*args, self.hit)
+            store = self.stores[group]
+            count, stored = _state["raster3d"](*args, self.hit, *store[:3])
+            if not grad:
+                store[3] = stored
+            return count
         return _state["raster2d"](*args)
 
 
 def _compile():
     from bubsub.core.projection.backends import raster_kernels
 
-    return {"raster3d": raster_kernels.raster3d, "raster2d": raster_kernels.raster2d}
+    return {"raster3d": raster_kernels.raster3d, "raster2d": raster_kernels.raster2d,
+            "stored_face_sums": raster_kernels.stored_face_sums}

@@ -15,7 +15,7 @@ import numpy as np
 
 from bubsub.core.projection.backends.jit import cached
 
-__all__ = ["raster3d", "raster2d"]
+__all__ = ["raster3d", "raster2d", "stored_face_sums"]
 
 # numpy error model: float division by zero gives inf instead of a checked exception
 jit = cached(numba.njit, nogil=True, error_model="numpy")
@@ -163,7 +163,11 @@ def candidates(faces, X, Y, fc0, fc1, fr0, fr1, out):
 
 @jit
 def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
-             values, weights, acc, grad, hit):
+             values, weights, acc, grad, hit, st_face, st_pix, st_coef):
+    """Forward pass (``grad`` False: ``values``, ``hit``) or gradient pass (``weights`` into ``acc``)
+    over projections ``p0..p1``. The forward pass also stores each crossing's face, pixel and
+    gradient coefficients while ``st_face`` has room; returns (crossings, stored), with stored
+    -1 when the store overflowed or was not asked for (the gradient pass then rasterises again)."""
     nv, nf = verts.shape[0], faces.shape[0]
     X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
     cand = np.empty(nf, np.int64)
@@ -173,6 +177,8 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     a_off, b_off = 0.5 * ik - 0.5 * cols, 0.5 * ik - 0.5 * rows  # detector coordinates of lattice point 0
     L = np.zeros((R, C))  # per lattice point: sum of mu t / |e| (forward) or w |e| (gradient)
     count = 0
+    cap = st_face.shape[0]
+    stored = 0 if not grad and cap > 0 else -1
     for p in range(p0, p1):
         project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, iW)
         fc0, fc1, fr0, fr1 = footprint(X, Y, C, R)
@@ -250,6 +256,20 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                     count += 1
                     if not grad:
                         L[row, col] += mu * val
+                        if stored >= 0:
+                            if stored < cap:
+                                # this crossing's coefficients in the gradient pass, for stored_face_sums
+                                l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
+                                c = mu * ray_length(p, col, row, cone, S, D, U, V, rows, cols, k, k) / (
+                                    den * (l0 + l1 + l2))
+                                st_face[stored] = f
+                                st_pix[stored] = p * npix + (row // k) * cols + col // k
+                                st_coef[stored, 0] = c * l0
+                                st_coef[stored, 1] = c * l1
+                                st_coef[stored, 2] = c * l2
+                                stored += 1
+                            else:
+                                stored = -1
                         continue
                     w = L[row, col]
                     if w == 0.0:
@@ -270,7 +290,7 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                     if L[row, col] != 0.0:
                         values[p * npix + (row // k) * cols + col // k] += L[row, col] * ray_length(
                             p, col, row, cone, S, D, U, V, rows, cols, k, k)
-    return count
+    return count, stored
 
 
 @jit
@@ -329,3 +349,15 @@ def raster2d(p0, p1, verts, segs, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone,
                 if L[col] != 0.0:
                     values[p * cols + col // k] += L[col] * ray_length(p, col, 0, cone, S, D, U, V, 1, cols, k, 1)
     return count
+
+
+@jit
+def stored_face_sums(st_face, st_pix, st_coef, n, weights, acc):
+    """``acc[f, j] += weights[pixel] * coef_j`` over the first ``n`` stored crossings."""
+    for i in range(n):
+        w = weights[st_pix[i]]
+        if w != 0.0:
+            f = st_face[i]
+            acc[f, 0] += w * st_coef[i, 0]
+            acc[f, 1] += w * st_coef[i, 1]
+            acc[f, 2] += w * st_coef[i, 2]

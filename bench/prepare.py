@@ -106,24 +106,36 @@ def run_table(out, *, cols=1200, angles=120, bubbles=8, iterations=40, seed=5):
     return rows
 
 
-def _memory_child(raw, out, slab_mb, background="auto"):
-    from bubsub.core.prep import prepare, prepare_options
+#: ``--background auto-full``: the radial background as it was before it was sped up (an FBP of 512 x 512
+#: pixels from every projection), for comparison with ``auto``
+FULL_RADIAL = {"grid": 512, "max_angles": 10 ** 9}
 
-    t0 = time.time()
+
+def _memory_child(raw, out, slab_mb, background="auto"):
+    import functools
+
+    from bubsub.core.prep import pipeline, prepare, prepare_options
+
+    if background == "auto-full":
+        pipeline.radial_background = functools.partial(pipeline.radial_background, **FULL_RADIAL)
+        background = "auto"
+    t0, c0 = time.time(), time.process_time()
     prepare(raw, out, prepare_options(slab_mb=slab_mb, center="auto", background=background), progress=False)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # MB (Linux: kB)
-    print(json.dumps({"peak_rss_mb": peak, "seconds": time.time() - t0}))
+    print(json.dumps({"peak_rss_mb": peak, "seconds": time.time() - t0, "cpu_seconds": time.process_time() - c0}))
 
 
-def run_memory(out, *, sizes=(1, 4), slab_mb=32.0, background="auto"):
-    """Peak RSS of ``prepare`` for raw files ``sizes`` x 47 MB, slabs of ``slab_mb``."""
+def run_memory(out, *, sizes=(1, 4), slab_mb=32.0, backgrounds=("auto",)):
+    """Peak RSS, wall and CPU seconds of ``prepare`` for raw files ``sizes`` x 47 MB, slabs of ``slab_mb``,
+    with each background method in turn on the same file."""
     import h5py
 
     out = Path(out)
     rng = np.random.default_rng(0)
-    print(f"slab size {slab_mb:g} MB, background {background}")
-    print("| raw file (MB) | projections x rows x cols | peak RSS (MB) | baseline RSS (MB) | seconds |")
-    print("|---|---|---|---|---|", flush=True)
+    print(f"slab size {slab_mb:g} MB")
+    print("| raw file (MB) | projections x rows x cols | background | peak RSS (MB) | baseline RSS (MB) | seconds | "
+          "CPU seconds |")
+    print("|---|---|---|---|---|---|---|", flush=True)
     base = subprocess.run([sys.executable, "-c", "import resource, bubsub.core.prep.pipeline, "
                            "bubsub.core.voxel.astra2d, algotom.prep.calculation; "
                            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)"],
@@ -145,16 +157,17 @@ def run_memory(out, *, sizes=(1, 4), slab_mb=32.0, background="auto"):
             f["exchange/theta"] = np.arange(n) * 180.0 / n
             f["measurement/instrument/detector/pixel_size_x"] = 10.0
         size = raw.stat().st_size / 1e6
-        res = subprocess.run([sys.executable, "-m", "bubsub.bench.prepare", "--memory-child", str(raw),
-                              str(out / f"scan_{k}.h5"), str(slab_mb), background], capture_output=True, text=True)
-        if res.returncode:
-            print(res.stderr, file=sys.stderr)
-            continue
-        r = json.loads(res.stdout.strip().splitlines()[-1])
-        print(f"| {size:.0f} | {n} x {rows} x {cols} | {r['peak_rss_mb']:.0f} | {baseline:.0f} | "
-              f"{r['seconds']:.1f} |", flush=True)
+        for background in backgrounds:
+            res = subprocess.run([sys.executable, "-m", "bubsub.bench.prepare", "--memory-child", str(raw),
+                                  str(out / f"scan_{k}.h5"), str(slab_mb), background], capture_output=True, text=True)
+            if res.returncode:
+                print(res.stderr, file=sys.stderr)
+                continue
+            r = json.loads(res.stdout.strip().splitlines()[-1])
+            print(f"| {size:.0f} | {n} x {rows} x {cols} | {background} | {r['peak_rss_mb']:.0f} | {baseline:.0f} | "
+                  f"{r['seconds']:.1f} | {r['cpu_seconds']:.1f} |", flush=True)
+            (out / f"scan_{k}.h5").unlink()
         raw.unlink()
-        (out / f"scan_{k}.h5").unlink()
 
 
 def main(argv=None):
@@ -166,7 +179,9 @@ def main(argv=None):
     ap.add_argument("--memory", action="store_true", help="measure peak RSS against the raw file size instead")
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 4], help="raw sizes, units of 47 MB (--memory)")
     ap.add_argument("--slab-mb", type=float, default=32.0)
-    ap.add_argument("--background", default="auto", help="background method of the memory runs (default auto)")
+    ap.add_argument("--background", nargs="+", default=["auto"],
+                    help="background methods of the memory runs (default auto; auto-full: the radial background "
+                         "before its speed-up, 512 x 512 pixels from every projection)")
     ap.add_argument("--memory-child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.memory_child:
@@ -177,7 +192,7 @@ def main(argv=None):
         out = Path(args.out or tmp)
         out.mkdir(parents=True, exist_ok=True)
         if args.memory:
-            run_memory(out, sizes=args.sizes, slab_mb=args.slab_mb, background=args.background)
+            run_memory(out, sizes=args.sizes, slab_mb=args.slab_mb, backgrounds=args.background)
         else:
             run_table(out, cols=args.cols, angles=args.angles, iterations=args.iterations)
     return 0

@@ -166,14 +166,14 @@ def test_options_parse_and_reject():
     assert repr(prepare_options(bin=2)) == "prepare_options(bin=2)"
 
 
-def test_radial_background_where_every_ray_crosses_a_bubble():
+@pytest.mark.parametrize("n, cols, px", [(180, 256, 0.04), (360, 512, 0.02)])  # the FBP: every 2nd / 3rd angle,
+def test_radial_background_where_every_ray_crosses_a_bubble(n, cols, px):  # 256 pixels (all / half the columns)
     """Bubbles around the axis hide the container from every angle at the central columns: the
     envelope over angles is biased there, the ring profile of the reconstruction is not."""
     from bubsub.core.prep.background import radial_background
     from bubsub.core.projection.geometry import ScanGeometry
 
-    n, cols, px = 180, 256, 0.04
-    th = np.radians(np.arange(n) * 1.0)
+    th = np.radians(np.arange(n) * 180.0 / n)
     g = ScanGeometry.parallel(th, pixel_size=px, cols=cols)
     s = (np.arange(cols) - cols / 2 + 0.5) * px
     chord = lambda r, c=0.0: 2 * np.sqrt(np.maximum(r * r - (s[None] - c) ** 2, 0))

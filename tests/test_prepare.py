@@ -29,8 +29,8 @@ def _sinogram(theta_deg, rows=ROWS, cols=COLS, axis=AXIS):
     return np.repeat(p[:, None, :], rows, axis=1)
 
 
-def make_raw(path, *, theta=None, flats=True, darks=True, flat_shape=None, theta_units=None, pixel_units="um",
-             n=N, seed=0):
+def make_raw(path, *, theta=None, flats=True, darks=True, flat_shape=None, dark_shape=None, theta_units=None,
+             pixel_units="um", n=N, seed=0):
     rng = np.random.default_rng(seed)
     theta = np.linspace(0, 180, n, endpoint=False) if theta is None else np.asarray(theta, float)
     i0 = 5000.0
@@ -41,7 +41,7 @@ def make_raw(path, *, theta=None, flats=True, darks=True, flat_shape=None, theta
         if flats:
             f["exchange/data_white"] = (rng.poisson(i0, (6, *shape)) + 100).astype(np.uint16)
         if darks:
-            f["exchange/data_dark"] = np.full((4, *shape), 100, np.uint16)
+            f["exchange/data_dark"] = np.full((4, *(dark_shape or shape)), 100, np.uint16)
         t = f.create_dataset("exchange/theta", data=theta)
         if theta_units:
             t.attrs["units"] = theta_units
@@ -119,6 +119,8 @@ def test_roi_bin_projections_and_2d_output(raw, tmp_path, capsys):
     (dict(flats=False), [], "no flats .*--no-flat"),
     (dict(darks=False), [], "no darks .*--no-flat"),
     (dict(flat_shape=(ROWS, COLS - 2)), [], "data_white.* frames are .* but the projections are"),
+    (dict(dark_shape=(ROWS - 1, COLS)), [], "data_dark.* frames are .* but the projections are"),
+    (dict(theta=np.r_[np.linspace(0, 120, N // 2), np.linspace(60, 180, N // 2)]), [], "not monotonic"),  # steps back
     (dict(theta=np.r_[np.linspace(0, 90, 30), np.linspace(0, 90, 30)]), [], "not monotonic.*--projections"),
     (dict(theta=np.linspace(0, np.pi, N, endpoint=False)), [], "look like radians.*--theta-units rad"),
     (dict(pixel_units="furlong"), [], "unknown units 'furlong'"),
@@ -126,6 +128,8 @@ def test_roi_bin_projections_and_2d_output(raw, tmp_path, capsys):
     ({}, ["--roi", "0:4,0:200"], "outside the detector"),
     ({}, ["--bin", "5"], "--bin 5 does not divide"),
     ({}, ["--pixel-size", "3furlong"], "unknown unit"),
+    ({}, ["--delta-beta", "1000", "--energy", "16parsec"], "unknown unit"),
+    ({}, ["--roi", "4:2,:"], "roi rows range 4:2 is empty"),
     ({}, ["--delta-beta", "1000", "--energy", "16keV"], None),
     ({}, ["--background", "missing.h5"], "not a file"),
     ({}, ["--center", "500"], "outside the ROI"),

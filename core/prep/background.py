@@ -149,7 +149,7 @@ def detector_offsets(geometry):
     return (np.arange(geometry.det_count) - axis) * pixel
 
 
-def radial_background(sinogram, geometry, *, min_fraction=0.2, smooth=1.5, grid=512):
+def radial_background(sinogram, geometry, *, min_fraction=0.2, smooth=1.5, grid=256, max_angles=128):
     """Rotation-invariant background of one row from ring means of its reconstruction.
 
     The ring profile is projected analytically (each ring is an annulus of
@@ -168,13 +168,23 @@ def radial_background(sinogram, geometry, *, min_fraction=0.2, smooth=1.5, grid=
         Gaussian sigma of the profile, rings.
     grid : int
         At most this many reconstruction pixels across the detector.
+    max_angles : int
+        At most this many projections (every k-th, so still spread over the
+        whole rotation) enter the FBP. The profile is a mean over rings of
+        hundreds of pixels, which averages the noise and the streaks of a
+        coarse, sparser FBP out: with 256 pixels and at most 128 angles the
+        background is as accurate as with 512 pixels and every angle
+        (mean error 0.0026 against 0.0043 over a simulated foam's columns,
+        360 angles x 1024 columns) at a tenth of the CPU time (0.11 s
+        against 1.0 s per row; docs/prepare.md).
 
     Returns
     -------
     (cols,) float32
         The background of each detector column (at every angle).
     """
-    image, extent, r, pix = fbp_row(sinogram, geometry, min(grid, geometry.det_count))
+    step = -(-geometry.n_angles // max_angles)
+    image, extent, r, pix = fbp_row(np.asarray(sinogram)[::step], geometry[::step], min(grid, geometry.det_count))
     inside = r <= extent[1]
     dense, _ = dense_and_gas_masks(image, inside)
     ring = np.minimum((r / pix).astype(int), int(extent[1] / pix))

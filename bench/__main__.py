@@ -8,6 +8,7 @@ BENCHMARKS = {
     "projector": ("projector", "forward, gradient and objective of the mesh projector per backend, scaling, peak memory"),
     "remote": ("remote", "a fit against a local projector server versus in-process: HTTP overhead per iteration"),
     "prepare": ("prepare", "raw-data preparation: DDI/MSE with and without each step, peak memory of a prepare"),
+    "fov": ("fov", "bubbles cut by the field of view: DDI inside it with and without modelling its boundary"),
     "cluster": ("cluster", "4D and experiment runs in-process versus on a Dask LocalCluster"),
     "attacks": ("attacks", "bounded attacks on a projector server: status codes, memory rise, health latency"),
 }

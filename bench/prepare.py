@@ -56,7 +56,7 @@ def _background_error(scan, meta):
     return float(np.mean(np.abs(scan.background[:, inside] - truth[None, inside])))
 
 
-def run_table(out, *, cols=1200, angles=120, bubbles=8, iterations=40, seed=5):
+def run_table(out, *, cols=1200, angles=120, bubbles=8, iterations=40, seed=5, only=None):
     from bubsub.clients.pipeline.evaluate import evaluate_dir
     from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, write_outputs
     from bubsub.clients.pipeline.simulation import simulate_raw_to_dir
@@ -75,6 +75,8 @@ def run_table(out, *, cols=1200, angles=120, bubbles=8, iterations=40, seed=5):
           "contrast (1/mm) | prepare s | reconstruct s |")
     print("|---|---|---|---|---|---|---|---|---|", flush=True)
     for name, change in VARIANTS.items():
+        if only and name not in only:
+            continue
         kw = {**base, **change}
         kw = {k: v for k, v in kw.items() if v is not None}
         d = out / name.replace(" ", "_").replace(":", "")
@@ -170,6 +172,32 @@ def run_memory(out, *, sizes=(1, 4), slab_mb=32.0, backgrounds=("auto",)):
         raw.unlink()
 
 
+def run_background(out, *, angles=360, cols=1024, seed=5):
+    """Error and CPU seconds per row of the ring-profile background, before (``auto-full``) and now (``auto``).
+
+    One ``bubsub simulate --raw`` scan prepared with one ROI row and no
+    background, so every variant sees the same sinogram.
+    """
+    from bubsub.clients.pipeline.simulation import simulate_raw_to_dir
+    from bubsub.core.io.scanfile import read_scan
+    from bubsub.core.prep import background, prepare, prepare_options
+
+    out = Path(out)
+    raw, _, meta = simulate_raw_to_dir(out, seed=seed, n_bubbles=8, n_angles=angles, cols=cols,
+                                       pixel_size=9.6 / cols, rows=4, axis_offset=13.3, photons=2e4)
+    prepare(raw, out / "scan.h5", prepare_options(roi="2:3,:", delta_beta=meta["delta_beta"], stripes="sort",
+                                                  background="none", contrast=-0.1), progress=False)
+    scan = read_scan(out / "scan.h5")
+    print(f"| scan | FBP | background error | CPU s per row |\n|---|---|---|---|")
+    for name, kw in (("auto-full", FULL_RADIAL), ("auto", {})):
+        c0 = time.process_time()
+        bg = background.radial_background(scan.data, scan.geometry, **kw)
+        cpu = time.process_time() - c0
+        scan.background = np.broadcast_to(bg[None], scan.data.shape).copy()
+        print(f"| seed {seed}: {angles} angles x {scan.geometry.det_count} cols | {name} | "
+              f"{_background_error(scan, meta):.4f} | {cpu:.2f} |", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m bubsub.bench prepare", description=__doc__.splitlines()[0])
     ap.add_argument("--out", help="working folder (default: a temporary one)")
@@ -182,6 +210,11 @@ def main(argv=None):
     ap.add_argument("--background", nargs="+", default=["auto"],
                     help="background methods of the memory runs (default auto; auto-full: the radial background "
                          "before its speed-up, 512 x 512 pixels from every projection)")
+    ap.add_argument("--background-rows", action="store_true",
+                    help="compare the ring-profile background before and after its speed-up (error, CPU s per row)")
+    ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--only", nargs="+", choices=list(VARIANTS), metavar="ROW",
+                    help="run only these rows of the table (names as printed, e.g. 'all steps')")
     ap.add_argument("--memory-child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.memory_child:
@@ -191,10 +224,12 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out or tmp)
         out.mkdir(parents=True, exist_ok=True)
-        if args.memory:
+        if args.background_rows:
+            run_background(out, angles=args.angles, cols=args.cols, seed=args.seed)
+        elif args.memory:
             run_memory(out, sizes=args.sizes, slab_mb=args.slab_mb, backgrounds=args.background)
         else:
-            run_table(out, cols=args.cols, angles=args.angles, iterations=args.iterations)
+            run_table(out, cols=args.cols, angles=args.angles, iterations=args.iterations, only=args.only)
     return 0
 
 

@@ -60,6 +60,7 @@ def cmd_reconstruct(args):
         radius=args.radius, estimate_radii=not args.no_radius_estimation, supersampling=args.supersampling,
         holdout=args.holdout, progress=not args.quiet, background_subtracted=args.background_subtracted,
         preview=args.preview, topology=not args.no_topology, repair=not args.no_repair,
+        fov_model=args.fov_model,
     )
     check_settings(settings, scan.ndim)
     if args.holdout and scan.n_angles < 2:
@@ -146,6 +147,9 @@ def register(sub):
                    help="keep the number of bubbles: no adding, removing, merging or splitting after the fit")
     p.add_argument("--no-repair", action="store_true",
                    help="only report self-intersecting or overlapping bubbles (report.json), do not repair them")
+    p.add_argument("--fov-model", action="store_true",
+                   help="voxel preview over 1.25 times the reconstructable cylinder and bubbles cut by the "
+                        "detector's top or bottom seeded at their visible cross-section (docs/prepare.md)")
     p.add_argument("--init", type=existing_file,
                    help="initial control mesh: a previous reconstruction's control.ply / control.json")
     p.add_argument("--holdout", choices=("odd", "even"),

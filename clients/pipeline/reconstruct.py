@@ -31,6 +31,8 @@ from bubsub.core.projection.subdivision import SubdivisionSurface
 
 from bubsub.clients.optimise.fit import estimate_radii, fit
 from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
+from bubsub.clients.pipeline.fov import (FOV_COLUMN_INFO, field_of_view, fov_columns, fov_report, preview_extension,
+                                         truncated_flags, unobserved_control)
 from bubsub.clients.pipeline.outputs import finish_outputs
 from bubsub.clients.pipeline.repair import check_and_repair
 from bubsub.clients.progress import phase
@@ -60,6 +62,7 @@ class ReconstructionSettings:
     topology_rounds: int = 2
     repair: bool = True  # round self-intersecting bubbles, separate overlapping ones, refit (see .repair)
     repair_iterations: int = 20  # BFGS iterations of each refit after a repair
+    fov_model: bool = False  # preview beyond the field of view, cut bubbles seeded at their edge (see .fov)
 
 
 @dataclass
@@ -74,77 +77,18 @@ class Reconstruction:
     ids: list | None = None  # bubble ids written to the outputs (default 0..n-1); track ids in 4D
 
 
-def field_of_view(geometry):
-    """Half-sizes of the region every projection sees: ``(r_xy, half_z)`` in mm.
-
-    For circular scans this is the radius of the reconstructable disc
-    (detector half-width divided by the magnification) and, in 3D, half the
-    detector height likewise.
-    """
-    g = geometry
-    n = g.ndim
-    vec = g.vectors
-    s, d, u = vec[:, :n], vec[:, n:2 * n], vec[:, 2 * n:3 * n]
-    # a detector shifted along u (an off-centre rotation axis) sees less on one side
-    shift = np.abs(np.einsum("ij,ij->i", d, u)) / np.linalg.norm(u, axis=1)
-    half_w = 0.5 * g.det_cols * np.linalg.norm(u, axis=1) - shift
-    if g.is_cone:
-        mag = np.linalg.norm(s - d, axis=1) / np.linalg.norm(s, axis=1)
-    else:
-        mag = np.ones(len(vec))
-    r_xy = float(np.min(half_w / mag))
-    if n == 2:
-        return r_xy, 0.0
-    half_h = 0.5 * g.det_rows * np.linalg.norm(vec[:, 9:12], axis=1)
-    return r_xy, float(np.min(half_h / mag))
-
-
-#: Unit and meaning of the ``truncated`` column of ``bubbles.csv``.
-TRUNCATED_INFO = ("1", "1 if the bubble reaches the edge of the field of view (the disc every projection sees, or "
-                       "the detector's top or bottom): its size and shape are uncertain; 0 otherwise")
-
-
-def _fov_report(geometry):
-    r_xy, half_z = field_of_view(geometry)
-    n = geometry.ndim
-    pixel = float(np.linalg.norm(geometry.vectors[0, 2 * n:3 * n]))
-    return {"radius": r_xy, "half_height": half_z, "margin": pixel}
-
-
-def truncated_flags(items, fov, margin):
-    """1 for each bubble that reaches the edge of the field of view, else 0.
-
-    Parameters
-    ----------
-    items : sequence of Polygon or Mesh
-        Refined bubbles.
-    fov : (r_xy, half_z)
-        :func:`field_of_view`, mm (``half_z`` ignored in 2D).
-    margin : float
-        A bubble within this distance (mm) of the edge counts as reaching it.
-    """
-    r_xy, half_z = fov
-    flags = []
-    for it in items:
-        v = np.asarray(it.vertices, dtype=float)
-        out = np.hypot(v[:, 0], v[:, 1]).max() > r_xy - margin
-        if v.shape[1] == 3:
-            out = out or np.abs(v[:, 2]).max() > half_z - margin
-        flags.append(int(out))
-    return flags
-
-
 def preview_voxel_size(geometry):
     """Default voxel size of the preview (mm): the field of view over 256 (2D) or 160 (3D) voxels."""
     return 2 * field_of_view(geometry)[0] / (160 if geometry.ndim == 3 else 256)
 
 
-def preview_grid(geometry, voxel_size=None):
-    """Shape and extent (mm) of the voxel preview's grid: the field of view at ``voxel_size`` (default :func:`preview_voxel_size`)."""
+def preview_grid(geometry, voxel_size=None, extend=1.0):
+    """Shape and extent (mm) of the voxel preview's grid: the field of view at ``voxel_size`` (default
+    :func:`preview_voxel_size`), its radius times ``extend`` (:func:`bubsub.clients.pipeline.fov.preview_extension`)."""
     r_xy, half_z = field_of_view(geometry)
     if voxel_size is None:
         voxel_size = preview_voxel_size(geometry)
-    n = max(8, int(np.ceil(2 * r_xy / voxel_size)))
+    n = max(8, int(np.ceil(2 * extend * r_xy / voxel_size)))
     half = n * voxel_size / 2
     if geometry.ndim == 2:
         return (n, n), (-half, half, -half, half)
@@ -157,7 +101,7 @@ PREVIEW_FINE_ITERATIONS_3D = 5  # of the 3D preview's iterations, those on the r
 
 
 def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *, progress=False, method="box",
-                  coarse_3d=True):
+                  coarse_3d=True, extend=1.0):
     """Low-resolution voxel reconstruction of the bubbles, for the initialisation.
 
     The bubble data ``sign(contrast) * data`` is the projection of an image
@@ -168,6 +112,10 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
     separates touching bubbles that SIRT blurs together (README example, 13
     views: 37 of 40 bubbles found instead of 28; docs/robustness.md).
     ``method="sirt"``: SIRT with ``x >= 0`` only (100 iterations in 2D, 15 in 3D).
+    ``extend`` widens the grid beyond the field of view's radius by that
+    factor (:func:`bubsub.clients.pipeline.fov.preview_extension`), so that
+    bubbles partly outside the reconstructable cylinder, which some
+    projections see, have voxels to go to.
 
     Returns
     -------
@@ -178,7 +126,7 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
     """
     if method not in ("box", "sirt"):
         raise ValueError(f"preview method must be 'box' or 'sirt', got {method!r}")
-    shape, extent = preview_grid(geometry, voxel_size)
+    shape, extent = preview_grid(geometry, voxel_size, extend)
     positive = np.sign(contrast) * np.asarray(data, dtype=np.float32)
     upper = np.float32(abs(contrast))
     box = method == "box"
@@ -217,7 +165,7 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
     with phase(label, n, enabled=progress) as bar:
         if coarse > 0:
             voxel = (extent[1] - extent[0]) / shape[-1]
-            shape_c, extent_c = preview_grid(geometry, 2 * voxel)
+            shape_c, extent_c = preview_grid(geometry, 2 * voxel, extend)
             image_c = reconstruct_3d(name, positive, geometry, shape_c, extent_c, iterations=coarse, nonneg=True,
                                      callback=step)
             x0 = resample_image(image_c, extent_c, shape, extent)
@@ -253,7 +201,8 @@ def resample_image(image, extent, shape, new_extent):
     return out.reshape(shape).astype(np.float32)
 
 
-def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, radius=None, min_distance=None):
+def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, radius=None, min_distance=None,
+                     border_is_background=True):
     """Spherical bubbles at the distance-transform maxima of the binarised image.
 
     Parameters
@@ -269,6 +218,10 @@ def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, 
         Constant initial radius, mm; default the median of the distance
         transform at the centres. Each bubble's radius is capped at half the
         distance to its nearest neighbour, so initial bubbles never overlap.
+    border_is_background : bool
+        False when the grid's edge is the edge of what the data see (the
+        field-of-view model): a bubble cut by it keeps its centre and the
+        radius of its visible cross-section instead of shrinking inside.
 
     Returns
     -------
@@ -277,14 +230,18 @@ def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, 
     from bubsub.core.voxel.segment import binarise, bubble_centres
 
     ndim = image.ndim
-    mask = binarise(image, opening_radius=2, bubbles_are_dark=False, fill_holes=True)
+    # where the grid's edge is the edge of the data, the opening must not eat the bubbles it cuts: extend
+    # the image beyond its edge by its edge values first
+    pad = 0 if border_is_background else 3
+    mask = binarise(np.pad(image, pad, mode="edge"), opening_radius=2, bubbles_are_dark=False, fill_holes=True)
+    mask = mask[tuple(slice(pad, n - pad) for n in mask.shape)]
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     # maxima thinner than two voxels are noise that survived the opening
-    centres, radii = bubble_centres(mask, extent, min_distance=min_distance, min_radius=2 * voxel)
+    kw = dict(min_radius=2 * voxel, border_is_background=border_is_background)
+    centres, radii = bubble_centres(mask, extent, min_distance=min_distance, **kw)
     if min_distance is None and len(radii):
         # one centre per bubble: maxima closer than the typical bubble radius belong together
-        centres, radii = bubble_centres(mask, extent, min_distance=max(3 * voxel, float(np.median(radii))),
-                                        min_radius=2 * voxel)
+        centres, radii = bubble_centres(mask, extent, min_distance=max(3 * voxel, float(np.median(radii))), **kw)
     if len(centres) == 0:
         raise ValueError("no bubbles found in the voxel reconstruction; give an initial mesh with --init")
     r = float(np.median(radii)) if radius is None else float(radius)
@@ -355,10 +312,12 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     geometry = scan.geometry
     g_fit, d_fit, g_val, d_val = _split(geometry, data, s.holdout)
 
-    image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress, method=s.preview)
+    image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress, method=s.preview,
+                                  extend=preview_extension(s.fov_model))
     if init is None:
         surfaces = initial_surfaces(image, extent, contrast, control_points=s.control_points, levels=s.levels,
-                                    radius=s.radius, min_distance=s.min_distance)
+                                    radius=s.radius, min_distance=s.min_distance,
+                                    border_is_background=not s.fov_model)
     else:
         surfaces = [x.with_attenuation(contrast) for x in init]
     if projector_factory is None:
@@ -398,7 +357,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "seconds_initialisation": t_init,
         "projections_used": g_fit.n_angles,
         "holdout": s.holdout,
-        "field_of_view_mm": _fov_report(geometry),
+        "field_of_view_mm": fov_report(geometry),
+        "unobserved_control_vertices": [int(unobserved_control(x, g_fit).sum()) for x in kept],
         "settings": {k: v for k, v in s.__dict__.items() if k != "progress"},
     }
     if g_val is not None:
@@ -458,12 +418,10 @@ def write_outputs(out_dir, rec, scan_path=None, *, progress=False):
     rows = bubble_table(fine, rec.ids)
     columns = BUBBLE_COLUMNS_3D if rec.report["dimension"] == 3 else BUBBLE_COLUMNS_2D
     info = BUBBLE_COLUMN_INFO
-    fov = rec.report.get("field_of_view_mm")
-    if fov is not None:  # bubbles cut by the edge of the field of view are flagged, not dropped
-        for row, flag in zip(rows, truncated_flags(fine, (fov["radius"], fov["half_height"]), fov["margin"])):
-            row["truncated"] = flag
-        columns = (*columns, "truncated")
-        info = {**info, "truncated": TRUNCATED_INFO}
+    if rec.report.get("field_of_view_mm") is not None and fine:
+        # bubbles cut by the edge of the field of view are flagged, not dropped; their whole size is left empty
+        columns = (*columns, *fov_columns(rows, fine, rec.report))
+        info = {**info, **FOV_COLUMN_INFO}
     write_csv(files["table"], rows, columns,
               describe=info, title="bubbles reconstructed by bubsub reconstruct")
     files["table_columns"] = csv_metadata_path(files["table"])
@@ -495,7 +453,8 @@ def write_figures(out, rec, fine, rows, *, progress=False):
             write_overlay(files["overlay"], rec.preview, rec.preview_extent, fine, ids)
             bar.update()
         files["sizes"] = out / "sizes.png"
-        write_size_histogram(files["sizes"], [r["equivalent_diameter_mm"] for r in rows], rec.report["dimension"])
+        write_size_histogram(files["sizes"], [r["equivalent_diameter_mm"] for r in rows
+                                              if r["equivalent_diameter_mm"] != ""], rec.report["dimension"])
         bar.update()
         if three_d:
             # mplot3d draws every face: very many bubbles are shown by their control meshes

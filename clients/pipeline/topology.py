@@ -378,6 +378,7 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     """
     from bubsub.core import MeshProjector
     from bubsub.core.projection.subdivision import circle_surface, sphere_surface
+    from bubsub.clients.pipeline.fov import preview_extension
     from bubsub.clients.pipeline.reconstruct import preview_grid, resample_image, voxel_preview
 
     ndim = surfaces[0].ndim
@@ -396,12 +397,14 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     # an added bubble is at least 3 preview voxels in radius, and a full-size residual
     # preview with its blob search cost as much as the first fit and 400 MB of scale space
     coarse = 2 * voxel if ndim == 3 else settings.voxel_size
+    extend = preview_extension(getattr(settings, "fov_model", False))
     if ndim == 3:
-        shape_c, extent_c = preview_grid(geometry, coarse)
+        shape_c, extent_c = preview_grid(geometry, coarse, extend)
         image, extent = resample_image(image, extent, shape_c, extent_c), extent_c
 
     def preview(projections):
-        return voxel_preview(projections, geometry, contrast, coarse, method=settings.preview, coarse_3d=False)
+        return voxel_preview(projections, geometry, contrast, coarse, method=settings.preview, coarse_3d=False,
+                             extend=extend)
 
     size = extent[1] - extent[0]
     return adapt_topology(MeshProjector(geometry, supersampling=settings.supersampling), surfaces, data,

@@ -1,0 +1,300 @@
+"""The field of view: the region every projection sees, and bubbles cut by its edge.
+
+Real scans cut bubbles: the detector's top and bottom, and the cylinder
+(disc in 2D) outside which a point leaves the detector at some angles.
+
+* :func:`field_of_view`, :func:`inside_fov`, :func:`fov_mask`: that region.
+* :func:`seen_by`: how many projections see a point; :func:`unobserved_control`:
+  control vertices no ray sees (the fit leaves them where they started).
+* :func:`truncated_flags`, :func:`size_inside_fov`, :func:`fov_columns`: the
+  ``bubbles.csv`` columns of cut bubbles (flag, measured part, whole size left empty).
+* :func:`preview_extension`: the optional preview beyond the field of view
+  (``ReconstructionSettings(fov_model=True)``, ``--fov-model``).
+
+Measured with and without the model: docs/prepare.md, ``python -m bubsub.bench fov``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
+           "FOV_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns", "FOV_COLUMN_INFO",
+           "WHOLE_SIZE_COLUMNS", "fov_mask"]
+
+#: Radius of the voxel preview's grid over the field of view's radius when the boundary is modelled: a point
+#: at 1.25 times the radius of a 180-degree parallel scan is still seen by 59 % of the projections.
+FOV_EXTEND = 1.25
+
+
+def preview_extension(fov_model):
+    """Factor by which the voxel preview's grid exceeds the field of view (1 without the model)."""
+    return FOV_EXTEND if fov_model else 1.0
+
+
+def field_of_view(geometry):
+    """Half-sizes of the region every projection sees: ``(r_xy, half_z)`` in mm.
+
+    For circular scans this is the radius of the reconstructable disc
+    (detector half-width divided by the magnification) and, in 3D, half the
+    detector height likewise.
+    """
+    g = geometry
+    n = g.ndim
+    vec = g.vectors
+    s, d, u = vec[:, :n], vec[:, n:2 * n], vec[:, 2 * n:3 * n]
+    # a detector shifted along u (an off-centre rotation axis) sees less on one side
+    shift = np.abs(np.einsum("ij,ij->i", d, u)) / np.linalg.norm(u, axis=1)
+    half_w = 0.5 * g.det_cols * np.linalg.norm(u, axis=1) - shift
+    if g.is_cone:
+        mag = np.linalg.norm(s - d, axis=1) / np.linalg.norm(s, axis=1)
+    else:
+        mag = np.ones(len(vec))
+    r_xy = float(np.min(half_w / mag))
+    if n == 2:
+        return r_xy, 0.0
+    half_h = 0.5 * g.det_rows * np.linalg.norm(vec[:, 9:12], axis=1)
+    return r_xy, float(np.min(half_h / mag))
+
+
+#: Unit and meaning of the ``truncated`` column of ``bubbles.csv``.
+TRUNCATED_INFO = ("1", "1 if the bubble reaches the edge of the field of view (the disc every projection sees, or "
+                       "the detector's top or bottom): its size and shape are uncertain; 0 otherwise")
+
+
+def fov_report(geometry):
+    r_xy, half_z = field_of_view(geometry)
+    n = geometry.ndim
+    pixel = float(np.linalg.norm(geometry.vectors[0, 2 * n:3 * n]))
+    return {"radius": r_xy, "half_height": half_z, "margin": pixel}
+
+
+def truncated_flags(items, fov, margin):
+    """1 for each bubble that reaches the edge of the field of view, else 0.
+
+    Parameters
+    ----------
+    items : sequence of Polygon or Mesh
+        Refined bubbles.
+    fov : (r_xy, half_z)
+        :func:`field_of_view`, mm (``half_z`` ignored in 2D).
+    margin : float
+        A bubble within this distance (mm) of the edge counts as reaching it.
+    """
+    r_xy, half_z = fov
+    flags = []
+    for it in items:
+        v = np.asarray(it.vertices, dtype=float)
+        out = np.hypot(v[:, 0], v[:, 1]).max() > r_xy - margin
+        if v.shape[1] == 3:
+            out = out or np.abs(v[:, 2]).max() > half_z - margin
+        flags.append(int(out))
+    return flags
+
+
+
+
+def inside_fov(points, fov, margin=0.0):
+    """Whether points lie inside the field of view (shrunk by ``margin``).
+
+    Parameters
+    ----------
+    points : (n, 2) or (n, 3) float
+        mm.
+    fov : (r_xy, half_z)
+        :func:`field_of_view`, mm (``half_z`` ignored for 2D points).
+    margin : float
+        mm.
+
+    Returns
+    -------
+    (n,) bool
+    """
+    p = np.asarray(points, dtype=float)
+    r_xy, half_z = fov
+    ok = np.hypot(p[:, 0], p[:, 1]) <= r_xy - margin
+    if p.shape[1] == 3:
+        ok &= np.abs(p[:, 2]) <= half_z - margin
+    return ok
+
+
+def seen_by(points, geometry):
+    """How many projections see each point (its ray lands on the detector).
+
+    Parameters
+    ----------
+    points : (n, ndim) float
+        mm, ``ndim`` that of the geometry.
+    geometry : ScanGeometry
+
+    Returns
+    -------
+    (n,) int
+        0 for a point no ray of the data crosses (above the detector's top
+        in a parallel scan, say); ``geometry.n_angles`` inside the field of view.
+    """
+    g = geometry
+    n = g.ndim
+    p = np.asarray(points, dtype=float).reshape(-1, n)
+    vec = g.vectors
+    s, d, u = vec[:, :n], vec[:, n:2 * n], vec[:, 2 * n:3 * n]
+    if n == 3:
+        v = vec[:, 9:12]
+        normal = np.cross(u, v)
+    else:
+        v = None
+        normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    # where the ray through each point meets the detector plane: (angles, points, ndim)
+    if g.is_cone:
+        ray = p[None] - s[:, None]
+        t = np.einsum("ak,ak->a", d - s, normal)[:, None] / np.einsum("apk,ak->ap", ray, normal)
+        hit = s[:, None] + t[..., None] * ray
+        ahead = t > 0
+    else:
+        t = np.einsum("apk,ak->ap", d[:, None] - p[None], normal) / np.einsum("ak,ak->a", s, normal)[:, None]
+        hit = p[None] + t[..., None] * s[:, None]
+        ahead = np.ones(t.shape, bool)
+    rel = hit - d[:, None]
+    a = np.einsum("apk,ak->ap", rel, u) / np.einsum("ak,ak->a", u, u)[:, None]
+    ok = ahead & (np.abs(a) <= 0.5 * g.det_cols)
+    if v is not None:
+        b = np.einsum("apk,ak->ap", rel, v) / np.einsum("ak,ak->a", v, v)[:, None]
+        ok &= np.abs(b) <= 0.5 * g.det_rows
+    return ok.sum(axis=0)
+
+
+def unobserved_control(surface, geometry):
+    """Control vertices whose refined neighbourhood no ray of the data sees.
+
+    The objective's gradient with respect to such a vertex is zero, and
+    BFGS (as L-BFGS) moves only along combinations of past gradients and
+    their differences, so the fit leaves these vertices exactly where they
+    started: the unseen part of a bubble keeps its initial (spherical)
+    shape instead of drifting. They are reported, not measured.
+
+    Parameters
+    ----------
+    surface : SubdivisionSurface
+    geometry : ScanGeometry
+
+    Returns
+    -------
+    (n_control,) bool
+    """
+    seen = seen_by(surface.fine().vertices, geometry) > 0
+    support = abs(surface.S).T @ seen.astype(float)
+    return np.asarray(support).ravel() == 0
+
+
+def size_inside_fov(item, fov, *, samples=48):
+    """Area (2D) or volume (3D) of a bubble's part inside the field of view.
+
+    Rasterised on a grid of ``samples`` cells across the bubble's bounding
+    box, two sub-samples per cell and axis, with cell faces on the
+    detector's nearer edge plane (error well under 1 % of the bubble's size
+    for round bubbles).
+
+    Parameters
+    ----------
+    item : Polygon or Mesh (refined bubble)
+    fov : (r_xy, half_z)
+        mm.
+
+    Returns
+    -------
+    float
+        mm^2 or mm^3.
+    """
+    from bubsub.core.voxel.raster import coverage
+
+    v = np.asarray(item.vertices, dtype=float)
+    ndim = v.shape[1]
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    h = float((hi - lo).max()) / samples
+    lo, hi = lo - h, hi + h
+    if ndim == 3:  # voxel faces on the nearer of the detector's top and bottom planes: no half-voxel bias there
+        plane = fov[1] if lo[2] + hi[2] > 0 else -fov[1]
+        lo[2] = plane - np.ceil((plane - lo[2]) / h) * h
+    shape = tuple(int(np.ceil((hi[k] - lo[k]) / h)) for k in reversed(range(ndim)))
+    extent = tuple(x for k in range(ndim) for x in (lo[k], lo[k] + shape[ndim - 1 - k] * h))
+    frac = coverage(item, shape, extent, supersample=2)
+    return float(frac[fov_mask(shape, extent, fov)].sum() * h ** ndim)
+
+
+def fov_mask(shape, extent, fov):
+    """Which pixels (voxels) of a grid have their centre inside the field of view.
+
+    Parameters
+    ----------
+    shape : (rows, cols) or (slices, rows, cols)
+    extent : (xmin, xmax, ymin, ymax[, zmin, zmax])
+        mm (grid convention of :mod:`bubsub.core.voxel.raster`).
+    fov : (r_xy, half_z)
+
+    Returns
+    -------
+    bool ndarray, ``shape``
+    """
+    from bubsub.core.voxel.raster import pixel_centres
+
+    axes = np.meshgrid(*pixel_centres(shape, extent), indexing="ij")  # (y, x) or (z, y, x)
+    points = np.stack([a.ravel() for a in reversed(axes)], axis=1)
+    return inside_fov(points, fov).reshape(shape)
+
+
+#: ``bubbles.csv`` columns added by :func:`fov_columns`: name -> (unit, meaning).
+FOV_COLUMN_INFO = {
+    "truncated": TRUNCATED_INFO,
+    "area_in_fov_mm2": ("mm^2", "area of the part of the refined outline inside the field of view (the measured "
+                                "part; equals area_mm2 when truncated is 0)"),
+    "volume_in_fov_mm3": ("mm^3", "volume of the part of the refined surface inside the field of view (the "
+                                  "measured part; equals volume_mm3 when truncated is 0)"),
+    "unobserved_control_vertices": ("1", "control vertices whose refined neighbourhood no ray of the data sees "
+                                         "(held at their initial position by the fit, not measured)"),
+}
+
+#: Size columns left empty for a truncated bubble: its whole size is not a measurement.
+WHOLE_SIZE_COLUMNS = ("area_mm2", "perimeter_mm", "volume_mm3", "surface_area_mm2", "equivalent_diameter_mm")
+
+
+def fov_columns(rows, items, report):
+    """Add the field-of-view columns to ``bubbles.csv`` rows, in place.
+
+    Each row gets ``truncated``, the size inside the field of view
+    (``area_in_fov_mm2`` or ``volume_in_fov_mm3``) and, when the report
+    lists them, ``unobserved_control_vertices``; a truncated bubble's
+    whole-size columns (:data:`WHOLE_SIZE_COLUMNS`) are emptied.
+
+    Parameters
+    ----------
+    rows : list of dict
+        :func:`bubsub.core.io.meshio.bubble_table` of ``items``.
+    items : list of Polygon or Mesh
+        Refined bubbles.
+    report : dict
+        ``report.json`` of the reconstruction: ``field_of_view_mm``
+        (:func:`fov_report`) and optionally ``unobserved_control_vertices``
+        (one count per bubble).
+
+    Returns
+    -------
+    columns : tuple of str
+        The names added, in order.
+    """
+    fovr = report["field_of_view_mm"]
+    fov = (fovr["radius"], fovr["half_height"])
+    three_d = bool(items) and np.asarray(items[0].vertices).shape[1] == 3
+    size, whole = ("volume_in_fov_mm3", "volume_mm3") if three_d else ("area_in_fov_mm2", "area_mm2")
+    unobserved = report.get("unobserved_control_vertices")
+    if unobserved is not None and len(unobserved) != len(items):
+        unobserved = None
+    for k, (row, item, flag) in enumerate(zip(rows, items, truncated_flags(items, fov, fovr["margin"]))):
+        row["truncated"] = flag
+        row[size] = size_inside_fov(item, fov) if flag else row[whole]
+        if unobserved is not None:
+            row["unobserved_control_vertices"] = int(unobserved[k])
+        if flag:
+            for c in WHOLE_SIZE_COLUMNS:
+                if c in row:
+                    row[c] = ""
+    return ("truncated", size) + (("unobserved_control_vertices",) if unobserved is not None else ())

@@ -174,9 +174,10 @@ def radial_background(sinogram, geometry, *, min_fraction=0.2, smooth=1.5, grid=
         hundreds of pixels, which averages the noise and the streaks of a
         coarse, sparser FBP out: with 256 pixels and at most 128 angles the
         background is as accurate as with 512 pixels and every angle
-        (mean error 0.0026 against 0.0043 over a simulated foam's columns,
-        360 angles x 1024 columns) at a tenth of the CPU time (0.11 s
-        against 1.0 s per row; docs/prepare.md).
+        (mean error 0.0028 against 0.0043 over a simulated foam's columns,
+        360 angles x 997 columns) at a seventh of the CPU time (0.14 s
+        against 0.99 s per row; ``python -m bubsub.bench prepare
+        --background-rows``, docs/prepare.md).
 
     Returns
     -------

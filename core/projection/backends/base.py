@@ -80,7 +80,7 @@ class Scene:
         self.prisms = ndim == 2 and prisms_2d
         if ndim == 3:
             verts = [m.vertices for m in resolved]
-            faces = [np.asarray(m.faces) for m in resolved]
+            faces = [m.faces for m in resolved]  # the objects a topology keeps (np.asarray would be a new view)
         elif self.prisms:
             # Short walls (about one edge long) keep the triangles well shaped
             # for Embree's BVH; rays run at z = 0, so any height is exact.
@@ -145,7 +145,7 @@ def _joined_faces(faces, counts):
                 return value
     offset = np.concatenate([[0], np.cumsum(counts)])
     face_item = np.repeat(np.arange(len(faces)), [len(f) for f in faces])
-    joined = np.concatenate([f + o for f, o in zip(faces, offset[:-1])])
+    joined = np.concatenate([np.asarray(f) + o for f, o in zip(faces, offset[:-1])])
     value = (joined, face_item, offset)  # shared by the scenes of one topology: never written to
     with _JOINED_LOCK:
         _JOINED.insert(0, (list(faces), key, value))  # holding the arrays keeps their ids from being reused

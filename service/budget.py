@@ -31,7 +31,9 @@ PIXEL_BYTES = {"forward": 16, "vjp": 40, "objective": 40}
 #: per pixel whose rays may meet a surface: its index and how far its rays go (sub-rays are traced
 #: in chunks of constant size)
 RAY_BYTES = 16
-#: per surface crossing kept for the gradient: pixel, face, barycentrics, 1/cos
+#: per surface crossing kept for the gradient: pixel, face, barycentrics, 1/cos (Embree backends). The
+#: raster backend keeps 32 bytes a crossing for vjp/objective only, and at most BUBSUB_RASTER_STORE_MB;
+#: the count of crossings assumed here is an upper one (tests/test_service_budget.py measures the peak)
 CROSSING_BYTES = 28
 #: per fine (subdivided) vertex of one surface: the vertices, faces, normals, Embree scene
 FINE_VERTEX_BYTES = 1024

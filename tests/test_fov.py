@@ -87,7 +87,7 @@ def test_extended_preview_seeds_a_bubble_partly_outside_the_reconstructable_disc
     t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
     truth = [(np.array([0.2, 0.1]), 0.25), (np.array([r_fov, 0.0]), 0.22)]  # the second: half outside
     data = MeshProjector(g).forward([Polygon(c + r * np.c_[np.cos(t), np.sin(t)], C) for c, r in truth])
-    image, extent = voxel_preview(data, g, C, extend=1.25)
+    image, extent = voxel_preview(data, g, C, 0.03, extend=1.25)
     seeds = initial_surfaces(image, extent, C, border_is_background=False)
     centres = np.array([s.control.vertices.mean(axis=0) for s in seeds])
     for c, r in truth:

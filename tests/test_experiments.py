@@ -66,3 +66,32 @@ def test_resume_refuses_runs_of_the_other_mode_and_unknown_methods(tmp_path, cap
     assert "quick-mode runs" in capsys.readouterr().err
     assert main(["experiment", "fig5", "--quick", "--methods", "sirt", "--out", str(tmp_path), "--quiet"]) != 0
     assert "no method(s) ['sirt']" in capsys.readouterr().err
+
+
+def test_ctrl_c_inside_a_fit_stops_the_experiment_and_keeps_the_finished_runs(tmp_path, monkeypatch):
+    # fit() turns Ctrl-C into an "interrupted" result; inside an experiment that used to be
+    # scored as a finished run and the experiment went on with the next one
+    from bubsub.clients.experiments import runner
+    from bubsub.core import MeshProjector
+
+    armed = {"on": False}
+    objective, run_setting = MeshProjector.objective, runner.run_setting
+
+    def interruptible(self, meshes, data):
+        if armed["on"]:
+            raise KeyboardInterrupt
+        return objective(self, meshes, data)
+
+    def first_run_then_ctrl_c(*args):
+        row = run_setting(*args)
+        armed["on"] = True  # the next run's first fit is interrupted
+        return row
+
+    monkeypatch.setattr(MeshProjector, "objective", interruptible)
+    monkeypatch.setattr(runner, "run_setting", first_run_then_ctrl_c)
+    rc = main(["experiment", "fig5", "--quick", "--values", "1.0", "2.0", "--out", str(tmp_path), "--quiet"])
+    assert rc == 130
+    with open(tmp_path / "fig5.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [float(r["radius"]) for r in rows] == [1.0]
+    assert json.loads((tmp_path / "fig5.json").read_text())["interrupted"] is True

@@ -127,3 +127,19 @@ def test_reconstruct_against_a_projector_server(sim, rec, tmp_path):
     assert remote["bubbles"] == local["bubbles"]
     assert remote["final_objective"] == pytest.approx(local["final_objective"], rel=1e-3)
     assert evaluate_dir(out, sim)["ddi"] < 0.03
+
+
+def test_ctrl_c_in_the_topology_rounds_stops_them_and_writes_the_first_fit(sim, tmp_path, monkeypatch):
+    from bubsub.clients.pipeline import topology
+
+    def ctrl_c(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(topology, "add_step", ctrl_c)
+    out = tmp_path / "partial"
+    rc = main(["reconstruct", str(sim / "scan.h5"), "--out", str(out), "--quiet", "--iterations", "5"])
+    assert rc == 130
+    report = json.loads((out / "report.json").read_text())
+    assert report["interrupted"] is True and report["stop_reason"] == "interrupted"
+    assert report["topology"] is None and report["validity"]["repaired"] is False
+    assert len(read_polygons_json(out / "bubbles.json")) == report["bubbles"] > 0

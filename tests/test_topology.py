@@ -133,3 +133,42 @@ def test_footprint_matches_the_dense_projection_it_replaces():
     r = residual.copy()
     fp.add_to(r, -1.0)
     np.testing.assert_allclose(r, residual - p, rtol=0, atol=1e-12)
+
+
+def test_auto_initialisation_keeps_the_candidate_set_that_fits_the_data_best():
+    from bubsub.clients.pipeline.initial import choose_initial
+
+    centres = np.array([[-0.65, 0.0], [0.67, 0.0], [0.2, 1.8]])
+    truth = [circle_surface(c, r, MU, control=32, levels=3) for c, r in zip(centres, [0.65, 0.65, 0.5])]
+    image, extent = _disc_image(centres, [0.65, 0.65, 0.5])
+    from scipy import ndimage
+
+    image = ndimage.gaussian_filter(image, 3.0)  # a few-view preview's blur: the two big discs run together
+    geometry, data = _scan(truth)
+    projector = MeshProjector(geometry)
+    surfaces, summary = choose_initial(image, extent, MU, projector, data)
+    chosen = summary["detector"]
+    assert set(summary) == {"log", "dt", "detector"}
+    assert summary[chosen]["score"] == min(summary["log"]["score"], summary["dt"]["score"])
+    assert projector.objective(surfaces, data)[0] == pytest.approx(summary[chosen]["objective"])
+    found = np.array([s.fine().centroid for s in surfaces])
+    assert len(found) == 3 and np.all(np.linalg.norm(found[:, None] - centres[None], axis=2).min(axis=0) < 0.15)
+    with pytest.raises(ValueError, match="detector"):
+        choose_initial(image, extent, MU, projector, data, detector="otsu")
+
+
+def test_bubble_diagnosis_counts_centres_and_finds_merged_bubbles():
+    from bubsub.bench.bubbles import count_centres, per_bubble
+
+    extent = (-3.0, 3.0, -3.0, 3.0)
+    truth = [circle_surface(c, 0.5, MU, control=32, levels=3).fine() for c in ([-1.5, 0], [-0.4, 0], [1.5, 1.5])]
+    from bubsub.core.voxel.raster import label_image
+
+    labels = label_image(truth, (96, 96), extent)
+    centres = [[-1.5, 0.0], [1.4, 1.5], [1.6, 1.5], [2.5, -2.5]]  # one in 1, none in 2, two in 3, one in liquid
+    assert count_centres(labels, centres, extent) == (1, 1, 1, 1)
+    # one reconstructed region over the first two bubbles, one over the third
+    rec = label_image([circle_surface([-0.95, 0], 1.1, MU).fine(), truth[2]], (96, 96), extent)
+    rows, owner = per_bubble(labels, rec)
+    assert [r[4] for r in rows] == [[1, 2], [1, 2], []]
+    assert rows[2][3] == pytest.approx(0.0) and 0.3 < rows[0][3] < 0.8

@@ -30,9 +30,9 @@ def cmd_experiment(args):
                              f"(and to reconstruct4d)")
         return _fig6(args)
     with open_client(spec) as client:
-        run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values,
-                       methods=args.methods, resume=args.resume, progress=not args.quiet, client=client)
-    return 0
+        summary = run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values,
+                                 methods=args.methods, resume=args.resume, progress=not args.quiet, client=client)
+    return 130 if summary["interrupted"] else 0  # Ctrl-C: the finished runs are written; --resume continues
 
 
 def _fig6(args):

@@ -59,8 +59,8 @@ def cmd_reconstruct(args):
         iterations=args.iterations, control_points=args.control_points, levels=args.levels,
         radius=args.radius, estimate_radii=not args.no_radius_estimation, supersampling=args.supersampling,
         holdout=args.holdout, progress=not args.quiet, background_subtracted=args.background_subtracted,
-        preview=args.preview, topology=not args.no_topology, repair=not args.no_repair,
-        fov_model=args.fov_model,
+        preview=args.preview, detector=args.detector, topology=not args.no_topology, repair=not args.no_repair,
+        fov_model=args.fov_model, separation=args.separation,
     )
     check_settings(settings, scan.ndim)
     if args.holdout and scan.n_angles < 2:
@@ -143,8 +143,15 @@ def register(sub):
                    help="skip the radius-only pre-fit (paper eq. 4-5) before the full fit")
     p.add_argument("--preview", choices=("box", "sirt"), default="box",
                    help="voxel preview for the initial bubbles: box-constrained (default) or SIRT (x >= 0 only)")
+    p.add_argument("--detector", choices=("auto", "log", "dt"),
+                   help="initial bubble centres in the preview: Laplacian-of-Gaussian blobs, distance-transform "
+                        "maxima of its Otsu mask, or auto (both, the one that fits the data best; default in 2D; "
+                        "dt is the default in 3D)")
     p.add_argument("--no-topology", action="store_true",
                    help="keep the number of bubbles: no adding, removing, merging or splitting after the fit")
+    p.add_argument("--separation", type=float, default=0.0, metavar="STRENGTH",
+                   help="penalty keeping bubbles a liquid film apart during the fits, e.g. 1 (docs/robustness.md; "
+                        "default 0: off, the repair step separates them after the fit)")
     p.add_argument("--no-repair", action="store_true",
                    help="only report self-intersecting or overlapping bubbles (report.json), do not repair them")
     p.add_argument("--fov-model", action="store_true",

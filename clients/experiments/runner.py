@@ -173,6 +173,8 @@ def run_case(method, scan, phantom, shape, extent, *, iterations=80, radius=None
 
         rec = reconstruct(scan, ReconstructionSettings(iterations=iterations, radius=radius,
                                                        estimate_radii=estimate_radii, progress=False))
+        if rec.report["interrupted"]:  # Ctrl-C inside a fit stops the experiment, not just this fit
+            raise KeyboardInterrupt
         mask = bubble_mask(rec.surfaces, shape, extent)
     elif method == "tv":
         return min(dice_dissimilarity(_baseline_mask(method, scan, shape, extent, phantom.ndim, w), truth)
@@ -229,9 +231,11 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
         bar.update(1)
         bar.set_postfix(method=row["method"], ddi=f"{row['ddi']:.3f}")
 
+    interrupted = False
     try:
         run_tasks(client, run_setting, [(name, v, s, m, quick) for v, s, m in todo], on_result=finished)
     except KeyboardInterrupt:
+        interrupted = True
         print(f"{name}: interrupted; writing the {len(rows) + len(done_now)} finished runs")
     finally:
         bar.close()
@@ -241,6 +245,7 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
     summary["seconds_runs"] = float(np.nansum([float(r["seconds"]) for r in rows]))  # all runs, resumed ones too
     summary["seconds_this_call"] = time.perf_counter() - t0
     summary["quick"] = quick
+    summary["interrupted"] = interrupted
     summary["seeds"] = sorted({int(r["seed"]) for r in rows})
     _write_csv(out / f"{name}.csv", rows)
     atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2))

@@ -45,6 +45,8 @@ class FitResult:
     interrupted : bool
         True when stopped by Ctrl-C; ``surfaces`` is then the last good iterate.
     method : str
+    penalty : float
+        The ``penalty`` term included in ``objective`` (0 without one).
     stop_reason : str
         Why the fit stopped: ``"converged"`` (gradient below tolerance, or no
         step decreased the objective any more), ``"iteration limit"``,
@@ -61,6 +63,7 @@ class FitResult:
     interrupted: bool = False
     method: str = "bfgs"
     stop_reason: str = "iteration limit"
+    penalty: float = 0.0
 
 
 class _Cached:
@@ -168,7 +171,8 @@ def _objective_call(projector, data):
     return lambda surfaces: projector.objective(surfaces, data)
 
 
-def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progress=True, callback=None):
+def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progress=True, callback=None,
+        catch_interrupt=True, penalty=None):
     """Fit bubble surfaces to projections: minimise ``0.5 ||Proj(S x) - d||^2`` over x.
 
     Parameters
@@ -191,12 +195,20 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
     callback : callable, optional
         Called after each iteration with ``(iteration, objective, surfaces)``;
         return True to stop.
+    catch_interrupt : bool
+        True: Ctrl-C stops the fit and it returns the best iterate so far,
+        flagged ``interrupted`` (the ``bubsub reconstruct`` command then
+        writes it); before the first evaluation has finished there is none
+        and the KeyboardInterrupt propagates. False: the KeyboardInterrupt propagates, for fits inside
+        a larger computation (topology rounds, repairs) that must stop too.
+    penalty : callable, optional
+        ``penalty(vertex_sets) -> (value, grads)`` on the control vertices of
+        all bubbles (a list of ``(n_k, ndim)`` arrays; ``grads`` alike), added
+        to the objective, e.g. :func:`bubsub.clients.optimise.separation.separation_penalty`.
 
     Returns
     -------
     FitResult
-        Ctrl-C stops the fit and returns the best iterate so far, flagged
-        ``interrupted``.
 
     Notes
     -----
@@ -220,14 +232,20 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
     def unpack(x):
         return [s.with_vertices(p.reshape(sh)) for s, p, sh in zip(surfaces, np.split(x, splits), shapes)]
 
-    best = {"f": np.inf, "x": x0, "evals": 0}
+    best = {"f": np.inf, "x": x0, "evals": 0, "penalty": 0.0}
     t0 = time.perf_counter()
 
     def fun(x):
-        f, grads = evaluate(unpack(x))
+        items = unpack(x)
+        f, grads = evaluate(items)
+        p = 0.0
+        if penalty is not None:
+            p, extra = penalty([s.vertices for s in items])
+            f = f + p
+            grads = [np.asarray(g) + e for g, e in zip(grads, extra)]
         best["evals"] += 1
         if f < best["f"]:
-            best["f"], best["x"] = f, x.copy()
+            best["f"], best["x"], best["penalty"] = f, x.copy(), p
         return f, np.concatenate([np.asarray(g).ravel() for g in grads])
 
     history = []
@@ -256,12 +274,14 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
             reason = _lbfgs_reason(res, len(history), iterations)
     except KeyboardInterrupt:
         interrupted, reason = True, "interrupted"
+        if not catch_interrupt:
+            raise
     except _Stop:
         reason = "stopped by callback"
     finally:
         bar.close(reason)
-    if not np.isfinite(best["f"]):
-        raise RuntimeError("the fit was interrupted before the first objective evaluation finished")
+    if not np.isfinite(best["f"]):  # Ctrl-C before the first evaluation finished: nothing to return
+        raise KeyboardInterrupt
     return FitResult(
         surfaces=unpack(best["x"]),
         objective=float(best["f"]),
@@ -272,6 +292,7 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         interrupted=interrupted,
         method=method,
         stop_reason=reason,
+        penalty=float(best["penalty"]),
     )
 
 

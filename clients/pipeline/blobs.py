@@ -7,9 +7,9 @@ bubbles. A scale-normalised Laplacian of Gaussian (scikit-image's
 ``blob_log``) responds to each roughly round bright region at its own scale,
 touching or not, and gives a radius with it (``sqrt(ndim) * sigma``).
 
-Used for the initial bubbles (:func:`bubsub.clients.pipeline.reconstruct.initial_surfaces`
+Used for the initial bubbles (:func:`bubsub.clients.pipeline.initial.initial_surfaces`
 with ``detector="log"``) and, on a back-projected residual, for bubbles added
-during the fit (:mod:`bubsub.clients.optimise.topology`).
+during the fit (:mod:`bubsub.clients.pipeline.topology`).
 """
 
 from __future__ import annotations

@@ -53,6 +53,10 @@ def check_settings(settings, ndim):
         v = getattr(s, name)
         if v is not None and not (np.isfinite(v) and v > 0):
             raise ValueError(f"{name.replace('_', '-')} must be a positive number of mm, got {v!r}")
+    if s.detector not in (None, "auto", "log", "dt"):
+        raise ValueError(f"--detector must be 'auto', 'log' or 'dt', got {s.detector!r}")
+    if not (np.isfinite(s.separation) and s.separation >= 0):
+        raise ValueError(f"--separation must be a non-negative number, got {s.separation!r}")
     if s.holdout not in (None, "odd", "even"):
         raise ValueError(f"--holdout must be 'odd' or 'even', got {s.holdout!r}")
 

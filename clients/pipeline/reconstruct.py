@@ -1,7 +1,8 @@
 """The BubSub reconstruction pipeline: scan file in, one mesh per bubble out.
 
 1. Low-resolution voxel reconstruction of the bubble data (FBP in 2D, FDK in 3D).
-2. Otsu binarisation and local maxima of the distance transform: bubble centres.
+2. Bubble centres: Laplacian-of-Gaussian blobs or distance-transform maxima of the
+   Otsu mask, in 2D whichever explains the data better (:mod:`.initial`).
 3. One spherical control mesh per bubble with a constant radius, optionally
    improved by a radius-only fit (paper eq. 4-5), or a user-given initial mesh.
 4. BFGS on all control vertices (:func:`bubsub.clients.optimise.fit`).
@@ -19,9 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from bubsub.core import MeshProjector, circle_surface, sphere_surface
+from bubsub.core import MeshProjector
 from bubsub.core.io.atomic import atomic_path
 from bubsub.core.io.meshio import (BUBBLE_COLUMN_INFO, BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D, bubble_table,
                                    csv_metadata_path, read_ply, read_polygons_json, write_csv, write_ply,
@@ -33,13 +33,14 @@ from bubsub.clients.optimise.fit import estimate_radii, fit
 from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
 from bubsub.clients.pipeline.fov import (FOV_COLUMN_INFO, field_of_view, fov_columns, fov_report, preview_extension,
                                          truncated_flags, unobserved_control)
+from bubsub.clients.pipeline.initial import choose_initial, default_detector, initial_centres, initial_surfaces
 from bubsub.clients.pipeline.outputs import finish_outputs
 from bubsub.clients.pipeline.repair import check_and_repair
 from bubsub.clients.progress import phase
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "truncated_flags",
-           "initial_surfaces", "voxel_preview", "preview_grid", "resample_image"]
+           "initial_centres", "initial_surfaces", "voxel_preview", "preview_grid", "resample_image"]
 
 
 @dataclass
@@ -58,11 +59,15 @@ class ReconstructionSettings:
     background_subtracted: bool = False  # accept a positive contrast without /exchange/background
     progress: bool = True
     preview: str = "box"  # voxel preview: "box" (0 <= x <= |contrast|, BB steps) or "sirt" (x >= 0)
+    detector: str | None = None  # initial centres: "auto", "log" or "dt" (see .initial); default "auto" in 2D, "dt" in 3D
     topology: bool = True  # add/remove/merge/split bubbles between fits when the objective says so (see .topology)
     topology_rounds: int = 2
     repair: bool = True  # round self-intersecting bubbles, separate overlapping ones, refit (see .repair)
     repair_iterations: int = 20  # BFGS iterations of each refit after a repair
     fov_model: bool = False  # preview beyond the field of view, cut bubbles seeded at their edge (see .fov)
+    # strength of the penalty keeping bubbles a film apart during the fits (.optimise.separation); off by
+    # default: at 1 the dense 2D foam's DDI went from 0.010 to 0.077 (docs/robustness.md)
+    separation: float = 0.0
 
 
 @dataclass
@@ -201,65 +206,6 @@ def resample_image(image, extent, shape, new_extent):
     return out.reshape(shape).astype(np.float32)
 
 
-def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, radius=None, min_distance=None,
-                     border_is_background=True):
-    """Spherical bubbles at the distance-transform maxima of the binarised image.
-
-    Parameters
-    ----------
-    image : ndarray
-        :func:`voxel_preview` (bubbles positive).
-    extent : tuple
-    contrast : float
-        Bubble attenuation (gas minus liquid), 1/mm.
-    control_points : int, optional
-        42 (3D) / 9 (2D) by default.
-    radius : float, optional
-        Constant initial radius, mm; default the median of the distance
-        transform at the centres. Each bubble's radius is capped at half the
-        distance to its nearest neighbour, so initial bubbles never overlap.
-    border_is_background : bool
-        False when the grid's edge is the edge of what the data see (the
-        field-of-view model): a bubble cut by it keeps its centre and the
-        radius of its visible cross-section instead of shrinking inside.
-
-    Returns
-    -------
-    list of SubdivisionSurface
-    """
-    from bubsub.core.voxel.segment import binarise, bubble_centres
-
-    ndim = image.ndim
-    # where the grid's edge is the edge of the data, the opening must not eat the bubbles it cuts: extend
-    # the image beyond its edge by its edge values first
-    pad = 0 if border_is_background else 3
-    mask = binarise(np.pad(image, pad, mode="edge"), opening_radius=2, bubbles_are_dark=False, fill_holes=True)
-    mask = mask[tuple(slice(pad, n - pad) for n in mask.shape)]
-    voxel = (extent[1] - extent[0]) / image.shape[-1]
-    # maxima thinner than two voxels are noise that survived the opening
-    kw = dict(min_radius=2 * voxel, border_is_background=border_is_background)
-    centres, radii = bubble_centres(mask, extent, min_distance=min_distance, **kw)
-    if min_distance is None and len(radii):
-        # one centre per bubble: maxima closer than the typical bubble radius belong together
-        centres, radii = bubble_centres(mask, extent, min_distance=max(3 * voxel, float(np.median(radii))), **kw)
-    if len(centres) == 0:
-        raise ValueError("no bubbles found in the voxel reconstruction; give an initial mesh with --init")
-    r = float(np.median(radii)) if radius is None else float(radius)
-    if not r > 0:
-        raise ValueError(f"initial radius must be positive, got {r}")
-    # Overlapping initial bubbles count their overlap twice and can lock each other
-    # in a poor local minimum: cap each radius at half the distance to the nearest centre.
-    r = np.full(len(centres), r)
-    if len(centres) > 1:
-        nearest, _ = cKDTree(centres).query(centres, k=2)
-        r = np.minimum(r, 0.5 * nearest[:, 1])
-    if ndim == 3:
-        k = control_points or 42
-        return [sphere_surface(c, rk, contrast, control=k, levels=levels) for c, rk in zip(centres, r)]
-    k = control_points or 9
-    return [circle_surface(c, rk, contrast, control=k, levels=levels) for c, rk in zip(centres, r)]
-
-
 def load_initial(path, contrast, levels=2):
     """Initial control meshes from a previous reconstruction (``bubbles.ply`` or ``bubbles.json``)."""
     path = Path(path)
@@ -314,33 +260,44 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
 
     image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress, method=s.preview,
                                   extend=preview_extension(s.fov_model))
+    local = MeshProjector(g_fit, supersampling=s.supersampling)
+    detector, initialisation = default_detector(s.detector, g_fit.ndim), None
     if init is None:
-        surfaces = initial_surfaces(image, extent, contrast, control_points=s.control_points, levels=s.levels,
-                                    radius=s.radius, min_distance=s.min_distance,
-                                    border_is_background=not s.fov_model)
+        # "auto" compares the candidate sets after their radius-only fits, here (a local projector)
+        surfaces, initialisation = choose_initial(
+            image, extent, contrast, local, d_fit, detector=detector, estimate=s.estimate_radii and detector == "auto",
+            progress=s.progress, control_points=s.control_points, levels=s.levels, radius=s.radius,
+            min_distance=s.min_distance, border_is_background=not s.fov_model)
     else:
         surfaces = [x.with_attenuation(contrast) for x in init]
     if projector_factory is None:
-        projector = MeshProjector(g_fit, supersampling=s.supersampling)
-        fit_data = d_fit
+        projector, fit_data = local, d_fit
     else:
         projector = projector_factory(g_fit, d_fit, surfaces)
         fit_data = None
     t_init = time.perf_counter() - t0
-    if s.estimate_radii and init is None:
+    if s.estimate_radii and init is None and detector != "auto":
         surfaces = estimate_radii(projector, surfaces, fit_data, progress=s.progress)
-    result = fit(projector, surfaces, fit_data, iterations=s.iterations, progress=s.progress)
     voxel = (extent[1] - extent[0]) / image.shape[-1]
+    penalty = _separation(s, d_fit, len(surfaces), voxel) if fit_data is not None else None
+    result = fit(projector, surfaces, fit_data, iterations=s.iterations, progress=s.progress, penalty=penalty)
     kept, dropped = prune(result.surfaces, min_radius=voxel)
     topology = None
-    if s.topology and s.topology_rounds > 0 and kept and not result.interrupted:  # Ctrl-C: write what we have
-        kept, topology = adapt_bubbles(kept, g_fit, d_fit, contrast, image, extent, voxel, s)
-    kept, validity = check_and_repair(kept, MeshProjector(g_fit, supersampling=s.supersampling), d_fit,
-                                      repair=s.repair and not result.interrupted, iterations=s.repair_iterations, gap=0.25 * voxel)
+    interrupted = result.interrupted  # Ctrl-C: no further changes, write what we have
+    checker = local
+    try:
+        if s.topology and s.topology_rounds > 0 and kept and not interrupted:
+            kept, topology = adapt_bubbles(kept, g_fit, d_fit, contrast, image, extent, voxel, s, penalty=penalty)
+        kept, validity = check_and_repair(kept, checker, d_fit, repair=s.repair and not interrupted,
+                                          iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
+    except KeyboardInterrupt:  # in the topology rounds or the repair: report the bubbles as they were
+        interrupted = True
+        kept, validity = check_and_repair(kept, checker, d_fit, repair=False)
 
     report = {
         "bubbles": len(kept),
         "bubbles_initial": len(surfaces),
+        "initialisation": initialisation,
         "bubbles_dropped": dropped + validity["dropped"],
         "validity": validity,
         "topology": topology,
@@ -350,8 +307,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "final_objective": result.objective,
         "initial_objective": result.history[0]["objective"] if result.history else result.objective,
         "method": result.method,
-        "interrupted": result.interrupted,
-        "stop_reason": result.stop_reason,
+        "interrupted": interrupted,
+        "stop_reason": "interrupted" if interrupted else result.stop_reason,
         "seconds_total": time.perf_counter() - t0,
         "seconds_fit": result.seconds,
         "seconds_initialisation": t_init,
@@ -366,6 +323,18 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         report["holdout_projections"] = g_val.n_angles
         report["holdout_mse"] = projection_mse(pred, d_val)
     return Reconstruction(kept, report, image, extent)
+
+
+def _separation(settings, data, n_bubbles, voxel):
+    """The fit's separation penalty (:mod:`bubsub.clients.optimise.separation`), or None when switched off."""
+    if not settings.separation:
+        return None
+    from functools import partial
+
+    from bubsub.clients.optimise.separation import separation_penalty, separation_weight
+
+    return partial(separation_penalty, weight=separation_weight(data, n_bubbles, voxel, settings.separation),
+                   gap=0.25 * voxel)
 
 
 def prune(surfaces, min_radius):

@@ -245,7 +245,7 @@ def repair_bubbles(surfaces, refit=None, *, gap=0.0, rounds=2):
     }
 
 
-def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, gap=0.0, rounds=2):
+def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, gap=0.0, rounds=2, penalty=None):
     """The pipeline's validity step: :func:`repair_bubbles` with BFGS refits, or only the check.
 
     Parameters
@@ -259,6 +259,8 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
         False: check and report only (the surfaces are returned unchanged).
     iterations : int
         BFGS iterations of each refit.
+    penalty : callable, optional
+        Added to the refits' objective (:func:`bubsub.clients.optimise.fit`).
 
     Returns
     -------
@@ -274,7 +276,8 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
     from bubsub.clients.optimise.fit import fit
 
     def refit(items):
-        return fit(projector, items, data, iterations=iterations, progress=False).surfaces
+        return fit(projector, items, data, iterations=iterations, progress=False, catch_interrupt=False,
+                   penalty=penalty).surfaces
 
     kept, summary = repair_bubbles(surfaces, refit, gap=gap, rounds=rounds)
     summary["repaired"] = True

@@ -156,7 +156,7 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
 
 
 def _local_fit(projector, items, target, iterations):
-    res = fit(projector, items, target, iterations=iterations, progress=False)
+    res = fit(projector, items, target, iterations=iterations, progress=False, catch_interrupt=False)
     return res.surfaces, res.objective
 
 
@@ -266,7 +266,7 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
 def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius, max_radius, rounds=3,
                    iterations=30, threshold=0.15, touch=0.0, split_ratio=1.6, local_iterations=15, max_add=20,
                    max_tries=8, steps=("remove", "add", "merge", "split"), complexity=1.0, image=None,
-                   progress=False):
+                   progress=False, penalty=None):
     """Alternate topology changes and joint BFGS fits.
 
     Parameters
@@ -310,6 +310,8 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         squared residual of the ``m`` data values before the round (the
         Akaike criterion for ``complexity = 1``): without it, two bubbles
         always fit noise a little better than one.
+    penalty : callable, optional
+        Added to the objective of the joint fits (:func:`bubsub.clients.optimise.fit`).
 
     Returns
     -------
@@ -351,12 +353,13 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         done = r + 1
         if len(changes) == n_before or not surfaces:
             break
-        surfaces = fit(projector, surfaces, data, iterations=iterations, progress=progress).surfaces
+        surfaces = fit(projector, surfaces, data, iterations=iterations, progress=progress,
+                       catch_interrupt=False, penalty=penalty).surfaces
     objective = float(projector.objective(surfaces, data)[0]) if surfaces else _half_sq(data)
     return surfaces, {"changes": changes, "objective": objective, "rounds": done}
 
 
-def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, settings):
+def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, settings, penalty=None):
     """:func:`adapt_topology` as the reconstruction pipeline runs it (local projector, the preview's grid).
 
     Parameters
@@ -410,4 +413,4 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     return adapt_topology(MeshProjector(geometry, supersampling=settings.supersampling), surfaces, data,
                           preview=preview, new_bubble=new_bubble, min_radius=3 * voxel, max_radius=size / 8,
                           rounds=settings.topology_rounds, iterations=max(10, settings.iterations // 2),
-                          touch=2 * voxel, image=(image, extent), progress=settings.progress)
+                          touch=2 * voxel, image=(image, extent), progress=settings.progress, penalty=penalty)

@@ -48,6 +48,10 @@ def test_reconstruction_matches_the_truth(sim, rec, capsys):
     assert report["holdout_mse"] < 1e-3
     # the paper's voxel reference (30 BB iterations) on the same held-out projections does worse than the meshes
     assert report["holdout_mse"] < report["holdout_mse_voxel_bb"]
+    parts, cpu = report["seconds_parts"], report["cpu_seconds_parts"]
+    assert list(parts) == ["preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity", "holdout"]
+    assert set(cpu) == set(parts) and min(parts.values()) >= 0 and min(cpu.values()) >= 0
+    assert sum(parts.values()) - parts["holdout"] <= report["seconds_total"] + 1e-6 and parts["fit"] > 0
     res = evaluate_dir(rec, sim)
     assert res["ddi"] < 0.03
     assert main(["evaluate", str(rec), str(sim)]) == 0

@@ -253,6 +253,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     check_settings(s, scan.ndim)
     check_bubble_signal(scan, background_subtracted=s.background_subtracted)
     t0 = time.perf_counter()
+    clock = _PhaseClock()
     contrast = scan.bubble_contrast
     data = scan.bubble_data
     geometry = scan.geometry
@@ -260,6 +261,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
 
     image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress, method=s.preview,
                                   extend=preview_extension(s.fov_model))
+    clock.mark("preview")
     local = MeshProjector(g_fit, supersampling=s.supersampling)
     detector, initialisation = default_detector(s.detector, g_fit.ndim), None
     if init is None:
@@ -276,11 +278,14 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         projector = projector_factory(g_fit, d_fit, surfaces)
         fit_data = None
     t_init = time.perf_counter() - t0
+    clock.mark("initial_bubbles")
     if s.estimate_radii and init is None and detector != "auto":
         surfaces = estimate_radii(projector, surfaces, fit_data, progress=s.progress)
+    clock.mark("radius_estimation")
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     penalty = _separation(s, d_fit, len(surfaces), voxel) if fit_data is not None else None
     result = fit(projector, surfaces, fit_data, iterations=s.iterations, progress=s.progress, penalty=penalty)
+    clock.mark("fit")
     kept, dropped = prune(result.surfaces, min_radius=voxel)
     topology = None
     interrupted = result.interrupted  # Ctrl-C: no further changes, write what we have
@@ -288,11 +293,13 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     try:
         if s.topology and s.topology_rounds > 0 and kept and not interrupted:
             kept, topology = adapt_bubbles(kept, g_fit, d_fit, contrast, image, extent, voxel, s, penalty=penalty)
+        clock.mark("topology")
         kept, validity = check_and_repair(kept, checker, d_fit, repair=s.repair and not interrupted,
                                           iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
     except KeyboardInterrupt:  # in the topology rounds or the repair: report the bubbles as they were
         interrupted = True
         kept, validity = check_and_repair(kept, checker, d_fit, repair=False)
+    clock.mark("validity")
 
     report = {
         "bubbles": len(kept),
@@ -322,6 +329,9 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         pred = MeshProjector(g_val, supersampling=s.supersampling).forward(kept)
         report["holdout_projections"] = g_val.n_angles
         report["holdout_mse"] = projection_mse(pred, d_val)
+        clock.mark("holdout")
+    # wall and CPU seconds of each phase (CPU: this process, all threads)
+    report["seconds_parts"], report["cpu_seconds_parts"] = clock.parts()
     return Reconstruction(kept, report, image, extent)
 
 
@@ -335,6 +345,24 @@ def _separation(settings, data, n_bubbles, voxel):
 
     return partial(separation_penalty, weight=separation_weight(data, n_bubbles, voxel, settings.separation),
                    gap=0.25 * voxel)
+
+
+class _PhaseClock:
+    """Wall and CPU seconds (this process, all threads) of consecutive phases, for ``report.json``."""
+
+    def __init__(self):
+        self._wall, self._cpu = time.perf_counter(), time.process_time()
+        self._parts = {}
+
+    def mark(self, name):
+        """End the phase ``name`` now; the next one starts."""
+        wall, cpu = time.perf_counter(), time.process_time()
+        self._parts[name] = (wall - self._wall, cpu - self._cpu)
+        self._wall, self._cpu = wall, cpu
+
+    def parts(self):
+        """``({phase: wall seconds}, {phase: CPU seconds})``."""
+        return {k: w for k, (w, _) in self._parts.items()}, {k: c for k, (_, c) in self._parts.items()}
 
 
 def prune(surfaces, min_radius):

@@ -6,6 +6,7 @@ import sys
 #: Benchmark name -> (module in bubsub.bench, what it measures). ``bubsub bench --help`` lists these.
 BENCHMARKS = {
     "projector": ("projector", "forward, gradient and objective of the mesh projector per backend, scaling, peak memory"),
+    "reconstruct": ("reconstruct", "bubsub reconstruct on foam3d: wall/CPU seconds per phase, peak RSS, DDI"),
     "remote": ("remote", "a fit against a local projector server versus in-process: HTTP overhead per iteration"),
     "prepare": ("prepare", "raw-data preparation: DDI/MSE with and without each step, peak memory of a prepare"),
     "fov": ("fov", "bubbles cut by the field of view: DDI inside it with and without modelling its boundary"),

@@ -1,0 +1,89 @@
+"""``python -m bubsub.bench reconstruct``: time, memory and DDI of ``bubsub reconstruct`` on foam3d, phase by phase.
+
+Simulates the foam3d phantom (60 bubbles, 25 cone projections, ``--det-count``
+columns by half as many rows; truth from finer meshes) once into a scratch
+folder, then runs ``bubsub reconstruct`` on it in a child process
+``--repeats`` times and prints, per run, the wall and CPU seconds of each
+phase (``report.json``'s ``seconds_parts`` and ``cpu_seconds_parts``), the
+child's whole wall time, CPU time and peak RSS (what ``/usr/bin/time -v``
+reports), and the DDI against the truth (``bubsub evaluate``).
+
+The issue's targets: under 30 s on 2 cores for 25 x 256 x 512 with DDI no
+worse than before (about 0.005); under 600 MB peak for 25 x 128 x 256.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+PHASES = ("preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity")
+
+
+def _cli(*args):
+    """``bubsub ARGS`` with this interpreter."""
+    return [sys.executable, "-c", "import sys; from bubsub.clients.cli.main import main; sys.exit(main())",
+            *map(str, args)]
+
+
+def _child_run(cmd):
+    """Run ``cmd``; its wall seconds, CPU seconds (user + system) and peak RSS (MiB).
+
+    Children are run one at a time, so the growth of RUSAGE_CHILDREN is this one's.
+    """
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu, after.ru_maxrss / 1024
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m bubsub.bench reconstruct", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--det-count", type=int, default=512, help="detector columns (rows: half); default 512")
+    ap.add_argument("--repeats", type=int, default=1, help="reconstructions of the same scan (default 1)")
+    ap.add_argument("--no-topology", action="store_true", help="pass --no-topology to bubsub reconstruct")
+    args = ap.parse_args(argv)
+    if args.det_count < 16 or args.repeats < 1:
+        ap.error("need --det-count >= 16 and --repeats >= 1")
+    with tempfile.TemporaryDirectory(prefix="bubsub-bench-") as tmp:
+        sim = Path(tmp) / "sim"
+        subprocess.run(_cli("simulate", "--phantom", "foam3d", "--angles", 25, "--det-count", args.det_count,
+                            "--out", sim), check=True, stdout=subprocess.DEVNULL)
+        rows = []
+        for k in range(args.repeats):
+            out = Path(tmp) / f"rec{k}"
+            extra = ["--no-topology"] if args.no_topology else []
+            wall, cpu, rss = _child_run(_cli("reconstruct", sim / "scan.h5", "--out", out, "--quiet", *extra))
+            from bubsub.clients.pipeline.evaluate import evaluate_dir
+
+            report = json.loads((out / "report.json").read_text())
+            ddi = evaluate_dir(out, sim)["ddi"]
+            rows.append((report, wall, cpu, rss, ddi))
+    shape = f"25 x {args.det_count // 2} x {args.det_count}"
+    print(f"bubsub reconstruct, foam3d (60 bubbles), cone {shape}; seconds wall / CPU (all threads)")
+    header = ["run"] + [p.replace("_", " ") for p in PHASES] + ["whole wall s", "whole CPU s", "peak RSS MiB", "DDI",
+                                                                 "bubbles"]
+    table = []
+    for k, (report, wall, cpu, rss, ddi) in enumerate(rows):
+        parts, cparts = report.get("seconds_parts", {}), report.get("cpu_seconds_parts", {})
+        table.append([str(k)] + [f"{parts.get(p, 0):.1f} / {cparts.get(p, 0):.1f}" for p in PHASES]
+                     + [f"{wall:.1f}", f"{cpu:.1f}", f"{rss:.0f}", f"{ddi:.5f}", str(report["bubbles"])])
+    widths = [max(len(r[i]) for r in [header] + table) for i in range(len(header))]
+    for r in [header, ["-" * w for w in widths]] + table:
+        print("  ".join(c.ljust(w) for c, w in zip(r, widths)))
+    print("whole: the child process (imports, reading, outputs and pictures included); peak RSS as /usr/bin/time -v")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -199,11 +199,13 @@ def resample_image(image, extent, shape, new_extent):
 
     from bubsub.core.voxel.grid import index_to_world, world_to_index
 
-    idx = np.indices(shape).reshape(len(shape), -1).T
-    points = index_to_world(idx, shape, new_extent)
-    src = world_to_index(points, image.shape, extent)
-    out = ndimage.map_coordinates(np.asarray(image, dtype=np.float32), src.T, order=1, mode="nearest")
-    return out.reshape(shape).astype(np.float32)
+    # both grids are axis-aligned, so each new index maps to an old one by a per-axis affine
+    # function: found from indices 0 and 1, applied without any coordinate arrays
+    nd = len(shape)
+    src = world_to_index(index_to_world(np.array([np.zeros(nd), np.ones(nd)]), shape, new_extent), image.shape, extent)
+    out = ndimage.affine_transform(np.asarray(image, dtype=np.float32), src[1] - src[0], offset=src[0],
+                                   output_shape=tuple(shape), order=1, mode="nearest")
+    return out.astype(np.float32, copy=False)
 
 
 def load_initial(path, contrast, levels=2):

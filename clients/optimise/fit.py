@@ -172,7 +172,7 @@ def _objective_call(projector, data):
 
 
 def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progress=True, callback=None,
-        catch_interrupt=True, penalty=None):
+        catch_interrupt=True, penalty=None, label="BubSub fit"):
     """Fit bubble surfaces to projections: minimise ``0.5 ||Proj(S x) - d||^2`` over x.
 
     Parameters
@@ -192,6 +192,8 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
     progress : bool
         Show progress (:func:`bubsub.clients.progress.phase`: a bar on a
         terminal, one summary line with the stop reason otherwise).
+    label : str
+        The progress line's name.
     callback : callable, optional
         Called after each iteration with ``(iteration, objective, surfaces)``;
         return True to stop.
@@ -249,7 +251,7 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         return f, np.concatenate([np.asarray(g).ravel() for g in grads])
 
     history = []
-    bar = phase("BubSub fit", iterations, enabled=progress)
+    bar = phase(label, iterations, enabled=progress)
 
     class _Stop(Exception):
         pass
@@ -304,7 +306,8 @@ def _lbfgs_reason(res, done, limit):
     return "converged"
 
 
-def estimate_radii(projector, surfaces, data=None, iterations=20, *, ftol=1e-4, progress=False):
+def estimate_radii(projector, surfaces, data=None, iterations=20, *, ftol=1e-4, progress=False,
+                   label="radius estimation"):
     """Improve an initial guess by optimising one radius per bubble (paper eq. 4-5).
 
     Each bubble keeps its centre (the mean of its control vertices) and its
@@ -347,7 +350,7 @@ def estimate_radii(projector, surfaces, data=None, iterations=20, *, ftol=1e-4, 
             best["f"], best["r"] = f, r.copy()
         return f, np.array([np.sum(np.asarray(g) * u) for g, u in zip(grads, units)])
 
-    with phase("radius estimation", iterations, enabled=progress) as bar:
+    with phase(label, iterations, enabled=progress) as bar:
         try:
             res = minimize(fun, r0, jac=True, method="L-BFGS-B", bounds=[(1e-3 * r, 3 * r) for r in r0],
                            callback=lambda _: bar.update(1),

@@ -133,6 +133,9 @@ def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, 
     return [circle_surface(c, rk, contrast, control=k, levels=levels) for c, rk in zip(centres, r)]
 
 
+_NAMES = {"log": "LoG", "dt": "distance-transform"}  # phase labels of the candidate sets
+
+
 def choose_initial(image, extent, contrast, projector, data, *, detector="auto", estimate=True, progress=False,
                    **options):
     """Initial bubbles from the detector that explains the data best.
@@ -181,7 +184,8 @@ def choose_initial(image, extent, contrast, projector, data, *, detector="auto",
             summary[name] = None
             continue
         if estimate:
-            surfaces = estimate_radii(projector, surfaces, data, progress=progress)
+            label = f"radius estimation ({_NAMES[name]} centres)" if len(names) > 1 else "radius estimation"
+            surfaces = estimate_radii(projector, surfaces, data, progress=progress, label=label)
         candidates[name] = surfaces
         if len(names) > 1:
             f = float(projector.objective(surfaces, data)[0])

@@ -354,7 +354,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         if len(changes) == n_before or not surfaces:
             break
         surfaces = fit(projector, surfaces, data, iterations=iterations, progress=progress,
-                       catch_interrupt=False, penalty=penalty).surfaces
+                       catch_interrupt=False, penalty=penalty, label=f"topology round {r + 1} refit").surfaces
     objective = float(projector.objective(surfaces, data)[0]) if surfaces else _half_sq(data)
     return surfaces, {"changes": changes, "objective": objective, "rounds": done}
 

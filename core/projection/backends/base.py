@@ -90,7 +90,8 @@ class Scene:
         else:
             verts = [np.c_[p.vertices, np.zeros(len(p.vertices))] for p in resolved]
             faces = [np.stack([np.arange(len(p.vertices)), np.roll(np.arange(len(p.vertices)), -1)], 1) for p in resolved]
-        self.faces, self.face_item, self.vertex_offset = _joined_faces(faces, [len(v) for v in verts])
+        # 3D faces are objects the items keep (worth caching); 2D ones were just built
+        self.faces, self.face_item, self.vertex_offset = _joined_faces(faces, [len(v) for v in verts], cache=ndim == 3)
         vertices = np.concatenate(verts)
         self.mu = np.array([m.attenuation for m in resolved])
         lo, hi = vertices.min(axis=0), vertices.max(axis=0)
@@ -131,25 +132,28 @@ _JOINED_LOCK = threading.Lock()
 _JOINED = []  # the last few (face arrays, counts) -> joined faces; an optimiser projects one topology many times
 
 
-def _joined_faces(faces, counts):
+def _joined_faces(faces, counts, cache=True):
     """All items' faces as one array into the joined vertices, each face's item, and each item's first vertex.
 
     Cached on the identity of the face arrays (a subdivision surface keeps
     its fine faces, a Mesh its faces) and the vertex counts: a fit projects
-    the same topology at every evaluation.
+    the same topology at every evaluation. ``cache=False`` for faces built
+    for this call only (2D), which would only push the others out.
     """
     key = tuple(id(f) for f in faces) + tuple(counts)
-    with _JOINED_LOCK:
-        for _, k, value in _JOINED:
-            if k == key:
-                return value
+    if cache:
+        with _JOINED_LOCK:
+            for _, k, value in _JOINED:
+                if k == key:
+                    return value
     offset = np.concatenate([[0], np.cumsum(counts)])
     face_item = np.repeat(np.arange(len(faces)), [len(f) for f in faces])
     joined = np.concatenate([np.asarray(f) + o for f, o in zip(faces, offset[:-1])])
     value = (joined, face_item, offset)  # shared by the scenes of one topology: never written to
-    with _JOINED_LOCK:
-        _JOINED.insert(0, (list(faces), key, value))  # holding the arrays keeps their ids from being reused
-        del _JOINED[4:]
+    if cache:
+        with _JOINED_LOCK:
+            _JOINED.insert(0, (list(faces), key, value))  # holding the arrays keeps their ids from being reused
+            del _JOINED[4:]
     return value
 
 

@@ -411,6 +411,12 @@ def test_gradient_is_the_same_from_stored_and_from_rasterised_crossings(rng, mon
         results[mb] = MeshProjector(g, threads=2).objective(items, data)
     f0, g0 = results[""]
     assert np.abs(g0[0]).max() > 0
+    P = MeshProjector(g, threads=2)
+    if P.backend == "raster":  # the default budget keeps every group's crossings; a tiny one overflows
+        monkeypatch.setenv("BUBSUB_RASTER_STORE_MB", "")
+        assert all(s[3] > 0 for s in P._trace(P._scene(items), gradient=True)._job.stores.values())
+        monkeypatch.setenv("BUBSUB_RASTER_STORE_MB", "0.001")
+        assert any(s[3] < 0 for s in P._trace(P._scene(items), gradient=True)._job.stores.values())
     for mb in ("0.001", "0"):
         f, grads = results[mb]
         assert f == pytest.approx(f0, rel=1e-12)

@@ -286,6 +286,21 @@ def test_objective_shares_one_traversal_and_agrees_with_forward_and_vjp(rng):
     assert f2 < f
 
 
+@pytest.mark.parametrize("supersampling, dtype", [(1, np.float32), (2, np.float64), (3, np.int32)])
+def test_objective_is_the_misfit_of_the_float32_forward_projection(rng, supersampling, dtype):
+    # the objective's fused residual rounds the projection to float32 as forward() does, for every
+    # sub-ray count and data type
+    g = random_geometry(rng, "cone", rows=12, cols=20, pixel=0.2)
+    s = sphere_surface([0.0, 0.1, 0.0], 0.9, -0.7)
+    P = MeshProjector(g, supersampling=supersampling)
+    data = (P.forward(s.with_vertices(s.vertices * 1.05)) * 3).astype(dtype)
+    f, grads = P.objective([s], data)
+    res = P.forward([s]).astype(np.float64) - data.astype(np.float64)
+    assert f > 0
+    assert f == pytest.approx(0.5 * np.sum(res**2), rel=1e-12)
+    np.testing.assert_allclose(grads[0], P.vjp([s], res)[0], rtol=1e-9, atol=1e-12)
+
+
 def test_threads_do_not_change_results(rng):
     g = random_geometry(rng, "cone", rows=64, cols=96, pixel=0.05, n_angles=12)
     items = [sphere_surface(rng.uniform(-1, 1, 3), 0.5, -0.1) for _ in range(4)]

@@ -131,12 +131,15 @@ class MeshProjector:
         f : float
         grads : list of (n_i, 3) or (n_i, 2) float
         """
+        from bubsub.core.projection.backends.common_kernels import residual as residual_kernel
+
         d = self._check_array(data, "data")
         scene = self._scene(meshes)
         traversal = self._trace(scene, gradient=True)
         # the float32 projection is what forward() returns; f and the gradient use it too
-        residual = np.subtract(self._projection(traversal), d, dtype=np.float64)
-        f = 0.5 * float(np.dot(residual.ravel(), residual.ravel()))
+        flat = d.ravel() if d.dtype in (np.float32, np.float64) else d.ravel().astype(np.float64)
+        residual = np.empty(d.size)
+        f = float(residual_kernel(traversal.values, float(self._sub.shape[0]), flat, residual))
         return f, self._gradient(scene, traversal, residual)
 
     def trace(self, meshes):

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.projection.mesh import Mesh, Polygon, bounding_box
 
 __all__ = ["Violation", "segment_crossings", "self_crossings", "crossings_between", "overlap_measure",
            "check_bubbles"]
@@ -207,9 +207,6 @@ def crossings_between(a, b):
     raise TypeError(f"expected two Polygons or two Meshes, got {type(a).__name__} and {type(b).__name__}")
 
 
-def _box(v):
-    return v.min(axis=0), v.max(axis=0)
-
 
 def overlap_measure(a, b, samples=None):
     """Sampled area (2D, mm^2) or volume (3D, mm^3) inside both ``a`` and ``b``.
@@ -225,7 +222,7 @@ def overlap_measure(a, b, samples=None):
     from bubsub.core.voxel.raster import coverage
 
     ndim = a.vertices.shape[1]
-    (alo, ahi), (blo, bhi) = _box(a.vertices), _box(b.vertices)
+    (alo, ahi), (blo, bhi) = bounding_box(a.vertices), bounding_box(b.vertices)
     lo, hi = np.maximum(alo, blo), np.minimum(ahi, bhi)
     if np.any(hi <= lo):
         return 0.0

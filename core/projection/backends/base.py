@@ -28,7 +28,7 @@ import threading
 
 import numpy as np
 
-from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.projection.mesh import Mesh, Polygon, bounding_box
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 __all__ = ["Scene", "Traversal", "StoredCrossings", "Backend", "vertex_gradient"]
@@ -57,6 +57,9 @@ class Scene:
         Attenuation of each item, 1/mm.
     normals : (m, 3) float
         Unit outward normals (2D segments: in the plane z = 0).
+    offsets : (m,) float
+        ``normals . x0`` for a vertex ``x0`` of each face, mm: the face's plane (line in 2D),
+        in the shifted frame.
     vertex_offset : (n_items + 1,) int
         First vertex of each item.
     """
@@ -94,25 +97,24 @@ class Scene:
         self.faces, self.face_item, self.vertex_offset = _joined_faces(faces, [len(v) for v in verts], cache=ndim == 3)
         vertices = np.concatenate(verts)
         self.mu = np.array([m.attenuation for m in resolved])
-        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        lo, hi = bounding_box(vertices)
         self.centre = 0.5 * (lo + hi)
         self.vertices = vertices - self.centre
         self.half = 0.5 * (hi - lo)
         if self.prisms:
             self.half[2] = self.half_height
         v, f = self.vertices, self.faces
-        a = v[f[:, 0]]
-        e = v[f[:, 1]] - a
-        n = np.empty_like(e)
-        if f.shape[1] == 3:  # e x (c - a), written out: np.cross costs several times more
-            w = v[f[:, 2]] - a
-            n[:, 0] = e[:, 1] * w[:, 2] - e[:, 2] * w[:, 1]
-            n[:, 1] = e[:, 2] * w[:, 0] - e[:, 0] * w[:, 2]
-            n[:, 2] = e[:, 0] * w[:, 1] - e[:, 1] * w[:, 0]
+        if f.shape[1] == 3:
+            from bubsub.core.projection.backends.common_kernels import triangle_planes
+
+            self.normals, self.offsets = np.empty((len(f), 3)), np.empty(len(f))
+            triangle_planes(v, f, self.normals, self.offsets)
         else:  # outward normal of a counter-clockwise polygon's segment: the edge turned clockwise
-            n[:, 0], n[:, 1], n[:, 2] = e[:, 1], -e[:, 0], 0.0
-        norm = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
-        self.normals = np.divide(n, norm, out=n, where=norm > 0)
+            e = v[f[:, 1]] - v[f[:, 0]]
+            n = np.stack([e[:, 1], -e[:, 0], np.zeros(len(e))], axis=1)
+            norm = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+            self.normals = np.divide(n, norm, out=n, where=norm > 0)
+            self.offsets = np.einsum("ij,ij->i", self.normals, v[f[:, 0]])
 
     def item_gradients(self, vertex_grad):
         """Split per-vertex gradients into one array per item (chain S and the prism)."""
@@ -169,12 +171,10 @@ def _prism(poly, h):
 
 def vertex_gradient(scene, face_sums):
     """Per-vertex gradient (n, 3) from per-face, per-corner sums (m, k) (see the module docstring)."""
-    nv = len(scene.vertices)
-    out = np.zeros((nv, 3))
-    corners = scene.faces.ravel()
-    for c in range(3):
-        w = face_sums * scene.normals[:, c:c + 1]
-        out[:, c] = np.bincount(corners, weights=w.ravel(), minlength=nv)
+    from bubsub.core.projection.backends.common_kernels import scatter_face_sums
+
+    out = np.zeros((len(scene.vertices), 3))
+    scatter_face_sums(scene.faces, np.ascontiguousarray(face_sums, dtype=np.float64), scene.normals, out)
     return out
 
 

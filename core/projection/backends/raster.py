@@ -163,8 +163,7 @@ class _Job:
         f = scene.faces
         self.faces = np.ascontiguousarray(f, dtype=np.int64)
         self.normals = np.ascontiguousarray(scene.normals)
-        # n.x0 per face: the plane offsets, in the shifted frame
-        self.offset = np.einsum("ij,ij->i", self.normals, scene.vertices[f[:, 0]])
+        self.offset = scene.offsets
         self.face_mu = scene.mu[scene.face_item].astype(np.float64)
         self.vertices = np.ascontiguousarray(scene.vertices, dtype=np.float64)
         n = frames.n

@@ -443,6 +443,28 @@ def test_gradient_is_the_same_from_stored_and_from_rasterised_crossings(rng, mon
             MeshProjector(g).objective(items, data)
 
 
+def test_a_reused_crossing_store_gives_the_same_objective(rng):
+    """The raster backend hands a finished gradient's crossing store back and the next call reuses it;
+    stale entries from a larger scene must not leak into a smaller one's gradient."""
+    from bubsub.core.projection.backends import raster
+
+    g = random_geometry(rng, "cone", rows=24, cols=32, pixel=0.12, n_angles=5)
+    P = MeshProjector(g, threads=2, backend="raster")
+    small = [sphere_surface([0.1, 0.0, 0.0], 0.6, -0.2)]
+    big = small + [sphere_surface([-0.8, 0.2, 0.0], 0.4, -0.2), sphere_surface([0.9, -0.1, 0.1], 0.3, -0.2)]
+    data = P.forward(big) * np.float32(0.9)
+    raster._POOL.clear()
+    f1, g1 = P.objective(small, data)
+    assert len(raster._POOL) == 1
+    store = raster._POOL[0]
+    P.objective(big, data)  # fills more of the same store
+    assert raster._POOL[0] is store
+    f2, g2 = P.objective(small, data)
+    assert raster._POOL[0] is store
+    assert f2 == f1
+    np.testing.assert_array_equal(g2[0], g1[0])
+
+
 def test_a_ray_through_hundreds_of_meshes_keeps_every_crossing():
     """260 crossings on one ray: more than the native backend's first hit buffer holds."""
     corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float) * 0.1 - 0.05

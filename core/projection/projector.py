@@ -176,4 +176,8 @@ class MeshProjector:
     def _gradient(self, scene, traversal, residual):
         k2 = self._sub.shape[0]
         w = residual.ravel() / k2 if k2 > 1 else residual.ravel().astype(np.float64, copy=False)
-        return scene.item_gradients(vertex_gradient(scene, traversal.face_sums(w)))
+        try:
+            sums = traversal.face_sums(w)
+        finally:
+            traversal.release()
+        return scene.item_gradients(vertex_gradient(scene, sums))

@@ -203,6 +203,10 @@ class Traversal:
         """
         raise NotImplementedError
 
+    def release(self):
+        """Hand back any working memory: the projector calls it once the gradient is taken
+        (``face_sums`` may not be called afterwards). Nothing by default."""
+
 
 class StoredCrossings(Traversal):
     """A traversal whose crossings are kept, in the work chunks that found them (ray-casting backends).

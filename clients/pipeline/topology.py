@@ -40,6 +40,11 @@ from bubsub.clients.pipeline.blobs import log_blobs
 
 __all__ = ["adapt_topology", "adapt_bubbles"]
 
+#: BB iterations of the 3D residual preview (half the data preview's 30): with a bubble left out
+#: of a 60-bubble fit (25 x 256 x 512 cone scan), 15 and 30 iterations add the same bubble at the
+#: same place, and the add step's CPU time falls from 6.5 s to 3.9 s
+RESIDUAL_PREVIEW_ITERATIONS_3D = 15
+
 
 class _Footprint:
     """One bubble's own projection, stored on its support only.
@@ -407,7 +412,7 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
 
     def preview(projections):
         return voxel_preview(projections, geometry, contrast, coarse, method=settings.preview, coarse_3d=False,
-                             extend=extend)
+                             extend=extend, iterations=RESIDUAL_PREVIEW_ITERATIONS_3D if ndim == 3 else None)
 
     size = extent[1] - extent[0]
     return adapt_topology(MeshProjector(geometry, supersampling=settings.supersampling), surfaces, data,

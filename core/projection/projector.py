@@ -133,13 +133,19 @@ class MeshProjector:
         """
         from bubsub.core.projection.backends.common_kernels import residual as residual_kernel
 
-        d = self._check_array(data, "data")
+        # NaN or inf in the data makes f non-finite; the full check then names it (checking every
+        # value first cost a pass over the data at every evaluation of a fit)
+        d = self._check_array(data, "data", finite=False)
         scene = self._scene(meshes)
         traversal = self._trace(scene, gradient=True)
         # the float32 projection is what forward() returns; f and the gradient use it too
         flat = d.ravel() if d.dtype in (np.float32, np.float64) else d.ravel().astype(np.float64)
-        residual = np.empty(d.size)
-        f = float(residual_kernel(traversal.values, float(self._sub.shape[0]), flat, residual))
+        values = traversal.values
+        # the residual overwrites the traversal's values (never read again): no fresh 8-byte-per-pixel array
+        residual = values if values.dtype == np.float64 and values.flags.writeable else np.empty(d.size)
+        f = float(residual_kernel(values, float(self._sub.shape[0]), flat, residual))
+        if not np.isfinite(f):
+            self._check_array(data, "data")
         return f, self._gradient(scene, traversal, residual)
 
     def trace(self, meshes):
@@ -157,14 +163,14 @@ class MeshProjector:
     def _trace(self, scene, gradient=False):
         return self._backend.trace(scene, self._frames, self._sub, self.threads, gradient)
 
-    def _check_array(self, a, name):
+    def _check_array(self, a, name, finite=True):
         if not isinstance(a, np.ndarray):
             a = np.asarray(a)
         if a.shape != self.range_shape:
             raise ValueError(f"{name} must have shape {self.range_shape} (geometry.shape), got {a.shape}")
         if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
             raise ValueError(f"{name} must be a real float array, got dtype {a.dtype}")
-        if not np.all(np.isfinite(a)):
+        if finite and not np.all(np.isfinite(a)):
             raise ValueError(f"{name} contains NaN or inf")
         return a  # not cast here: a float32 data set is used as it is, without a float64 copy per call
 

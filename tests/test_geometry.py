@@ -105,3 +105,33 @@ def test_rays_are_unit_and_point_from_source(rng):
 def test_bad_geometry_is_refused_clearly(kwargs, message):
     with pytest.raises(ValueError, match=message):
         ScanGeometry.from_astra(**kwargs)
+
+
+@pytest.mark.parametrize("kind", ["cone", "parallel", "fan"])
+def test_a_detector_window_projects_what_the_whole_detector_shows_there(kind):
+    from bubsub.core import MeshProjector, circle_surface, sphere_surface
+
+    angles = np.linspace(0, np.pi, 5, endpoint=False)
+    if kind == "fan":
+        g = ScanGeometry.cone(angles, source_origin=40.0, origin_detector=10.0, pixel_size=0.05, cols=64)
+        item = circle_surface([0.2, -0.1], 0.6, -0.3)
+        r0, c0, rows, cols = 0, np.array([3, 10, 20, 0, 30]), None, 34
+    else:
+        g = (ScanGeometry.cone(angles, source_origin=40.0, origin_detector=10.0, pixel_size=0.05, cols=64, rows=48)
+             if kind == "cone" else ScanGeometry.parallel(angles, pixel_size=0.05, cols=64, rows=48))
+        item = sphere_surface([0.2, -0.1, 0.1], 0.6, -0.3)
+        r0, c0, rows, cols = np.array([0, 5, 10, 3, 8]), np.array([3, 10, 20, 0, 30]), 38, 34
+    w = g.window(r0, c0, rows, cols)
+    assert w.shape == (5, rows, cols) if rows else (5, cols)
+    full = MeshProjector(g).forward(item)
+    part = MeshProjector(w).forward(item)
+    assert np.abs(part).max() > 0.1
+    np.testing.assert_allclose(part, ScanGeometry.window_of(full, r0, c0, rows, cols), atol=1e-5)
+    # the detector coordinates of a point move by the window's offset
+    col_full, row_full, _ = g.detector_coordinates([[0.3, 0.2, 0.1]] if kind != "fan" else [[0.3, 0.2]])
+    col_w, row_w, _ = w.detector_coordinates([[0.3, 0.2, 0.1]] if kind != "fan" else [[0.3, 0.2]])
+    np.testing.assert_allclose(col_full[:, 0] + g.det_cols / 2, col_w[:, 0] + cols / 2 + c0, atol=1e-9)
+    if rows:
+        np.testing.assert_allclose(row_full[:, 0] + g.det_rows / 2, row_w[:, 0] + rows / 2 + r0, atol=1e-9)
+    with pytest.raises(ValueError, match="leave the detector"):
+        g.window(r0, c0 + 40, rows, cols)

@@ -134,32 +134,10 @@ def seen_by(points, geometry):
         in a parallel scan, say); ``geometry.n_angles`` inside the field of view.
     """
     g = geometry
-    n = g.ndim
-    p = np.asarray(points, dtype=float).reshape(-1, n)
-    vec = g.vectors
-    s, d, u = vec[:, :n], vec[:, n:2 * n], vec[:, 2 * n:3 * n]
-    if n == 3:
-        v = vec[:, 9:12]
-        normal = np.cross(u, v)
-    else:
-        v = None
-        normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
-    # where the ray through each point meets the detector plane: (angles, points, ndim)
-    if g.is_cone:
-        ray = p[None] - s[:, None]
-        t = np.einsum("ak,ak->a", d - s, normal)[:, None] / np.einsum("apk,ak->ap", ray, normal)
-        hit = s[:, None] + t[..., None] * ray
-        ahead = t > 0
-    else:
-        t = np.einsum("apk,ak->ap", d[:, None] - p[None], normal) / np.einsum("ak,ak->a", s, normal)[:, None]
-        hit = p[None] + t[..., None] * s[:, None]
-        ahead = np.ones(t.shape, bool)
-    rel = hit - d[:, None]
-    a = np.einsum("apk,ak->ap", rel, u) / np.einsum("ak,ak->a", u, u)[:, None]
-    ok = ahead & (np.abs(a) <= 0.5 * g.det_cols)
-    if v is not None:
-        b = np.einsum("apk,ak->ap", rel, v) / np.einsum("ak,ak->a", v, v)[:, None]
-        ok &= np.abs(b) <= 0.5 * g.det_rows
+    col, row, ahead = g.detector_coordinates(points)
+    ok = ahead & (np.abs(col) <= 0.5 * g.det_cols)
+    if g.ndim == 3:
+        ok &= np.abs(row) <= 0.5 * g.det_rows
     return ok.sum(axis=0)
 
 

@@ -251,6 +251,107 @@ class ScanGeometry:
     def __len__(self):
         return self.n_angles
 
+    def window(self, row_start, col_start, rows=None, cols=None):
+        """The same scan seen through a smaller detector: ``rows x cols`` pixels starting at
+        ``(row_start[p], col_start[p])`` in projection ``p`` (scalars apply to all projections).
+
+        Projecting onto the window gives ``full[p, r0:r0 + rows, c0:c0 + cols]`` of projecting onto
+        the whole detector (:meth:`window_of` cuts an array so).
+
+        Parameters
+        ----------
+        row_start, col_start : int or (n_angles,) int
+            First pixel of the window (2D geometries: ``row_start`` must be 0).
+        rows, cols : int
+            Window size (``rows`` None in 2D).
+
+        Raises
+        ------
+        ValueError
+            If a window does not lie on the detector.
+        """
+        n = self.n_angles
+        r0 = np.broadcast_to(np.asarray(row_start), (n,)).astype(np.int64)
+        c0 = np.broadcast_to(np.asarray(col_start), (n,)).astype(np.int64)
+        cols = _positive_int("cols", cols)
+        if self.ndim == 3:
+            rows = _positive_int("rows", rows)
+            if np.any(r0 < 0) or np.any(r0 + rows > self._rows):
+                raise ValueError(f"window rows [{r0.min()}, {r0.max() + rows}) leave the detector's {self._rows} rows")
+        elif np.any(r0 != 0) or rows is not None:
+            raise ValueError("a 2D detector has one row: row_start must be 0 and rows None")
+        if np.any(c0 < 0) or np.any(c0 + cols > self._cols):
+            raise ValueError(f"window columns [{c0.min()}, {c0.max() + cols}) leave the detector's {self._cols} columns")
+        nd = self.ndim
+        v = np.array(self._vectors)
+        # the detector centre moves to the window's centre, along u (columns) and v (rows)
+        shift = (c0 + 0.5 * cols - 0.5 * self._cols)[:, None] * v[:, 2 * nd:3 * nd]
+        if nd == 3:
+            shift += (r0 + 0.5 * rows - 0.5 * self._rows)[:, None] * v[:, 9:12]
+        v[:, nd:2 * nd] += shift
+        return ScanGeometry(self._kind, v, rows, cols,
+                            _repr=f"{self!r}.window(<{n} row starts>, <{n} column starts>, rows={rows}, cols={cols})")
+
+    @staticmethod
+    def window_of(projections, row_start, col_start, rows=None, cols=None):
+        """``projections[p, r0[p]:r0[p] + rows, c0[p]:c0[p] + cols]`` for every p (see :meth:`window`)."""
+        a = np.asarray(projections)
+        n = a.shape[0]
+        c0 = np.broadcast_to(np.asarray(col_start), (n,)).astype(np.int64)
+        cidx = c0[:, None] + np.arange(cols)[None]
+        if a.ndim == 2:
+            return a[np.arange(n)[:, None], cidx]
+        r0 = np.broadcast_to(np.asarray(row_start), (n,)).astype(np.int64)
+        ridx = r0[:, None] + np.arange(rows)[None]
+        return a[np.arange(n)[:, None, None], ridx[:, :, None], cidx[:, None, :]]
+
+    def detector_coordinates(self, points):
+        """Where the ray through each point meets the detector, in pixels from its centre.
+
+        Parameters
+        ----------
+        points : (m, ndim) float
+            mm.
+
+        Returns
+        -------
+        col, row : (n_angles, m) float
+            Along u and v, in pixels, 0 at the detector centre (``row`` zeros in 2D); the pixel
+            index is ``col + det_cols / 2 - 0.5``.
+        ahead : (n_angles, m) bool
+            False where the point is not in front of a cone source (its coordinates mean nothing).
+        """
+        n = self.ndim
+        p = np.asarray(points, dtype=float).reshape(-1, n)
+        vec = self._vectors
+        s, d, u = vec[:, :n], vec[:, n:2 * n], vec[:, 2 * n:3 * n]
+        if n == 3:
+            v = vec[:, 9:12]
+            normal = np.cross(u, v)
+        else:
+            v = None
+            normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
+        # where the ray through each point meets the detector plane: (angles, points, ndim)
+        if self.is_cone:
+            ray = p[None] - s[:, None]
+            t = np.einsum("ak,ak->a", d - s, normal)[:, None] / np.einsum("apk,ak->ap", ray, normal)
+            hit = s[:, None] + t[..., None] * ray
+            ahead = t > 0
+        else:
+            t = np.einsum("apk,ak->ap", d[:, None] - p[None], normal) / np.einsum("ak,ak->a", s, normal)[:, None]
+            hit = p[None] + t[..., None] * s[:, None]
+            ahead = np.ones(t.shape, bool)
+        rel = hit - d[:, None]
+        if v is None:
+            col = np.einsum("apk,ak->ap", rel, u) / np.einsum("ak,ak->a", u, u)[:, None]
+            return col, np.zeros_like(col), ahead
+        # dual basis of (u, v) in the detector plane: exact for skewed detectors too
+        vn, nu = np.cross(v, normal), np.cross(normal, u)
+        col = np.einsum("apk,ak->ap", rel, vn) / np.einsum("ak,ak->a", u, vn)[:, None]
+        row = np.einsum("apk,ak->ap", rel, nu) / np.einsum("ak,ak->a", v, nu)[:, None]
+        return col, row, ahead
+
+
     def __eq__(self, other):
         return (
             isinstance(other, ScanGeometry)

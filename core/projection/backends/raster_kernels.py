@@ -15,7 +15,7 @@ import numpy as np
 
 from bubsub.core.projection.backends.jit import cached
 
-__all__ = ["raster3d", "raster2d", "stored_face_sums"]
+__all__ = ["raster3d", "raster2d", "stored_face_sums", "pixel_ray_lengths"]
 
 # numpy error model: float division by zero gives inf instead of a checked exception
 jit = cached(numba.njit, nogil=True, error_model="numpy")
@@ -35,6 +35,15 @@ def ray_length(p, col, row, cone, S, D, U, V, rows, cols, kc, kr):
     e1 = D[p, 1] - S[p, 1] + a * U[p, 1] + b * V[p, 1]
     e2 = D[p, 2] - S[p, 2] + a * U[p, 2] + b * V[p, 2]
     return np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+
+
+@jit
+def pixel_ray_lengths(S, D, U, V, rows, cols, out):
+    """``out[p * rows * cols + r * cols + c]``: the ray length (:func:`ray_length`) of every pixel centre."""
+    for p in range(S.shape[0]):
+        for r in range(rows):
+            for c in range(cols):
+                out[(p * rows + r) * cols + c] = ray_length(p, c, r, True, S, D, U, V, rows, cols, 1, 1)
 
 
 @jit
@@ -163,11 +172,15 @@ def candidates(faces, X, Y, fc0, fc1, fr0, fr1, out):
 
 @jit
 def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
-             values, weights, acc, grad, hit, st_face, st_pix, st_coef):
+             values, weights, acc, grad, hit, st_face, st_pix, st_coef, rl, pix_rl):
     """Forward pass (``grad`` False: ``values``, ``hit``) or gradient pass (``weights`` into ``acc``)
     over projections ``p0..p1``. The forward pass also stores each crossing's face, pixel and
     gradient coefficients while ``st_face`` has room; returns (crossings, stored), with stored
-    -1 when the store overflowed or was not asked for (the gradient pass then rasterises again)."""
+    -1 when the store overflowed or was not asked for (the gradient pass then rasterises again).
+
+    ``pix_rl``: ``rl`` holds every pixel's ray length (:func:`pixel_ray_lengths`; cone beams without
+    supersampling), used instead of a square root per crossing, and the stored coefficients leave it
+    out (:func:`stored_face_sums` puts it back per pixel)."""
     nv, nf = verts.shape[0], faces.shape[0]
     X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
     cand = np.empty(nf, np.int64)
@@ -187,8 +200,9 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
         for row in range(fr0, fr1 + 1):
             for col in range(fc0, fc1 + 1):
                 if grad:
-                    L[row, col] = weights[p * npix + (row // k) * cols + col // k] * ray_length(
-                        p, col, row, cone, S, D, U, V, rows, cols, k, k)
+                    pix = p * npix + (row // k) * cols + col // k
+                    L[row, col] = weights[pix] * (rl[pix] if pix_rl else ray_length(
+                        p, col, row, cone, S, D, U, V, rows, cols, k, k))
                 else:
                     L[row, col] = 0.0
         if grad:  # only the faces on which the forward pass found a crossing
@@ -260,8 +274,9 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                             if stored < cap:
                                 # this crossing's coefficients in the gradient pass, for stored_face_sums
                                 l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
-                                c = mu * ray_length(p, col, row, cone, S, D, U, V, rows, cols, k, k) / (
-                                    den * (l0 + l1 + l2))
+                                c = mu / (den * (l0 + l1 + l2))
+                                if not pix_rl:
+                                    c *= ray_length(p, col, row, cone, S, D, U, V, rows, cols, k, k)
                                 st_face[stored] = f
                                 st_pix[stored] = p * npix + (row // k) * cols + col // k
                                 st_coef[stored, 0] = c * l0
@@ -288,8 +303,9 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
             for row in range(fr0, fr1 + 1):
                 for col in range(fc0, fc1 + 1):
                     if L[row, col] != 0.0:
-                        values[p * npix + (row // k) * cols + col // k] += L[row, col] * ray_length(
-                            p, col, row, cone, S, D, U, V, rows, cols, k, k)
+                        pix = p * npix + (row // k) * cols + col // k
+                        values[pix] += L[row, col] * (rl[pix] if pix_rl else ray_length(
+                            p, col, row, cone, S, D, U, V, rows, cols, k, k))
     return count, stored
 
 
@@ -352,10 +368,13 @@ def raster2d(p0, p1, verts, segs, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone,
 
 
 @jit
-def stored_face_sums(st_face, st_pix, st_coef, n, weights, acc):
-    """``acc[f, j] += weights[pixel] * coef_j`` over the first ``n`` stored crossings."""
+def stored_face_sums(st_face, st_pix, st_coef, n, weights, acc, rl, pix_rl):
+    """``acc[f, j] += weights[pixel] * coef_j`` over the first ``n`` stored crossings (times the pixel's
+    ray length ``rl[pixel]`` when ``pix_rl``: see :func:`raster3d`)."""
     for i in range(n):
         w = weights[st_pix[i]]
+        if pix_rl:
+            w *= rl[st_pix[i]]
         if w != 0.0:
             f = st_face[i]
             acc[f, 0] += w * st_coef[i, 0]

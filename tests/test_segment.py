@@ -167,3 +167,24 @@ def test_bad_input():
         bubble_centres(np.full((4, 4), 0.5), (0, 1, 0, 1))
     c, r = bubble_centres(np.zeros((4, 4), bool), (0, 1, 0, 1))
     assert c.shape == (0, 2) and r.shape == (0,)
+
+
+@pytest.mark.parametrize("shape, radius", [((40, 50), (2, 3)), ((12, 20, 24), (1, 2, 3)), ((9, 9, 9), (4, 4, 4))])
+def test_footprint_maxima_equal_scipy_maximum_filter(shape, radius):
+    """The candidate-only maxima search gives exactly scipy's maximum_filter verdict (zeros outside the grid),
+    plateaus and ties included."""
+    from scipy import ndimage
+
+    from bubsub.core.voxel.segment import _footprint_maxima
+
+    rng = np.random.default_rng(sum(shape))
+    values = np.round(ndimage.gaussian_filter(rng.random(shape), 1.5) * 20) / 20  # plateaus of equal values
+    r = np.array(radius)
+    g = np.indices(tuple(2 * r + 1)) - r.reshape((len(r),) + (1,) * len(r))
+    foot = np.sum((g / r.reshape((len(r),) + (1,) * len(r))) ** 2, axis=0) <= 1.0
+    foot |= np.sum(np.abs(g), axis=0) <= 1
+    eligible = rng.random(shape) < 0.8
+    expected = eligible & (values >= ndimage.maximum_filter(values, footprint=foot, mode="constant", cval=0.0))
+    got = _footprint_maxima(values, foot, eligible)
+    assert expected.sum() > 2
+    np.testing.assert_array_equal(got, expected)

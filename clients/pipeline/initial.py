@@ -58,7 +58,7 @@ def initial_centres(image, extent, *, detector="dt", min_distance=None, contrast
     radii : (k,) float
         mm.
     """
-    from bubsub.core.voxel.segment import binarise, bubble_centres
+    from bubsub.core.voxel.segment import binarise, bubble_centres, mask_distance
 
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     if detector == "log":
@@ -74,7 +74,8 @@ def initial_centres(image, extent, *, detector="dt", min_distance=None, contrast
     mask = binarise(np.pad(image, pad, mode="edge"), opening_radius=2, bubbles_are_dark=False, fill_holes=True)
     mask = mask[tuple(slice(pad, n - pad) for n in mask.shape)]
     # maxima thinner than two voxels are noise that survived the opening
-    kw = dict(min_radius=2 * voxel, border_is_background=border_is_background)
+    kw = dict(min_radius=2 * voxel, border_is_background=border_is_background,
+              distance=mask_distance(mask, extent, border_is_background=border_is_background))
     centres, radii = bubble_centres(mask, extent, min_distance=min_distance, **kw)
     if min_distance is None and len(radii):
         # one centre per bubble: maxima closer than the typical bubble radius belong together

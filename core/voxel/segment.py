@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 
 from bubsub.core.voxel.grid import index_to_world, voxel_sizes
 
-__all__ = ["otsu_threshold", "binarise", "bubble_centres"]
+__all__ = ["otsu_threshold", "binarise", "bubble_centres", "mask_distance"]
 
 
 def _image(image):
@@ -127,7 +127,47 @@ def binarise(image, opening_radius=1, *, bubbles_are_dark=True, roi=None, thresh
     return mask
 
 
-def bubble_centres(mask, extent, *, min_distance=None, min_radius=0.0, border_is_background=True):
+def mask_distance(mask, extent, *, border_is_background=True):
+    """Euclidean distance (mm) from every voxel of ``mask`` to the nearest voxel outside it.
+
+    ``border_is_background``: the space outside the grid counts as outside
+    the mask (see :func:`bubble_centres`).
+    """
+    m = np.asarray(mask, dtype=bool)
+    h = voxel_sizes(m.shape, extent)
+    if border_is_background:
+        return ndimage.distance_transform_edt(np.pad(m, 1), sampling=h)[(slice(1, -1),) * m.ndim]
+    return ndimage.distance_transform_edt(m, sampling=h)
+
+
+def _footprint_maxima(values, foot, eligible):
+    """``eligible & (values >= maximum_filter(values, footprint=foot, mode="constant", cval=0))``.
+
+    Checks only the voxels that are at least their face neighbours (in the
+    footprint, which is centred and odd-sized), one footprint offset at a
+    time: scipy's generic filter visits every voxel's whole footprint (0.4 s
+    for a ball of radius 5 voxels on a 160 x 160 x 81 preview).
+    """
+    d = values.ndim
+    r = (np.array(foot.shape) - 1) // 2
+    pad = np.pad(values, [(int(k), int(k)) for k in r], mode="constant")
+    cand = eligible.copy()
+    for ax in range(d):
+        for step in (-1, 1):
+            sl = tuple(slice(int(k) + (step if a == ax else 0), int(k) + (step if a == ax else 0) + n)
+                       for a, (k, n) in enumerate(zip(r, values.shape)))
+            cand &= values >= pad[sl]
+    idx = np.nonzero(cand)
+    v = values[idx]
+    ok = np.ones(len(v), dtype=bool)
+    for off in np.argwhere(foot) - r:
+        ok &= v >= pad[tuple(i + int(k) + int(o) for i, k, o in zip(idx, r, off))]
+    out = np.zeros(values.shape, dtype=bool)
+    out[tuple(i[ok] for i in idx)] = True
+    return out
+
+
+def bubble_centres(mask, extent, *, min_distance=None, min_radius=0.0, border_is_background=True, distance=None):
     """Bubble centres as local maxima of the Euclidean distance transform of a mask.
 
     Parameters
@@ -145,6 +185,9 @@ def bubble_centres(mask, extent, *, min_distance=None, min_radius=0.0, border_is
     border_is_background : bool
         Treat the space outside the grid as background, so that a bubble
         cut by the grid edge is not taken to extend beyond it.
+    distance : ndarray, optional
+        :func:`mask_distance` of this mask with this ``border_is_background``,
+        when already computed (two calls on one mask need it once).
 
     Returns
     -------
@@ -174,23 +217,28 @@ def bubble_centres(mask, extent, *, min_distance=None, min_radius=0.0, border_is
     empty = (np.zeros((0, d)), np.zeros(0))
     if not m.any():
         return empty
-    if border_is_background:
-        edt = ndimage.distance_transform_edt(np.pad(m, 1), sampling=h)[(slice(1, -1),) * d]
-    else:
-        edt = ndimage.distance_transform_edt(m, sampling=h)
-    # maximum filter over an ellipsoid of radius min_distance (at least the 3^d neighbours)
+    if distance is None:
+        distance = mask_distance(m, extent, border_is_background=border_is_background)
+    elif np.shape(distance) != m.shape:
+        raise ValueError(f"distance must have the mask's shape {m.shape}, got {np.shape(distance)}")
+    edt = np.asarray(distance)
+    # maxima over an ellipsoid of radius min_distance (at least the 3^d neighbours)
     radii_px = np.maximum(1, np.floor(min_distance / h)).astype(int)
     g = np.indices(tuple(2 * radii_px + 1)) - radii_px.reshape((d,) + (1,) * d)
     foot = np.sum((g * h.reshape((d,) + (1,) * d) / min_distance) ** 2, axis=0) <= 1.0
     foot |= np.sum(np.abs(g), axis=0) <= 1  # always include the face neighbours
-    maxf = ndimage.maximum_filter(edt, footprint=foot, mode="constant", cval=0.0)
-    peaks = m & (edt >= maxf) & (edt > 0) & (edt >= min_radius)
+    peaks = _footprint_maxima(edt, foot, m & (edt > 0) & (edt >= min_radius))
     labels, n = ndimage.label(peaks, structure=np.ones((3,) * d, dtype=bool))
     if n == 0:
         return empty
-    idx = np.arange(1, n + 1)
-    com = np.array(ndimage.center_of_mass(peaks, labels, idx)).reshape(n, d)
-    val = np.asarray(ndimage.maximum(edt, labels, idx), dtype=float).reshape(n)
+    # per peak region: centroid and value, from its voxels only (ndimage's versions pass over the whole grid)
+    coords = np.nonzero(peaks)
+    lab = labels[coords]
+    count = np.bincount(lab, minlength=n + 1)[1:]
+    com = np.stack([np.bincount(lab, weights=c, minlength=n + 1)[1:] / count for c in coords], axis=1)
+    val = np.zeros(n + 1)
+    np.maximum.at(val, lab, edt[coords])
+    val = val[1:]
     centres = index_to_world(com, m.shape, extent)
     order = np.argsort(-val, kind="stable")
     tree = cKDTree(centres)

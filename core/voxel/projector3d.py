@@ -40,13 +40,13 @@ from __future__ import annotations
 import math
 import numbers
 import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy import sparse
 
 from bubsub.core.projection.geometry import KINDS, ScanGeometry
 from bubsub.core.voxel.grid import resolve_grid, voxel_sizes
+from bubsub.core.threads import thread_map
 from bubsub.core.voxel.splat import gather, splat
 
 __all__ = ["VoxelProjector", "as_scan_geometry"]
@@ -277,10 +277,7 @@ class _SlabRunner:
     def map(self, work):
         """``work(list_of_slabs)`` per worker; returns the list of results."""
         groups = [self.slabs[w:: self.threads] for w in range(self.threads)]
-        if self.threads == 1:
-            return [work(groups[0])]
-        with ThreadPoolExecutor(self.threads) as ex:
-            return list(ex.map(work, groups))
+        return thread_map(work, groups, self.threads)
 
 
 def _binning(unit, binning, is_2d):

@@ -2,25 +2,15 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from bubsub.core.projection.backends.base import Backend, StoredCrossings
+from bubsub.core.threads import thread_map
 
-__all__ = ["Frames", "RayCaster", "thread_map", "EPS_REL"]
+__all__ = ["Frames", "RayCaster", "EPS_REL"]
 
 EPS_REL = 1e-5  # restart offset after a hit, relative to the scene size
 _CHUNK = 1 << 17  # rays per work item
-
-
-def thread_map(fn, items, threads):
-    """``[fn(i) for i in items]``, on ``threads`` threads when there is more than one item."""
-    items = list(items)
-    if threads > 1 and len(items) > 1:
-        with ThreadPoolExecutor(threads) as ex:
-            return list(ex.map(fn, items))
-    return [fn(i) for i in items]
 
 
 def _item_spheres(scene):

@@ -65,7 +65,7 @@ import threading
 import numpy as np
 
 from bubsub.core.projection.backends.base import Backend, Traversal
-from bubsub.core.projection.backends.frames import thread_map
+from bubsub.core.threads import thread_map
 
 __all__ = ["RasterBackend", "available", "unavailable_reason"]
 

@@ -242,7 +242,12 @@ def test_reconstruct4d_outputs_and_tracks(sim, rec):
     with open(rec / "tracks.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == ["subscan", "time_s", "bubble_id", "centroid_x_mm", "centroid_y_mm", "area_mm2",
-                             "perimeter_mm", "equivalent_diameter_mm"]
+                             "perimeter_mm", "equivalent_diameter_mm", "truncated", "area_in_fov_mm2"]
+    # every bubble of this foam lies inside the field of view: flagged so, its in-view area its whole area
+    assert {r["truncated"] for r in rows} == {"0"}
+    assert all(float(r["area_in_fov_mm2"]) == float(r["area_mm2"]) for r in rows)
+    with open(rec / "subscan_0001" / "bubbles.csv") as fh:
+        assert "truncated" in next(csv.reader(fh))
     ids = {k: {int(r["bubble_id"]) for r in rows if int(r["subscan"]) == k} for k in range(3)}
     assert ids[0] <= ids[1] <= ids[2] and len(ids[2]) == 6
     for name in ("growth.png", "mse.png"):

@@ -316,7 +316,10 @@ def reconstruct_subscan(scan, previous, settings, index=0, time=0.0):
         baseline = voxel_baseline(scan, settings.holdout)
         report["voxel_holdout_mse"] = baseline["holdout_mse"]
         parts["voxel_baseline"] = baseline["seconds"]
-    report.update(subscan=int(index), time=float(time), bubbles=len(state),
+    from bubsub.clients.pipeline.fov import fov_report
+
+    # the field of view: bubbles.csv and tracks.csv flag the bubbles cut by its edge
+    report.update(subscan=int(index), time=float(time), bubbles=len(state), field_of_view_mm=fov_report(scan.geometry),
                   ended={str(k): v for k, v in sorted(ended.items())}, seconds=_time.perf_counter() - t0,
                   cpu_seconds=_time.process_time() - cpu0)
     return SubscanResult(int(index), float(time), state, tuple(sorted(ended)), report, preview, extent)

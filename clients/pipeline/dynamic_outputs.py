@@ -19,7 +19,15 @@ area_mm2 | volume_mm3  mm^2|3  2D area, 3D volume
 perimeter_mm |         mm|mm^2 2D perimeter, 3D surface area
 surface_area_mm2
 equivalent_diameter_mm mm      of the disc (ball) of equal area (volume)
+truncated                      the bubble crosses the edge of the field of
+                               view: its whole-size columns above are empty
+area_in_fov_mm2 |      mm^2|3  the part inside the field of view
+volume_in_fov_mm3
 =====================  ======  =============================================
+
+The last two columns are there when the subscans' reports have their field
+of view (every ``bubsub reconstruct4d`` run writes it); see
+:func:`bubsub.clients.pipeline.fov.fov_columns`.
 """
 
 from __future__ import annotations
@@ -108,11 +116,20 @@ def time_column(time_unit):
 
 def track_rows(results, time_unit):
     """Rows of ``tracks.csv`` (see the module docstring), in time order."""
+    from bubsub.clients.pipeline.fov import fov_columns
+
     column = time_column(time_unit)
+    results = sorted(results, key=lambda r: r.index)
+    # the field-of-view columns when every subscan's report has its field of view (one set of columns)
+    with_fov = bool(results) and all(r.report.get("field_of_view_mm") is not None for r in results)
     rows = []
-    for res in sorted(results, key=lambda r: r.index):
+    for res in results:
         fine = [s.fine() for s in res.state.surfaces()]
-        for row in bubble_table(fine, list(res.state.ids)):
+        table = bubble_table(fine, list(res.state.ids))
+        if with_fov and fine:
+            # unobserved control vertices are per subscan's fit (in its folder's bubbles.csv), not per track
+            fov_columns(table, fine, {k: v for k, v in res.report.items() if k != "unobserved_control_vertices"})
+        for row in table:
             bid = row.pop("id")
             rows.append({"subscan": res.index, column: res.time, "bubble_id": bid, **row})
     return rows
@@ -179,6 +196,7 @@ def plot_growth(path, rows, time_unit):
     column = time_column(time_unit)
     plt = _figure()
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=100)
+    rows = [r for r in rows if r["equivalent_diameter_mm"] != ""]  # a truncated bubble has no whole size
     by_id = {}
     for r in rows:
         by_id.setdefault(r["bubble_id"], []).append((r[column], r["equivalent_diameter_mm"]))

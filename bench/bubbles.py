@@ -110,6 +110,12 @@ def main(argv=None):
     init = rec.report.get("initialisation") or {}
     print(f"BubSub: {len(rec.surfaces)} bubbles, DDI {dice_dissimilarity(mask, truth):.4f}, "
           f"detector {init.get('detector')}, {cpu:.0f} s CPU, {wall:.0f} s wall")
+    ref = rec.report.get("refinement")
+    if ref:
+        print(f"refinement {ref['control_vertices_before']} -> {ref['control_vertices_after']} control vertices: "
+              f"{'kept' if ref['kept'] else 'not kept'} (Akaike score {ref['score_before']:.1f} -> "
+              f"{ref['score_after']:.1f}, after repair {ref.get('score_after_repair', float('nan')):.1f}; "
+              f"{ref['iterations']} iterations)")
     changes = [c["change"] for c in (rec.report["topology"] or {}).get("changes", [])]
     print(f"topology changes: {', '.join(changes) or 'none'}; validity actions: "
           f"{', '.join(x['action'] for x in rec.report['validity']['actions']) or 'none'}")

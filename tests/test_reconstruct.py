@@ -49,7 +49,15 @@ def test_reconstruction_matches_the_truth(sim, rec, capsys):
     # the paper's voxel reference (30 BB iterations) on the same held-out projections does worse than the meshes
     assert report["holdout_mse"] < report["holdout_mse_voxel_bb"]
     parts, cpu = report["seconds_parts"], report["cpu_seconds_parts"]
-    assert list(parts) == ["preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity", "holdout"]
+    assert list(parts) == ["preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity", "refine",
+                           "holdout"]
+    # the coarse-to-fine step ran and the written control outlines are the ones its decision kept
+    ref = report["refinement"]
+    assert (ref["control_vertices_before"], ref["control_vertices_after"]) == (9, 18)
+    assert ref["kept"] == (ref["score_after"] < ref["score_before"] and ref.get("score_after_repair", -np.inf)
+                           < ref["score_before"])
+    sizes = {len(p.vertices) for p in read_polygons_json(rec / "control.json")}
+    assert sizes == ({18} if ref["kept"] else {9})
     assert set(cpu) == set(parts) and min(parts.values()) >= 0 and min(cpu.values()) >= 0
     assert sum(parts.values()) - parts["holdout"] <= report["seconds_total"] + 1e-6 and parts["fit"] > 0
     res = evaluate_dir(rec, sim)

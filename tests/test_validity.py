@@ -6,7 +6,8 @@ import pytest
 from bubsub.clients.pipeline.repair import check_and_repair, repair_bubbles, separate
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
 from bubsub.core.projection.mesh import Polygon
-from bubsub.core.projection.validity import check_bubbles, crossings_between, overlap_measure, self_crossings
+from bubsub.core.projection.validity import (check_bubbles, crossings_between, overlap_measure, self_crossing_vertices,
+                                            self_crossings)
 
 MU = -0.1
 
@@ -90,7 +91,7 @@ def test_repair_rounds_separates_and_drops_until_valid():
     assert check_bubbles(kept) == [] and summary["violations_remaining"] == []
     assert len(kept) == 4 and summary["dropped"] == 1
     done = {a["action"] for a in summary["actions"]}
-    assert done in ({"rounded", "separated", "dropped"}, {"smoothed", "separated", "dropped"})
+    assert done - {"rounded", "smoothed", "unfolded"} == {"separated", "dropped"} and len(done) == 3
     assert {v["kind"] for v in summary["violations_found"]} == {"self_intersection", "overlap"}
 
 
@@ -118,7 +119,39 @@ def test_untangling_keeps_a_folded_bubble_in_place_and_of_its_size(ndim):
     bad = s.with_vertices(v)
     assert self_crossings(bad.control) > 0
     fixed, how = untangled(bad)
-    assert how == "smoothed" and check_bubbles([fixed]) == []
+    assert how in ("unfolded", "smoothed") and check_bubbles([fixed]) == []
     size = (lambda f: f.area if ndim == 2 else f.volume)
     assert size(fixed.fine()) == pytest.approx(size(s.fine()), rel=0.3)
     assert np.allclose(fixed.fine().centroid, s.fine().centroid, atol=0.45)  # one of 9 (42) points was moved 2.3 mm
+
+
+def test_crossing_vertices_are_the_ends_of_the_crossing_edges():
+    t = 2 * np.pi * (np.arange(40) + 0.25) / 40
+    eight = Polygon(np.stack([np.sin(t), np.sin(t) * np.cos(t)], axis=1), MU, _checked=True)
+    # the figure eight crosses itself at the origin, between vertices 39-0 and 19-20
+    assert set(self_crossing_vertices(eight)) == {39, 0, 19, 20}
+    assert len(self_crossing_vertices(circle_surface([0, 0], 1.0, MU).fine())) == 0
+    s = sphere_surface([0, 0, 0], 1.0, MU, control=162)
+    v = s.vertices.copy()
+    v[0] = -1.3 * v[0]  # one vertex pushed through to the other side
+    hit = self_crossing_vertices(s.with_vertices(v).control)
+    assert 0 in hit and 0 < len(hit) < 40
+
+
+def test_unfolding_a_local_fold_leaves_the_far_control_vertices_where_they_were():
+    from bubsub.clients.pipeline.repair import untangled
+
+    s = sphere_surface([0.3, -0.2, 0.1], 1.0, MU, control=162)
+    v = s.vertices.copy()
+    c = v.mean(axis=0)
+    v[0] = c - 1.3 * (v[0] - c)  # one vertex of 162 pushed through to the other side
+    bad = s.with_vertices(v)
+    assert self_crossings(bad.control) > 0
+    fixed, how = untangled(bad)
+    assert how == "unfolded" and check_bubbles([fixed]) == []
+    # far from where the vertex was and where it went (the triangles it crossed there are part of the fold)
+    far = np.minimum(np.linalg.norm(s.vertices - s.vertices[0], axis=1),
+                     np.linalg.norm(s.vertices - bad.vertices[0], axis=1)) > 0.9
+    assert far.sum() > 40
+    np.testing.assert_array_equal(fixed.vertices[far], bad.vertices[far])
+    assert not np.allclose(fixed.vertices[0], bad.vertices[0])

@@ -60,7 +60,7 @@ def cmd_reconstruct(args):
         radius=args.radius, estimate_radii=not args.no_radius_estimation, supersampling=args.supersampling,
         holdout=args.holdout, progress=not args.quiet, background_subtracted=args.background_subtracted,
         preview=args.preview, detector=args.detector, topology=not args.no_topology, repair=not args.no_repair,
-        fov_model=args.fov_model, separation=args.separation,
+        fov_model=args.fov_model, separation=args.separation, refine=not args.no_refine,
     )
     check_settings(settings, scan.ndim)
     if args.holdout and scan.n_angles < 2:
@@ -152,6 +152,9 @@ def register(sub):
     p.add_argument("--separation", type=float, default=0.0, metavar="STRENGTH",
                    help="penalty keeping bubbles a liquid film apart during the fits, e.g. 1 (docs/robustness.md; "
                         "default 0: off, the repair step separates them after the fit)")
+    p.add_argument("--no-refine", action="store_true",
+                   help="skip the coarse-to-fine step (control meshes refined once and refitted after the repair, "
+                        "kept when the Akaike score improves; docs/robustness.md)")
     p.add_argument("--no-repair", action="store_true",
                    help="only report self-intersecting or overlapping bubbles (report.json), do not repair them")
     p.add_argument("--fov-model", action="store_true",

@@ -185,7 +185,9 @@ def _static_settings(settings):
     return ReconstructionSettings(iterations=settings.iterations, control_points=settings.control_points,
                                   levels=settings.levels, estimate_radii=settings.estimate_radii,
                                   supersampling=settings.supersampling, holdout=settings.holdout,
-                                  progress=settings.progress)
+                                  progress=settings.progress,
+                                  # warm starts remesh to control_points at `levels`: keep the cold start's alike
+                                  refine=False)
 
 
 def _split(scan, holdout):

@@ -169,6 +169,7 @@ def choose_initial(image, extent, contrast, projector, data, *, detector="auto",
         ``objective`` and ``score`` (``"auto"`` only), or ``None`` (no error)
         for a candidate that found no bubbles.
     """
+    from bubsub.clients.optimise.criteria import akaike_score
     from bubsub.clients.optimise.fit import estimate_radii
 
     if detector not in ("auto", "log", "dt"):
@@ -190,10 +191,8 @@ def choose_initial(image, extent, contrast, projector, data, *, detector="auto",
         candidates[name] = surfaces
         if len(names) > 1:
             f = float(projector.objective(surfaces, data)[0])
-            k = sum(s.vertices.size for s in surfaces)
-            m = data.size
             summary[name] = {"bubbles": len(surfaces), "objective": f,
-                             "score": m * float(np.log(max(2 * f / m, 1e-300))) + 2 * k}
+                             "score": akaike_score(f, data.size, sum(s.vertices.size for s in surfaces))}
     if not candidates:
         raise ValueError("no bubbles found in the voxel reconstruction; give an initial mesh with --init")
     best = min(candidates, key=lambda n: summary[n]["score"]) if len(names) > 1 else names[0]

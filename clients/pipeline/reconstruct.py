@@ -5,7 +5,10 @@
    Otsu mask, in 2D whichever explains the data better (:mod:`.initial`).
 3. One spherical control mesh per bubble with a constant radius, optionally
    improved by a radius-only fit (paper eq. 4-5), or a user-given initial mesh.
-4. BFGS on all control vertices (:func:`bubsub.clients.optimise.fit`).
+4. BFGS on all control vertices (:func:`bubsub.clients.optimise.fit`); topology
+   rounds (:mod:`.topology`); validity check and repair (:mod:`.repair`); one
+   coarse-to-fine step, kept when it explains the data better (:mod:`.refine`),
+   and its check and repair.
 5. Outputs, each written atomically: ``bubbles.ply`` (3D) or ``bubbles.json``
    (2D), ``bubbles.csv`` (+ ``bubbles.csv-metadata.json``), ``report.json``,
    ``overlay.png``, ``sizes.png`` and (3D) ``meshes.png``
@@ -35,7 +38,8 @@ from bubsub.clients.pipeline.fov import (FOV_COLUMN_INFO, field_of_view, fov_col
                                          truncated_flags, unobserved_control)
 from bubsub.clients.pipeline.initial import choose_initial, default_detector, initial_centres, initial_surfaces
 from bubsub.clients.pipeline.outputs import finish_outputs
-from bubsub.clients.pipeline.repair import check_and_repair
+from bubsub.clients.pipeline.refine import can_refine, refine_and_check
+from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
 from bubsub.clients.progress import phase
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
@@ -68,6 +72,10 @@ class ReconstructionSettings:
     # strength of the penalty keeping bubbles a film apart during the fits (.optimise.separation); off by
     # default: at 1 the dense 2D foam's DDI went from 0.010 to 0.077 (docs/robustness.md)
     separation: float = 0.0
+    # coarse-to-fine: after the repair, refine each control mesh once and refit (then check and repair
+    # again); kept when the Akaike score improves (.refine; bubbles from the preview only, not from --init)
+    refine: bool = True
+    refine_iterations: int = 80  # of the refined fit (it stops after 10 unless the refinement pays for itself)
 
 
 @dataclass
@@ -289,19 +297,31 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     result = fit(projector, surfaces, fit_data, iterations=s.iterations, progress=s.progress, penalty=penalty)
     clock.mark("fit")
     kept, dropped = prune(result.surfaces, min_radius=voxel)
-    topology = None
+    topology = refinement = None
     interrupted = result.interrupted  # Ctrl-C: no further changes, write what we have
     checker = local
     try:
         if s.topology and s.topology_rounds > 0 and kept and not interrupted:
             kept, topology = adapt_bubbles(kept, g_fit, d_fit, contrast, image, extent, voxel, s, penalty=penalty)
         clock.mark("topology")
-        kept, validity = check_and_repair(kept, checker, d_fit, repair=s.repair and not interrupted,
-                                          iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
-    except KeyboardInterrupt:  # in the topology rounds or the repair: report the bubbles as they were
+
+        def checked(items):
+            return check_and_repair(items, checker, d_fit, repair=s.repair and not interrupted,
+                                    iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
+
+        kept, validity = checked(kept)
+        clock.mark("validity")
+        if s.refine and init is None and can_refine(kept) and not interrupted:
+            # after the repair, so the refined fit also fills the gas of dropped bubbles; checked again
+            kept, refinement, again = refine_and_check(local, kept, d_fit, checked, iterations=s.refine_iterations,
+                                                       penalty=penalty, progress=s.progress)
+            if again is not None:
+                validity = merged_validity(validity, again)
+        clock.mark("refine")
+    except KeyboardInterrupt:  # in the topology rounds, the repair or the refinement: report the bubbles as they were
         interrupted = True
         kept, validity = check_and_repair(kept, checker, d_fit, repair=False)
-    clock.mark("validity")
+        clock.mark("validity")
 
     report = {
         "bubbles": len(kept),
@@ -310,6 +330,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "bubbles_dropped": dropped + validity["dropped"],
         "validity": validity,
         "topology": topology,
+        "refinement": refinement,
         "dimension": geometry.ndim,
         "iterations": result.iterations,
         "evaluations": result.evaluations,

@@ -6,7 +6,8 @@ would be wrong) or two bubbles that share gas (counted twice). After the fit,
 :func:`repair_bubbles` checks (:func:`bubsub.core.projection.validity.check_bubbles`)
 and acts:
 
-* a self-intersecting bubble is untangled by Laplacian smoothing of its control
+* a self-intersecting bubble is untangled by Laplacian smoothing of the
+  control vertices around its crossings ("unfolded"), else of all its control
   vertices, its size kept ("smoothed"), or, where a dozen smoothing steps do
   not untangle it, replaced by a round one with its centre and root-mean-square
   radius ("rounded");
@@ -31,9 +32,9 @@ from __future__ import annotations
 import numpy as np
 
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
-from bubsub.core.projection.validity import check_bubbles, self_crossings
+from bubsub.core.projection.validity import check_bubbles, self_crossing_vertices, self_crossings
 
-__all__ = ["check_and_repair", "repair_bubbles", "rounded", "untangled", "separate"]
+__all__ = ["check_and_repair", "merged_validity", "repair_bubbles", "rounded", "untangled", "separate"]
 
 
 def _centre_radius(surface):
@@ -60,16 +61,66 @@ def rounded(surface):
     return surface.with_vertices(new.vertices) if new.vertices.shape == surface.vertices.shape else new
 
 
+def _control_edges(surface):
+    """Directed control edges ``(k, 2)``: each neighbour pair in both directions."""
+    if surface.ndim == 2:
+        i = np.arange(len(surface.vertices))
+        nxt = np.roll(i, -1)
+        return np.concatenate([np.stack([i, nxt], 1), np.stack([nxt, i], 1)])
+    f = surface.control_faces
+    return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+
+
+def _grown(surface, mask):
+    """``mask`` with the control neighbours of its vertices added."""
+    e = _control_edges(surface)
+    out = mask.copy()
+    out[e[mask[e[:, 0]], 1]] = True
+    return out
+
+
 def _neighbour_mean(surface):
     v = surface.vertices
     if surface.ndim == 2:
         return 0.5 * (np.roll(v, 1, axis=0) + np.roll(v, -1, axis=0))
-    f = surface.control_faces
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = _control_edges(surface)
     total = np.zeros_like(v)
     np.add.at(total, e[:, 0], v[e[:, 1]])
     count = np.bincount(e[:, 0], minlength=len(v))[:, None]
     return total / np.maximum(count, 1)
+
+
+def _tangled_control(surface):
+    """Boolean mask of the control vertices at a self-crossing of the control surface or that move the fine
+    surface's crossing vertices."""
+    mask = np.zeros(len(surface.vertices), dtype=bool)
+    mask[self_crossing_vertices(surface.control)] = True
+    fine = self_crossing_vertices(surface.fine())
+    if len(fine):
+        mask[surface.S[fine].nonzero()[1]] = True
+    return mask
+
+
+#: a fold is undone locally when the control vertices at its crossings are at most this fraction of all
+LOCAL_FOLD = 0.25
+
+
+def _unfolded(surface, steps, weight):
+    """Laplacian smoothing of only the control vertices around the crossings (a region growing by one ring
+    of neighbours each step) until neither surface crosses itself; None if that takes more than ``steps``
+    or the crossings involve more than :data:`LOCAL_FOLD` of the control vertices."""
+    region = _tangled_control(surface)
+    if not region.any() or region.sum() > LOCAL_FOLD * len(region):
+        return None  # not a local fold (e.g. on a coarse control mesh): smooth the whole bubble
+    s = surface
+    for _ in range(steps):
+        region = _grown(s, region)
+        v = s.vertices.copy()
+        v[region] += weight * (_neighbour_mean(s)[region] - v[region])
+        s = s.with_vertices(v)
+        if not self_crossings(s.control) and not self_crossings(s.fine()):
+            return s
+    return None
 
 
 def untangled(surface, steps=12, weight=0.5):
@@ -77,13 +128,20 @@ def untangled(surface, steps=12, weight=0.5):
 
     Smoothing removes the fold that makes an outline cross itself while
     keeping the bubble's size and position, and mostly its shape (a dense
-    foam's flattened faces); rounding is the fallback.
+    foam's flattened faces). It first smooths only the control vertices
+    around the crossings (a local fold, e.g. at a Plateau border of a control
+    mesh refined by :mod:`bubsub.clients.pipeline.refine`, is undone without
+    rounding the rest of the bubble: ``"unfolded"``), then all of them
+    (``"smoothed"``); rounding is the fallback.
 
     Returns
     -------
     (SubdivisionSurface, str)
-        The repaired bubble and ``"smoothed"`` or ``"rounded"``.
+        The repaired bubble and ``"unfolded"``, ``"smoothed"`` or ``"rounded"``.
     """
+    local = _unfolded(surface, steps, weight)
+    if local is not None:
+        return local, "unfolded"
     s = surface
     for _ in range(steps):
         s = s.with_vertices(s.vertices + weight * (_neighbour_mean(s) - s.vertices))
@@ -284,3 +342,22 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
     if summary["actions"] and kept:
         summary["objective_after_repair"] = float(projector.objective(kept, data)[0])
     return kept, summary
+
+
+def merged_validity(first, second, stage="after refinement"):
+    """One validity summary of two :func:`check_and_repair` runs on consecutive fits.
+
+    ``violations_found`` and ``actions`` are both runs', the second's tagged
+    with ``stage``; ``violations_remaining`` and ``objective_after_repair``
+    the second's; ``dropped`` the sum.
+    """
+    def tagged(items):
+        return [dict(x, stage=stage) for x in items]
+
+    out = dict(first)
+    out.update({k: v for k, v in second.items() if k in ("violations_remaining", "objective_after_repair")})
+    out["violations_found"] = first["violations_found"] + tagged(second["violations_found"])
+    out["actions"] = first["actions"] + tagged(second["actions"])
+    out["dropped"] = first["dropped"] + second["dropped"]
+    out["repaired"] = first["repaired"] or second["repaired"]
+    return out

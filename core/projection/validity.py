@@ -27,7 +27,8 @@ from scipy.spatial import cKDTree
 
 from bubsub.core.projection.mesh import Mesh, Polygon, bounding_box
 
-__all__ = ["Violation", "segment_crossings", "self_crossings", "crossings_between", "overlap_measure",
+__all__ = ["Violation", "segment_crossings", "self_crossings", "self_crossing_vertices",
+           "crossings_between", "overlap_measure",
            "check_bubbles"]
 
 #: grid points per axis over a pair's bounding-box intersection when measuring an overlap
@@ -98,14 +99,21 @@ def segment_crossings(p0, p1, q0, q1):
     return proper | touch
 
 
-def _polygon_self_crossings(v):
+def _polygon_self_hits(v):
+    """``(i, j)``: the pairs of edges (edge k from vertex k to k + 1) that cross, ``i < j``."""
     n = len(v)
     a, b = v, np.roll(v, -1, axis=0)
     hit = segment_crossings(a, b, a, b)
     i, j = np.triu_indices(n, k=2)
     # neighbouring edges share a vertex by construction; the first and last edge too
     keep = ~((i == 0) & (j == n - 1))
-    return int(np.count_nonzero(hit[i[keep], j[keep]]))
+    i, j = i[keep], j[keep]
+    pick = hit[i, j]
+    return i[pick], j[pick]
+
+
+def _polygon_self_crossings(v):
+    return len(_polygon_self_hits(v)[0])
 
 
 # -- 3D -----------------------------------------------------------------------------------
@@ -150,11 +158,16 @@ def _edge_hits(target, origins, ends, exclude_shared=None):
     return np.unique(np.stack([seg, tri], axis=1), axis=0)
 
 
-def _mesh_self_crossings(vertices, faces):
+def _mesh_self_hits(vertices, faces):
+    """``(edges, faces, hits)``: the mesh's edges and its (edge, triangle) self-crossings."""
     faces = np.asarray(faces)
     edges = _edges(faces)
     tm = _trimesh(vertices, faces)
-    return len(_edge_hits(tm, vertices[edges[:, 0]], vertices[edges[:, 1]], exclude_shared=(edges, faces)))
+    return edges, faces, _edge_hits(tm, vertices[edges[:, 0]], vertices[edges[:, 1]], exclude_shared=(edges, faces))
+
+
+def _mesh_self_crossings(vertices, faces):
+    return len(_mesh_self_hits(vertices, faces)[2])
 
 
 # -- public checks --------------------------------------------------------------------------
@@ -183,6 +196,29 @@ def self_crossings(item):
         return _polygon_self_crossings(item.vertices)
     if isinstance(item, Mesh):
         return _mesh_self_crossings(item.vertices, item.faces)
+    raise TypeError(f"expected a Polygon or Mesh, got {type(item).__name__}")
+
+
+def self_crossing_vertices(item):
+    """Vertices of the edges (and triangles) that take part in a self-crossing, sorted indices.
+
+    Parameters
+    ----------
+    item : Polygon or Mesh
+
+    Returns
+    -------
+    (k,) int
+        Empty for a simple outline / an embedded surface; else the end points
+        of each crossing edge and, in 3D, the corners of each crossed triangle.
+    """
+    if isinstance(item, Polygon):
+        n = len(item.vertices)
+        i, j = _polygon_self_hits(item.vertices)
+        return np.unique(np.concatenate([i, (i + 1) % n, j, (j + 1) % n])).astype(int)
+    if isinstance(item, Mesh):
+        edges, faces, hits = _mesh_self_hits(item.vertices, item.faces)
+        return np.unique(np.concatenate([edges[hits[:, 0]].ravel(), faces[hits[:, 1]].ravel()])).astype(int)
     raise TypeError(f"expected a Polygon or Mesh, got {type(item).__name__}")
 
 

@@ -1,0 +1,123 @@
+"""Coarse-to-fine: refine every control mesh once and refit, kept when the data say so.
+
+A control mesh of 42 vertices (3D) or 9 points (2D) fits a round bubble, but
+not the flat films and Plateau borders (2 voxels of curvature radius) of a
+dense foam's polyhedral cells: on the quick dense 3D foam the best fit from
+the true shapes stays at about twice the noise's objective. Starting with
+more control vertices lets the early, far-from-converged iterations tangle
+the meshes (docs/robustness.md). So the pipeline fits the coarse meshes
+first, then moves one subdivision step into each control mesh
+(:func:`bubsub.core.projection.subdivision.refine_control`: the surface is
+unchanged, vertex for vertex, at one level less) and continues the fit with
+four (3D) or two (2D) times the unknowns.
+
+The refined fit is kept only when it lowers the Akaike score
+``m log(2 f / m) + 2 k`` (:func:`bubsub.clients.optimise.criteria.akaike_score`)
+of the coarse one: more unknowns must explain more of the data than noise
+would. Round, well separated bubbles gain little and stay coarse; the
+refined fit stops after ``trial`` iterations (10) when it has not yet paid
+for its unknowns, so they cost little time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bubsub.core.projection.subdivision import refine_control
+
+from bubsub.clients.optimise.criteria import akaike_score
+
+__all__ = ["refine_and_fit", "refine_and_check", "can_refine"]
+
+
+def can_refine(surfaces):
+    """Whether every surface has a subdivision level to move into its control mesh."""
+    return bool(surfaces) and all(s.levels >= 1 for s in surfaces)
+
+
+def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=None, progress=False):
+    """Refine the control meshes once, fit, and keep the result if its Akaike score is lower.
+
+    Parameters
+    ----------
+    projector : MeshProjector
+        Of ``data``.
+    surfaces : list of SubdivisionSurface
+        The coarse fit's bubbles (each with ``levels >= 1``).
+    data : ndarray
+        The fitted projections.
+    iterations : int
+        BFGS iterations of the refined fit.
+    trial : int
+        After this many iterations the fit stops unless its Akaike score is
+        already below the coarse one (so round bubbles cost only ``trial``
+        iterations).
+    penalty : callable, optional
+        As :func:`bubsub.clients.optimise.fit.fit`'s (it works on any control topology).
+
+    Returns
+    -------
+    surfaces : list of SubdivisionSurface
+        The refined bubbles, or ``surfaces`` unchanged.
+    summary : dict
+        ``kept`` (bool), ``objective_before``/``after``, ``score_before``/``after``,
+        ``control_vertices_before``/``after`` (per bubble, the first's), ``iterations``.
+    """
+    from bubsub.clients.optimise.fit import fit
+
+    surfaces = list(surfaces)
+    if not can_refine(surfaces):
+        raise ValueError("refining needs surfaces with at least one subdivision level")
+    data = np.asarray(data)
+    f0 = float(projector.objective(surfaces, data)[0])
+    if penalty is not None:
+        f0 += float(penalty([s.vertices for s in surfaces])[0])
+    refined = [refine_control(s) for s in surfaces]
+    m, k = data.size, sum(s.vertices.size for s in refined)
+    before = akaike_score(f0, m, sum(s.vertices.size for s in surfaces))
+
+    def trial_failed(iteration, objective, _):
+        # a refinement that has not paid for its unknowns after a few iterations is not worth the rest
+        return iteration == trial and akaike_score(objective, m, k) >= before
+
+    result = fit(projector, refined, data, iterations=iterations, progress=progress, catch_interrupt=False,
+                 penalty=penalty, label="refined fit", callback=trial_failed)
+    after = akaike_score(result.objective, m, k)
+    kept = after < before
+    summary = {"kept": bool(kept), "objective_before": f0, "objective_after": result.objective,
+               "score_before": before, "score_after": after, "iterations": result.iterations,
+               "control_vertices_before": len(surfaces[0].vertices),
+               "control_vertices_after": len(refined[0].vertices)}
+    return (result.surfaces if kept else surfaces), summary
+
+
+def refine_and_check(projector, surfaces, data, check, *, iterations, penalty=None, progress=False):
+    """:func:`refine_and_fit`, then ``check`` (the pipeline's validity check and repair) on a kept result,
+    whose Akaike score must still beat the coarse one's afterwards (else the valid coarse bubbles stay).
+
+    Parameters
+    ----------
+    check : callable(list of SubdivisionSurface) -> (surfaces, validity summary)
+
+    Returns
+    -------
+    surfaces : list of SubdivisionSurface
+    summary : dict
+        :func:`refine_and_fit`'s, plus ``score_after_repair`` when checked; ``kept`` is False
+        when the repair cost the refinement its advantage (a dropped bubble).
+    validity : dict or None
+        ``check``'s summary of the kept refined bubbles.
+    """
+    refined, summary = refine_and_fit(projector, surfaces, data, iterations=iterations, penalty=penalty,
+                                      progress=progress)
+    if not summary["kept"]:
+        return surfaces, summary, None
+    repaired, validity = check(refined)
+    f = float(projector.objective(repaired, data)[0]) if repaired else float("inf")
+    if penalty is not None and repaired:
+        f += float(penalty([s.vertices for s in repaired])[0])
+    summary["score_after_repair"] = akaike_score(f, np.asarray(data).size, sum(s.vertices.size for s in repaired))
+    if not summary["score_after_repair"] < summary["score_before"]:
+        summary["kept"] = False
+        return surfaces, summary, None
+    return repaired, summary, validity

@@ -1,0 +1,79 @@
+"""Coarse-to-fine refinement: the refined control mesh keeps the surface, and the refit is kept only when it pays."""
+
+import numpy as np
+import pytest
+
+from bubsub.clients.optimise.criteria import akaike_score
+from bubsub.clients.pipeline.refine import can_refine, refine_and_fit
+from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
+from bubsub.core.projection.mesh import Polygon
+from bubsub.core.projection.subdivision import refine_control
+
+MU = -0.1
+
+
+@pytest.mark.parametrize("make, centre, count", [(sphere_surface, [0.2, -0.1, 0.3], 162),
+                                                 (circle_surface, [0.2, -0.1], 18)])
+def test_refined_control_mesh_keeps_the_fine_surface_vertex_for_vertex(make, centre, count):
+    rng = np.random.default_rng(0)
+    s = make(centre, 1.0, MU)
+    s = s.with_vertices(s.vertices + 0.1 * rng.standard_normal(s.vertices.shape))  # not a sphere: a real test
+    r = refine_control(s)
+    assert len(r.vertices) == count and r.levels == s.levels - 1 and r.attenuation == MU
+    np.testing.assert_allclose(r.fine().vertices, s.fine().vertices, atol=1e-9)
+    if s.ndim == 3:
+        np.testing.assert_array_equal(np.asarray(r.fine().faces), np.asarray(s.fine().faces))
+    # at the same level the fine mesh is finer but the limit surface is the same: volumes (areas) agree closely
+    finer = refine_control(s, levels=s.levels).fine()
+    size = (lambda f: f.volume if s.ndim == 3 else f.area)
+    assert len(finer.vertices) > len(s.fine().vertices)
+    assert size(finer) == pytest.approx(size(s.fine()), rel=0.02)
+    assert not can_refine([refine_control(s, levels=0)])
+
+
+def _rounded_square(centre, half, rho, n=256):
+    t = 2 * np.pi * np.arange(n) / n
+    u = np.stack([np.cos(t), np.sin(t)], axis=1)
+    corners = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]]) * (half - rho)
+    support = corners[np.argmax(u @ corners.T, axis=1)]  # the support point of the inner square, plus rho u
+    return Polygon(np.asarray(centre) + support + rho * u, MU)
+
+
+def _scan(truth, seed=0, sigma=0.002):
+    geometry = ScanGeometry.parallel(np.linspace(0, np.pi, 20, endpoint=False), cols=128, pixel_size=0.05)
+    projector = MeshProjector(geometry)
+    clean = projector.forward(truth)
+    return projector, clean + sigma * np.random.default_rng(seed).standard_normal(clean.shape).astype(np.float32)
+
+
+def _coarse_fit(projector, data, centres, radius):
+    from bubsub.clients.optimise.fit import fit
+
+    start = [circle_surface(c, radius, MU) for c in centres]
+    return fit(projector, start, data, iterations=60, progress=False).surfaces
+
+
+def test_refit_of_square_bubbles_is_kept_and_fits_better():
+    centres = ([-1.2, 0.0], [1.1, 0.3])
+    projector, data = _scan([_rounded_square(c, 0.9, 0.15) for c in centres])
+    coarse = _coarse_fit(projector, data, centres, 0.9)
+    out, summary = refine_and_fit(projector, coarse, data, iterations=30)
+    assert summary["kept"] and summary["score_after"] < summary["score_before"]
+    assert summary["objective_after"] < 0.7 * summary["objective_before"]
+    assert [len(s.vertices) for s in out] == [18, 18]
+    assert summary["objective_after"] == pytest.approx(float(projector.objective(out, data)[0]), rel=1e-9)
+
+
+def test_refit_of_round_bubbles_stops_after_the_trial_and_keeps_the_coarse_ones():
+    truth = [circle_surface([-1.0, 0.2], 0.7, MU, control=64, levels=3), circle_surface([1.0, -0.3], 0.8, MU,
+                                                                                        control=64, levels=3)]
+    projector, data = _scan([t.fine() for t in truth])
+    coarse = _coarse_fit(projector, data, ([-1.0, 0.2], [1.0, -0.3]), 0.75)
+    out, summary = refine_and_fit(projector, coarse, data, iterations=30, trial=5)
+    assert not summary["kept"] and summary["iterations"] == 5
+    assert out == coarse
+
+
+def test_akaike_score_charges_two_per_unknown():
+    assert akaike_score(5.0, 100, 10) - akaike_score(5.0, 100, 4) == pytest.approx(12.0)
+    assert akaike_score(5.0, 100, 4) == pytest.approx(100 * np.log(0.1) + 8)

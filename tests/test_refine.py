@@ -77,3 +77,25 @@ def test_refit_of_round_bubbles_stops_after_the_trial_and_keeps_the_coarse_ones(
 def test_akaike_score_charges_two_per_unknown():
     assert akaike_score(5.0, 100, 10) - akaike_score(5.0, 100, 4) == pytest.approx(12.0)
     assert akaike_score(5.0, 100, 4) == pytest.approx(100 * np.log(0.1) + 8)
+
+
+def test_a_repair_that_costs_the_refinement_its_advantage_keeps_the_coarse_bubbles():
+    from bubsub.clients.pipeline.refine import refine_and_check
+
+    centres = ([-1.2, 0.0], [1.1, 0.3])
+    projector, data = _scan([_rounded_square(c, 0.9, 0.15) for c in centres])
+    coarse = _coarse_fit(projector, data, centres, 0.9)
+    summary_of = {"violations_found": [], "actions": [], "violations_remaining": [], "dropped": 0, "repaired": True}
+
+    def harmless(items):
+        return list(items), dict(summary_of)
+
+    def drops_one(items):
+        return list(items)[:1], dict(summary_of, dropped=1)
+
+    out, summary, validity = refine_and_check(projector, coarse, data, harmless, iterations=30)
+    assert summary["kept"] and validity is not None and [len(s.vertices) for s in out] == [18, 18]
+    assert summary["score_after_repair"] == pytest.approx(summary["score_after"], abs=1e-6 * abs(summary["score_after"]))
+    out, summary, validity = refine_and_check(projector, coarse, data, drops_one, iterations=30)
+    assert not summary["kept"] and validity is None and out == coarse
+    assert summary["score_after_repair"] > summary["score_before"]

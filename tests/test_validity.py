@@ -155,3 +155,17 @@ def test_unfolding_a_local_fold_leaves_the_far_control_vertices_where_they_were(
     assert far.sum() > 40
     np.testing.assert_array_equal(fixed.vertices[far], bad.vertices[far])
     assert not np.allclose(fixed.vertices[0], bad.vertices[0])
+
+
+def test_merged_validity_keeps_both_checks_and_the_second_ones_remainder():
+    from bubsub.clients.pipeline.repair import merged_validity
+
+    first = {"violations_found": [{"kind": "overlap"}], "actions": [{"action": "separated"}],
+             "violations_remaining": [{"kind": "overlap"}], "dropped": 1, "repaired": True}
+    second = {"violations_found": [{"kind": "self_intersection"}], "actions": [{"action": "unfolded"}],
+              "violations_remaining": [], "dropped": 2, "repaired": True, "objective_after_repair": 3.5}
+    out = merged_validity(first, second)
+    assert out["violations_remaining"] == [] and out["dropped"] == 3 and out["objective_after_repair"] == 3.5
+    assert [a["action"] for a in out["actions"]] == ["separated", "unfolded"]
+    assert "stage" not in out["actions"][0] and out["actions"][1]["stage"] == "after refinement"
+    assert [v["kind"] for v in out["violations_found"]] == ["overlap", "self_intersection"]

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-PHASES = ("preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity")
+PHASES = ("preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity", "refine")
 
 
 def _cli(*args):

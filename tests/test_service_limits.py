@@ -129,11 +129,16 @@ def test_full_queue_answers_503_with_retry_after():
 
 
 def test_idle_jobs_expire():
+    from service_support import phantom_2d
+
+    from bubsub.core import MeshProjector
+
+    p = phantom_2d()
+    # compile the projector's kernels for these arrays first (a cold numba cache takes longer than the TTL)
+    for dtype in (np.float32, np.float64):
+        MeshProjector(p.geometry).objective(p.init, p.data.astype(dtype))
     with ServerThread(job_ttl_seconds=0.4, sweep_interval_seconds=0.05) as s:
         with ProjectorClient(s.url) as c:
-            from service_support import phantom_2d
-
-            p = phantom_2d()
             job = c.create_job(p.geometry, data=p.data, surfaces=p.init)
             for _ in range(4):  # use keeps it alive
                 time.sleep(0.2)

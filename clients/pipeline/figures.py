@@ -30,9 +30,10 @@ def _figure(**kw):
     return Figure(**kw)
 
 
-def _save(fig, path):
+def _save(fig, path, tight=True):
+    # ``tight`` crops to the drawn artists, which costs a second draw of the figure
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", bbox_inches="tight")
+        fig.savefig(tmp, format="png", bbox_inches="tight" if tight else None)
 
 
 def _id_colours(ids):
@@ -83,11 +84,15 @@ def mesh_section(mesh, axis, value):
     above = h > 0
     cut = above.sum(axis=1) % 3 != 0
     tri, h, above = tri[cut], h[cut], above[cut]
-    segs = np.empty((len(tri), 2, 2))
-    for k, (t, a, d) in enumerate(zip(tri, above, h)):
-        pts = [t[i] + d[i] / (d[i] - d[j]) * (t[j] - t[i]) for i, j in ((0, 1), (1, 2), (2, 0)) if a[i] != a[j]]
-        segs[k] = np.array(pts[:2])[:, keep]
-    return segs
+    # a cut triangle has exactly two edges whose ends lie on opposite sides: their points, in edge order
+    # (0-1, 1-2, 2-0), whole arrays at once (a loop over the cut triangles was a third of a picture's time)
+    i, j = np.array([0, 1, 2]), np.array([1, 2, 0])
+    crosses = above[:, i] != above[:, j]
+    with np.errstate(divide="ignore", invalid="ignore"):  # edges that do not cross are discarded below
+        t = h[:, i] / (h[:, i] - h[:, j])
+    pts = tri[:, i] + t[:, :, None] * (tri[:, j] - tri[:, i])  # (k, 3 edges, 3)
+    first = np.argsort(~crosses, axis=1, kind="stable")[:, :2]
+    return pts[np.arange(len(tri))[:, None], first][:, :, keep]
 
 
 def _slices(image, extent):
@@ -137,7 +142,9 @@ def write_overlay(path, image, extent, fine_items, ids=None, title="BubSub recon
         fig.colorbar(shown, ax=ax, shrink=0.8).set_label(_PREVIEW_LABEL)
         _save(fig, path)
         return
-    fig = _figure(figsize=(16, 5.6), dpi=100, layout="constrained")
+    # fixed margins, drawn once: constrained layout and a tight box each cost a draw (a second of the run)
+    fig = _figure(figsize=(16, 5.6), dpi=100)
+    fig.subplots_adjust(left=0.04, right=0.9, bottom=0.1, top=0.86, wspace=0.22)
     axes = fig.subplots(1, 3)
     for ax, (name, axis, value, sl, ext, origin) in zip(axes, _slices(image, extent)):
         shown = ax.imshow(sl, extent=ext, cmap="gray", origin=origin, vmin=0, vmax=vmax)
@@ -150,9 +157,9 @@ def write_overlay(path, image, extent, fine_items, ids=None, title="BubSub recon
         ax.set_xlabel(f"{name[0]} (mm)")
         ax.set_ylabel(f"{name[1]} (mm)")
         ax.set_title(f"{name} slice, {_AXES[axis]} = {value:.2f} mm", fontsize=10)
-    fig.colorbar(shown, ax=axes, shrink=0.85).set_label(_PREVIEW_LABEL)
+    fig.colorbar(shown, cax=fig.add_axes((0.915, 0.14, 0.012, 0.68))).set_label(_PREVIEW_LABEL)
     fig.suptitle(f"{title}: orthogonal slices with the meshes' cross-sections (colour = bubble id)", fontsize=11)
-    _save(fig, path)
+    _save(fig, path, tight=False)
 
 
 def write_mesh_view(path, meshes, ids=None, title="BubSub bubble meshes", elevation=25, azimuth=-60):

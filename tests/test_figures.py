@@ -64,3 +64,31 @@ def test_outputs_of_a_3d_reconstruction(tmp_path):
     assert written["meshes"] == "meshes.png" and written["table_columns"] == "bubbles.csv-metadata.json"
     manifest = json.loads((tmp_path / "bubsub-outputs.json").read_text())
     assert set(manifest["files"]) == {p.name for p in files.values()}
+
+
+def test_pictures_leave_pyplot_alone(tmp_path):
+    # a notebook's inline backend must survive bubsub writing its pictures: no module may import
+    # pyplot or switch the backend (a fresh interpreter, so other tests' imports do not count)
+    import subprocess
+    import sys
+
+    code = f"""
+import sys, numpy as np
+from pathlib import Path
+from bubsub.core import sphere_mesh
+from bubsub.clients.pipeline.figures import write_overlay, write_size_histogram, write_mesh_view
+from bubsub.clients.pipeline.dynamic_outputs import plot_growth, plot_mse, time_column
+out = Path({str(tmp_path)!r})
+m = sphere_mesh((0, 0, 0), 1.0, 0.5, subdivisions=2)
+write_overlay(out / "o.png", np.ones((8, 8, 8), np.float32), (-2, 2, -2, 2, -2, 2), [m])
+write_size_histogram(out / "s.png", [1.0, 1.2], 3)
+write_mesh_view(out / "m.png", [m])
+col = time_column("s")
+plot_growth(out / "g.png", [{{"bubble_id": 1, col: t, "equivalent_diameter_mm": 1 + t}} for t in (0.0, 0.1)], "s")
+plot_mse(out / "e.png", [{{"subscan": 0, "holdout_mse": 1.0}}, {{"subscan": 1, "holdout_mse": 0.5}}])
+assert "matplotlib.pyplot" not in sys.modules, "pyplot was imported"
+print("ok")
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-2000:]
+    assert all((tmp_path / n).stat().st_size > 1000 for n in ("o.png", "s.png", "m.png", "g.png", "e.png"))

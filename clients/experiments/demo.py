@@ -50,12 +50,9 @@ def demo(out="demo-output", progress=True):
 
 
 def _demo_plot(path, phantom, rec, shape, extent):
-    import matplotlib
+    from bubsub.clients.pipeline.figures import subplots
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5.5), dpi=100)
+    fig, axes = subplots(1, 2, figsize=(11, 5.5), dpi=100)
     axes[0].imshow(rec.preview, extent=rec.preview_extent, cmap="gray")
     axes[0].set_title("voxel preview: non-negative SIRT of 25 projections")
     truth = bubble_mask(phantom.bubbles, shape, extent)
@@ -70,4 +67,3 @@ def _demo_plot(path, phantom, rec, shape, extent):
         ax.set_ylabel("y (mm)")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)

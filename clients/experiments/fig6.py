@@ -192,12 +192,9 @@ def _write(out, rows, summary, panels, extent):
                "cpu_seconds"]
     write_csv(out / "fig6.csv", [{c: r.get(c) for c in columns} for r in rows], columns)
     atomic_write_text(out / "fig6.json", json.dumps(summary, indent=2))
-    import matplotlib
+    from bubsub.clients.pipeline.figures import subplots
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), dpi=100)
+    fig, (a, b) = subplots(1, 2, figsize=(11, 4), dpi=100)
     for m, label in (("bubsub", "BubSub"), ("bb", "voxel BB (30 it., x >= 0)"), ("sirt", "SIRT + Otsu")):
         sel = [r for r in rows if r["method"] == m]
         if m != "sirt":
@@ -213,9 +210,8 @@ def _write(out, rows, summary, panels, extent):
     b.legend(fontsize=8)
     with atomic_path(out / "fig6.png") as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
 
-    fig, axes = plt.subplots(len(panels), 4, figsize=(10, 2.6 * len(panels)), dpi=90, squeeze=False)
+    fig, axes = subplots(len(panels), 4, figsize=(10, 2.6 * len(panels)), dpi=90, squeeze=False)
     for row, (k, imgs) in zip(axes, sorted(panels.items())):
         for ax, img, title in zip(row, imgs, ("voxel BB", "BB + Otsu", "BubSub", "truth")):
             sl = img[img.shape[0] // 2] if img.ndim == 3 else img
@@ -225,4 +221,3 @@ def _write(out, rows, summary, panels, extent):
             ax.set_yticks([])
     with atomic_path(out / "fig7.png") as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)

@@ -311,12 +311,9 @@ _COLOURS = {"fbp": "C0", "fdk": "C0", "sirt": "C1", "cgls": "C2", "tv": "C3", "b
 
 
 def plot(path, summary, exp):
-    import matplotlib
+    from bubsub.clients.pipeline.figures import subplots
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 4.5), dpi=110)
+    fig, ax = subplots(figsize=(6.5, 4.5), dpi=110)
     for m, vals in summary["methods"].items():
         x = np.array([float(v) for v in vals])
         y = np.array([vals[v]["mean"] for v in vals])
@@ -338,4 +335,3 @@ def plot(path, summary, exp):
     ax.legend()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)

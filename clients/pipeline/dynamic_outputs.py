@@ -182,20 +182,12 @@ def _json_default(o):
     return default(o)
 
 
-def _figure():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def plot_growth(path, rows, time_unit):
     """Equivalent diameter against time per bubble, and the size distribution at up to four times."""
     column = time_column(time_unit)
-    plt = _figure()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=100)
+    from bubsub.clients.pipeline.figures import subplots
+
+    fig, (a, b) = subplots(1, 2, figsize=(11, 4.2), dpi=100)
     rows = [r for r in rows if r["equivalent_diameter_mm"] != ""]  # a truncated bubble has no whole size
     by_id = {}
     for r in rows:
@@ -217,13 +209,13 @@ def plot_growth(path, rows, time_unit):
     b.set_title("size distribution", fontsize=10)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)
 
 
 def plot_mse(path, per_subscan):
     """Held-out projection MSE per subscan: BubSub and, where run, the voxel baseline (paper fig. 6)."""
-    plt = _figure()
-    fig, ax = plt.subplots(figsize=(6.5, 4), dpi=100)
+    from bubsub.clients.pipeline.figures import subplots
+
+    fig, ax = subplots(figsize=(6.5, 4), dpi=100)
     sub = [p["subscan"] for p in per_subscan]
     for key, label in (("holdout_mse", "BubSub"), ("voxel_holdout_mse", "voxel (BB, 30 it., x >= 0)")):
         vals = [p.get(key) for p in per_subscan]
@@ -238,4 +230,3 @@ def plot_mse(path, per_subscan):
         ax.set_title("no held-out projections (use --holdout)", fontsize=10)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-    plt.close(fig)

@@ -15,7 +15,7 @@ import numpy as np
 
 from bubsub.core.io.atomic import atomic_path
 
-__all__ = ["mesh_section", "write_overlay", "write_mesh_view", "write_size_histogram"]
+__all__ = ["mesh_section", "subplots", "write_overlay", "write_mesh_view", "write_size_histogram"]
 
 _AXES = "xyz"
 #: Preview values are |bubble_contrast| inside bubbles, 0 in the liquid.
@@ -28,6 +28,13 @@ def _figure(**kw):
     from matplotlib.figure import Figure
 
     return Figure(**kw)
+
+
+def subplots(*grid, figsize=None, dpi=None, **kw):
+    """``(figure, axes)`` like ``pyplot.subplots``, on a bare Figure: pyplot's backend is left alone
+    (a notebook's inline plots keep working after bubsub writes a picture)."""
+    fig = _figure(figsize=figsize, dpi=dpi)
+    return fig, fig.subplots(*grid, **kw)
 
 
 def _save(fig, path, tight=True):

@@ -8,6 +8,7 @@ from bubsub.core import (
     curve_subdivision,
     icosphere,
     loop_subdivision,
+    sphere_mesh,
     sphere_surface,
 )
 
@@ -75,3 +76,33 @@ def test_surface_with_vertices_shares_the_matrix():
         SubdivisionSurface(np.zeros((3, 3)))
     with pytest.raises(ValueError, match="levels"):
         SubdivisionSurface(s.control, levels=-1)
+
+
+def test_surfaces_with_one_connectivity_share_a_topology():
+    a = sphere_surface((0, 0, 0), 1.0, 0.5, control=42, levels=2)
+    b = sphere_surface((3, 0, 0), 2.0, 0.5, control=42, levels=2)
+    c = sphere_surface((0, 0, 0), 1.0, 0.5, control=42, levels=1)
+    assert a.S is b.S and a.S is not c.S
+    assert circle_surface((0, 0), 1.0, 0.5, control=9, levels=2).S is circle_surface((1, 1), 2.0, 0.5, control=9, levels=2).S
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_batched_subdivision_matches_one_product_per_surface(ndim):
+    from bubsub.core.projection.subdivision import control_gradients, fine_vertices
+
+    rng = np.random.default_rng(3)
+    if ndim == 3:
+        items = [sphere_surface(rng.uniform(-3, 3, 3), 1.0, 0.5, control=42, levels=lv) for lv in (2, 1, 2, 2, 1)]
+        items.insert(2, sphere_mesh((5, 5, 5), 1.0, 0.5, subdivisions=1))  # a plain mesh among them
+    else:
+        items = [circle_surface(rng.uniform(-3, 3, 2), 1.0, 0.5, control=n, levels=2) for n in (9, 9, 12, 9)]
+    items = [s.with_vertices(s.vertices + rng.normal(0, 0.05, s.vertices.shape)) if hasattr(s, "S") else s
+             for s in items]
+    fine = fine_vertices(items)
+    grads = [rng.normal(size=f.shape) for f in fine]
+    back = control_gradients(items, grads)
+    for it, f, g, b in zip(items, fine, grads, back):
+        S = getattr(it, "S", None)
+        np.testing.assert_allclose(f, S @ it.vertices if S is not None else it.vertices, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(b, S.T @ g if S is not None else g, rtol=0, atol=1e-12)
+        assert b.shape == it.vertices.shape

@@ -8,6 +8,8 @@ the gradient with respect to the fine vertices.
 
 from __future__ import annotations
 
+import threading
+import weakref
 from functools import lru_cache
 
 import numpy as np
@@ -23,6 +25,8 @@ __all__ = [
     "sphere_surface",
     "circle_surface",
     "refine_control",
+    "fine_vertices",
+    "control_gradients",
 ]
 
 
@@ -163,7 +167,7 @@ def icosphere(subdivisions=1):
 class _Topology:
     """What every iterate of one subdivision surface shares: S and the fine topology."""
 
-    __slots__ = ("S", "fine_faces", "levels")
+    __slots__ = ("S", "fine_faces", "levels", "__weakref__")
 
     def __init__(self, control, levels):
         if isinstance(control, Mesh):
@@ -174,6 +178,86 @@ class _Topology:
             self.S = curve_subdivision(len(control.vertices), levels)
             self.fine_faces = None
         self.levels = levels
+
+
+_TOPOLOGIES_LOCK = threading.Lock()
+_TOPOLOGIES = weakref.WeakValueDictionary()  # (kind, levels, n, control faces) -> the _Topology in use
+
+
+def _shared_topology(control, levels):
+    """The :class:`_Topology` of ``control``'s connectivity at ``levels``, shared by every surface built
+    with the same one (the bubbles of a foam usually are), so that :func:`fine_vertices` and
+    :func:`control_gradients` subdivide them all in one sparse product; kept while a surface uses it."""
+    faces = np.asarray(control.faces) if isinstance(control, Mesh) else None
+    key = (isinstance(control, Mesh), levels, len(control.vertices),
+           None if faces is None else faces.astype(np.int64, copy=False).tobytes())
+    with _TOPOLOGIES_LOCK:
+        topo = _TOPOLOGIES.get(key)
+    if topo is None:
+        topo = _Topology(control, levels)
+        with _TOPOLOGIES_LOCK:
+            topo = _TOPOLOGIES.setdefault(key, topo)
+    return topo
+
+
+def _groups(surfaces):
+    """Indices of the subdivision surfaces among ``surfaces``, grouped by shared topology."""
+    groups = {}
+    for k, s in enumerate(surfaces):
+        if isinstance(s, SubdivisionSurface):
+            groups.setdefault(id(s._topo), []).append(k)
+    return groups.values()
+
+
+def fine_vertices(items):
+    """Fine vertices of every item: ``S @ control`` for a :class:`SubdivisionSurface`, ``vertices`` otherwise.
+
+    Surfaces sharing a topology are subdivided in one sparse product (60
+    bubbles: 0.3 ms instead of 2 ms of one product per surface, at every
+    evaluation of a fit). The control vertices of a valid surface are finite,
+    and so are these (S has non-negative weights summing to 1).
+
+    Parameters
+    ----------
+    items : list of SubdivisionSurface, Mesh or Polygon
+
+    Returns
+    -------
+    list of (n_k, d) float
+        Read-only; views into one array per topology.
+    """
+    out = [None if isinstance(it, SubdivisionSurface) else it.vertices for it in items]
+    for ks in _groups(items):
+        S = items[ks[0]].S
+        control = np.stack([items[k].vertices for k in ks], axis=1)  # (n_control, surfaces, d)
+        fine = (S @ control.reshape(len(control), -1)).reshape(S.shape[0], len(ks), -1)
+        fine.setflags(write=False)
+        for j, k in enumerate(ks):
+            out[k] = fine[:, j]
+    return out
+
+
+def control_gradients(items, fine_gradients):
+    """The chain rule through S: ``S.T @ g`` per subdivision surface (one sparse product per topology),
+    ``g`` itself for other items.
+
+    Parameters
+    ----------
+    items : list of SubdivisionSurface, Mesh or Polygon
+    fine_gradients : list of (n_fine_k, d) float
+
+    Returns
+    -------
+    list of (n_k, d) float
+    """
+    out = [None if isinstance(it, SubdivisionSurface) else np.asarray(g) for it, g in zip(items, fine_gradients)]
+    for ks in _groups(items):
+        S = items[ks[0]].S
+        g = np.stack([fine_gradients[k] for k in ks], axis=1)  # (n_fine, surfaces, d)
+        control = (S.T @ g.reshape(len(g), -1)).reshape(S.shape[1], len(ks), -1)
+        for j, k in enumerate(ks):
+            out[k] = np.ascontiguousarray(control[:, j])
+    return out
 
 
 class SubdivisionSurface:
@@ -200,7 +284,7 @@ class SubdivisionSurface:
         if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or not 0 <= levels <= 6:
             raise ValueError(f"levels must be an integer in 0..6, got {levels!r}")
         self.control = control
-        self._topo = _topology if _topology is not None else _Topology(control, int(levels))
+        self._topo = _topology if _topology is not None else _shared_topology(control, int(levels))
 
     @property
     def ndim(self):

@@ -29,7 +29,7 @@ import threading
 import numpy as np
 
 from bubsub.core.projection.mesh import Mesh, Polygon, bounding_box
-from bubsub.core.projection.subdivision import SubdivisionSurface
+from bubsub.core.projection.subdivision import SubdivisionSurface, control_gradients, fine_vertices
 
 __all__ = ["Scene", "Traversal", "StoredCrossings", "Backend", "vertex_gradient"]
 
@@ -41,8 +41,8 @@ class Scene:
     ----------
     items : list
         What was given (Mesh, Polygon or SubdivisionSurface).
-    fine : list of Mesh or Polygon
-        The meshes actually projected.
+    fine_counts : list of int
+        Vertices of each item's projected (fine) mesh or polygon.
     vertices : (n, 3) float
         All vertices minus ``centre``, mm (2D: z = 0, or prism walls).
     faces : (m, 3) int or (m, 2) int
@@ -68,35 +68,36 @@ class Scene:
         self.items = list(items)
         self.ndim = ndim
         expected = Mesh if ndim == 3 else Polygon
-        resolved = []
         for k, item in enumerate(self.items):
-            fine = item.fine() if isinstance(item, SubdivisionSurface) else item
-            if not isinstance(fine, expected):
+            kind = item.control if isinstance(item, SubdivisionSurface) else item
+            if not isinstance(kind, expected):
                 raise TypeError(
-                    f"item {k} is a {type(item).__name__} of {type(fine).__name__}; "
+                    f"item {k} is a {type(item).__name__} of {type(kind).__name__}; "
                     f"a {ndim}D geometry projects {expected.__name__} or SubdivisionSurface of {expected.__name__}"
                 )
-            resolved.append(fine)
-        if not resolved:
+        if not self.items:
             raise ValueError("nothing to project: give at least one mesh")
-        self.fine = resolved
+        # every item's fine vertices; surfaces that share a topology in one sparse product
+        fine = fine_vertices(self.items)
+        self.fine_counts = [len(v) for v in fine]
         self.prisms = ndim == 2 and prisms_2d
         if ndim == 3:
-            verts = [m.vertices for m in resolved]
-            faces = [m.faces for m in resolved]  # the objects a topology keeps (np.asarray would be a new view)
+            verts = fine
+            # the objects a topology keeps (np.asarray would be a new view)
+            faces = [it._topo.fine_faces if isinstance(it, SubdivisionSurface) else it.faces for it in self.items]
         elif self.prisms:
             # Short walls (about one edge long) keep the triangles well shaped
             # for Embree's BVH; rays run at z = 0, so any height is exact.
-            edges = np.concatenate([np.linalg.norm(np.diff(p.vertices, axis=0, append=p.vertices[:1]), axis=1) for p in resolved])
+            edges = np.concatenate([np.linalg.norm(np.diff(p, axis=0, append=p[:1]), axis=1) for p in fine])
             self.half_height = max(float(np.median(edges)), 1e-6)
-            verts, faces = zip(*(_prism(p.vertices, self.half_height) for p in resolved))
+            verts, faces = zip(*(_prism(p, self.half_height) for p in fine))
         else:
-            verts = [np.c_[p.vertices, np.zeros(len(p.vertices))] for p in resolved]
-            faces = [np.stack([np.arange(len(p.vertices)), np.roll(np.arange(len(p.vertices)), -1)], 1) for p in resolved]
+            verts = [np.c_[p, np.zeros(len(p))] for p in fine]
+            faces = [np.stack([np.arange(len(p)), np.roll(np.arange(len(p)), -1)], 1) for p in fine]
         # 3D faces are objects the items keep (worth caching); 2D ones were just built
         self.faces, self.face_item, self.vertex_offset = _joined_faces(faces, [len(v) for v in verts], cache=ndim == 3)
         vertices = np.concatenate(verts)
-        self.mu = np.array([m.attenuation for m in resolved])
+        self.mu = np.array([it.attenuation for it in self.items], dtype=float)
         lo, hi = bounding_box(vertices)
         self.centre = 0.5 * (lo + hi)
         self.vertices = vertices - self.centre
@@ -118,16 +119,14 @@ class Scene:
 
     def item_gradients(self, vertex_grad):
         """Split per-vertex gradients into one array per item (chain S and the prism)."""
-        out = []
-        for k, item in enumerate(self.items):
+        fine = []
+        for k in range(len(self.items)):
             g = vertex_grad[self.vertex_offset[k]: self.vertex_offset[k + 1]]
             if self.ndim == 2:
-                n = len(self.fine[k].vertices)
+                n = self.fine_counts[k]
                 g = g[:n, :2] + g[n:, :2] if self.prisms else g[:, :2]
-            if isinstance(item, SubdivisionSurface):
-                g = item.S.T @ g
-            out.append(np.asarray(g))
-        return out
+            fine.append(g)
+        return control_gradients(self.items, fine)
 
 
 _JOINED_LOCK = threading.Lock()

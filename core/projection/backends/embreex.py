@@ -101,7 +101,7 @@ class _EmbreexScene:
         exiting = cos > 0
         item = scene.face_item[face]
         # Stable sort by (ray, item): hits of one ray were recorded in t order.
-        order = np.argsort(r * len(scene.fine) + item, kind="stable")
+        order = np.argsort(r * len(scene.items) + item, kind="stable")
         r, face, t, u, v, cos, exiting, item = (a[order] for a in (r, face, t, u, v, cos, exiting, item))
         same_next = np.zeros(r.size, bool)
         same_next[:-1] = (r[1:] == r[:-1]) & (item[1:] == item[:-1])

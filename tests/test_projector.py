@@ -312,6 +312,19 @@ def test_threads_do_not_change_results(rng):
         np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-12)
 
 
+def test_objective_on_a_large_detector_is_summed_in_chunks_per_thread(rng):
+    # over 2**18 pixels per thread the residual runs in one chunk per thread: f must stay the float64 misfit
+    g = random_geometry(rng, "cone", rows=256, cols=512, pixel=0.02, n_angles=6)
+    s = sphere_surface([0.0, 0.1, 0.0], 1.5, -0.7)
+    data = MeshProjector(g, threads=1).forward([s.with_vertices(s.vertices * 1.05)])
+    data = data + rng.normal(0, 0.01, g.shape).astype(np.float32)
+    res = MeshProjector(g, threads=1).forward([s]).astype(np.float64) - data
+    truth = 0.5 * np.sum(res**2)
+    for threads in (1, 2, 3):
+        f, _ = MeshProjector(g, threads=threads).objective([s], data)
+        assert f == pytest.approx(truth, rel=1e-12)
+
+
 def test_2d_matches_astra_projection_of_a_voxelised_disk():
     astra = pytest.importorskip("astra")
     n, px = 1000, 0.004  # 4 mm field, fine grid

@@ -26,6 +26,7 @@ from bubsub.core.projection.backends.frames import Frames
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.projection.subdivision import SubdivisionSurface
+from bubsub.core.threads import thread_map
 
 __all__ = ["MeshProjector", "Traversal", "default_threads"]
 
@@ -42,6 +43,18 @@ def default_threads():
             raise ValueError(f"BUBSUB_THREADS must be a positive integer, got {text!r}")
         return int(text)
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _threaded_residual(kernel, values, k2, data, out, threads):
+    """``kernel`` (:func:`~bubsub.core.projection.backends.common_kernels.residual`) over contiguous chunks,
+    one per thread, and the sum of their ``f``: serial, it was 3 ms of every evaluation on a
+    25 x 256 x 512 scan. Small scans take one chunk."""
+    n = values.shape[0]
+    parts = max(1, min(int(threads), n // (1 << 18)))
+    edges = np.linspace(0, n, parts + 1).round().astype(int)
+    chunks = [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+    return float(sum(thread_map(lambda c: kernel(values[c[0]:c[1]], k2, data[c[0]:c[1]], out[c[0]:c[1]]),
+                                chunks, parts)))
 
 
 class MeshProjector:
@@ -143,7 +156,7 @@ class MeshProjector:
         values = traversal.values
         # the residual overwrites the traversal's values (never read again): no fresh 8-byte-per-pixel array
         residual = values if values.dtype == np.float64 and values.flags.writeable else np.empty(d.size)
-        f = float(residual_kernel(values, float(self._sub.shape[0]), flat, residual))
+        f = _threaded_residual(residual_kernel, values, float(self._sub.shape[0]), flat, residual, self.threads)
         if not np.isfinite(f):
             self._check_array(data, "data")
         return f, self._gradient(scene, traversal, residual)

@@ -102,7 +102,8 @@ class RasterBackend(Backend):
         if not _load():
             raise RuntimeError(f"the raster backend is unavailable: {unavailable_reason()}")
         job = _Job(scene, frames, sub, threads, store=gradient)
-        values = np.zeros(frames.n * frames.rows * frames.cols)
+        # each group zeroes its own projections (job.run): 26 MB of zeros were a serial millisecond per call
+        values = np.empty(frames.n * frames.rows * frames.cols)
         counts = thread_map(lambda g: job.run(g, values, None, None), job.groups, job.threads)
         return _RasterTraversal(values, sum(counts), job)
 
@@ -222,6 +223,9 @@ class _Job:
         """Forward (``values`` given) or face sums (``weights``, ``acc`` given) for projections ``group``."""
         p0, p1 = group
         grad = acc is not None
+        if not grad:
+            npix = self.rows * self.cols
+            values[p0 * npix: p1 * npix] = 0.0
         dummy1, dummy2 = np.zeros(1), np.zeros((1, 1))
         args = (p0, p1, self.vertices, self.faces, self.normals, self.offset, self.face_mu, *self.frames,
                 self.cone, self.rows, self.cols, self.k, values if not grad else dummy1,

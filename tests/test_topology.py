@@ -33,6 +33,31 @@ def test_log_blobs_finds_touching_discs_of_different_sizes_with_their_radii():
     assert r == pytest.approx(radii[match], rel=0.25)
 
 
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_parallel_scale_space_finds_exactly_scikit_images_blobs(ndim):
+    # log_blobs computes blob_log's scale space itself, one scale per thread: same scales, same peaks
+    from skimage.feature import blob_log
+
+    from bubsub.clients.pipeline.blobs import _blob_log
+
+    rng = np.random.default_rng(4)
+    shape = (40, 48, 44)[:ndim]
+    grid = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1)
+    img = rng.normal(0, 0.02, shape)
+    for _ in range(6):
+        c, r = rng.uniform(5, np.array(shape) - 5), rng.uniform(2, 6)
+        img += np.linalg.norm(grid - c, axis=-1) < r
+    peaks, sigmas, cube = _blob_log(img, 1.0, 5.0, 9, 0.1)
+    ref = blob_log(img, min_sigma=1.0, max_sigma=5.0, num_sigma=9, threshold=0.1, overlap=1.0, exclude_border=False)
+    assert len(peaks) >= 6
+    np.testing.assert_array_equal(peaks[:, :ndim], ref[:, :ndim])
+    np.testing.assert_array_equal(sigmas[peaks[:, ndim]], ref[:, ndim])
+    from scipy import ndimage
+
+    i = len(sigmas) // 2  # the cube is the scale-normalised response
+    np.testing.assert_allclose(cube[..., i], -sigmas[i] ** 2 * ndimage.gaussian_laplace(img, sigmas[i]), atol=1e-12)
+
+
 def _scan(truth, n_angles=10, cols=128):
     geometry = ScanGeometry.parallel(np.linspace(0, np.pi, n_angles, endpoint=False), cols=cols, pixel_size=0.05)
     return geometry, MeshProjector(geometry).forward(truth)

@@ -177,6 +177,10 @@ class _Topology:
         else:
             self.S = curve_subdivision(len(control.vertices), levels)
             self.fine_faces = None
+        # canonical (sorted, no duplicates) now: some scipy operations sort a matrix's indices in place,
+        # which changes the order of its products' sums, and a shared S would carry that from one fit
+        # into the next (results would depend on what ran before)
+        self.S.sum_duplicates()
         self.levels = levels
 
 

@@ -11,15 +11,14 @@ def test_thread_map_keeps_order_reuses_its_workers_and_propagates_errors():
     names = []
 
     def work(i):
-        names.append(threading.current_thread().name)
+        names.append(threading.current_thread())  # the thread objects: a new pool's would be new ones
         return i * i
 
-    assert thread_map(work, range(6), 2) == [0, 1, 4, 9, 16, 25]
-    first = set(names)
-    names.clear()
-    assert thread_map(work, range(6), 2) == [0, 1, 4, 9, 16, 25]
-    assert set(names) <= first  # the same two workers, not new threads per call
-    assert len(first) <= 2 and all(n.startswith("bubsub-worker") for n in first)
+    for _ in range(5):
+        assert thread_map(work, range(6), 2) == [0, 1, 4, 9, 16, 25]
+    # the same (at most) two workers over every call, not new threads per call; the pool starts its
+    # second thread lazily, only when a task finds the first one busy, so either may be missing
+    assert 1 <= len(set(names)) <= 2 and all(t.name.startswith("bubsub-worker-2_") for t in names)
 
     def boom(i):
         if i == 3:

@@ -498,5 +498,7 @@ def test_compiled_code_falls_back_to_memory_when_no_cache_folder_is_writable(mon
     monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])  # a read-only install: nowhere to cache
     with pytest.raises(RuntimeError, match="cannot cache"):
         numba.njit(cache=True)(lambda x: x + 1)
-    twice = embree_native.cached(numba.njit, nogil=True)(lambda x: 2 * x)
+    from bubsub.core.projection.backends.jit import cached
+
+    twice = cached(numba.njit, nogil=True)(lambda x: 2 * x)
     assert twice(21) == 42

@@ -85,6 +85,8 @@ def test_surfaces_with_one_connectivity_share_a_topology():
     assert a.S is b.S and a.S is not c.S
     # shared, S must not change its summation order after the fact (scipy sorts indices in place)
     assert a.S.has_canonical_format and c.S.has_canonical_format
+    _, f = icosphere(1)
+    assert loop_subdivision(f, 42, 2)[0].has_canonical_format and curve_subdivision(9, 3).has_canonical_format
     assert circle_surface((0, 0), 1.0, 0.5, control=9, levels=2).S is circle_surface((1, 1), 2.0, 0.5, control=9, levels=2).S
 
 

@@ -81,7 +81,7 @@ def loop_subdivision(faces, n_vertices, levels):
     Returns
     -------
     S : (n_fine, n_vertices) scipy.sparse.csr_matrix
-        ``fine_vertices = S @ control_vertices``.
+        ``fine_vertices = S @ control_vertices``; canonical (:func:`_canonical`).
     fine_faces : (m * 4**levels, 3) int
         Fine triangles, oriented as the control faces.
     """
@@ -94,7 +94,7 @@ def loop_subdivision(faces, n_vertices, levels):
         Si, f, _ = _loop_once(f, n)
         S = Si @ S
         n = Si.shape[0]
-    return S.tocsr(), f
+    return _canonical(S), f
 
 
 def curve_subdivision(n_vertices, levels):
@@ -107,6 +107,7 @@ def curve_subdivision(n_vertices, levels):
     Returns
     -------
     S : (n_vertices * 2**levels, n_vertices) scipy.sparse.csr_matrix
+        Canonical (:func:`_canonical`).
     """
     if n_vertices < 3:
         raise ValueError(f"a closed polygon needs at least 3 control points, got {n_vertices}")
@@ -122,7 +123,17 @@ def curve_subdivision(n_vertices, levels):
         vals = np.concatenate([np.full(n, 1 / 8), np.full(n, 6 / 8), np.full(n, 1 / 8), np.full(n, 0.5), np.full(n, 0.5)])
         S = sp.csr_matrix((vals, (rows, cols)), shape=(2 * n, n)) @ S
         n *= 2
-    return S.tocsr()
+    return _canonical(S)
+
+
+def _canonical(S):
+    """``S`` as CSR with sorted indices and no duplicates. scipy sorts a matrix's indices in place in
+    some operations, which changes the order of its products' sums; a matrix shared by many surfaces
+    (:func:`_shared_topology`) would carry that from one fit into the next, so results would depend
+    on what ran before."""
+    S = S.tocsr()
+    S.sum_duplicates()
+    return S
 
 
 @lru_cache(maxsize=8)
@@ -177,10 +188,6 @@ class _Topology:
         else:
             self.S = curve_subdivision(len(control.vertices), levels)
             self.fine_faces = None
-        # canonical (sorted, no duplicates) now: some scipy operations sort a matrix's indices in place,
-        # which changes the order of its products' sums, and a shared S would carry that from one fit
-        # into the next (results would depend on what ran before)
-        self.S.sum_duplicates()
         self.levels = levels
 
 

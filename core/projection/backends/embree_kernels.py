@@ -85,11 +85,13 @@ def record_and_reject(args):
         ctx[1] = k + 1
         valid[i] = 0  # reject: traversal goes on to the next hit
 
+
 @jit
 def hit_buffers(cap):
     """The filter's record (t, primID, u, v per hit) and the per-ray work arrays."""
     return (np.zeros(4 * cap, np.float32), np.empty(cap), np.empty(cap, np.int64), np.empty(cap), np.empty(cap),
             np.empty(cap), np.empty(cap, np.int64), np.zeros(cap, np.bool_))
+
 
 @jit
 def kernel(intersect1, handle, args_template, pixel, far, start, stop, sub, S, D, U, V, cone, rows, cols, shift, radius, face_item, mu, normals):
@@ -232,4 +234,3 @@ def kernel(intersect1, handle, args_template, pixel, far, start, stop, sub, S, D
                 o_inv[n_out] = 1.0 / abs(cosv[e]) if cosv[e] != 0 else np.inf
                 n_out += 1
     return lo, part, (o_px[:n_out], o_face[:n_out], o_bary[:n_out], o_inv[:n_out])
-

@@ -47,32 +47,21 @@ def pixel_ray_lengths(S, D, U, V, rows, cols, out):
 
 
 @jit
-def face_box(faces, f, X, Y, fc0, fc1, fr0, fr1):
-    """A face's vertices, their lattice coordinates, and the lattice box ``c0..c1, r0..r1`` it covers."""
-    i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-    x0, x1, x2, y0, y1, y2 = X[i0], X[i1], X[i2], Y[i0], Y[i1], Y[i2]
-    c0 = max(int(np.ceil(min(x0, x1, x2))), fc0)
-    c1 = min(int(np.floor(max(x0, x1, x2))), fc1)
-    r0 = max(int(np.ceil(min(y0, y1, y2))), fr0)
-    r1 = min(int(np.floor(max(y0, y1, y2))), fr1)
-    return i0, i1, i2, x0, x1, x2, y0, y1, y2, c0, c1, r0, r1
-
-
-@jit
-def edge_setup(ia, ib, sig, X, Y):
+def edge_from(ia, ib, xa, ya, xb, yb, sig):
     """An edge as seen from its lower-indexed vertex: base, direction, orientation sign, tie rule.
 
+    ``ia``, ``ib``: the vertices' indices; ``(xa, ya)``, ``(xb, yb)``: their lattice coordinates.
     Written with selects rather than branches: the vertex order is random
     from face to face, and mispredicted branches cost more than the
     arithmetic of a triangle that covers one lattice point or none.
     """
     swap = ib < ia
-    lo = ib if swap else ia
-    hi = ia if swap else ib
+    xl = xb if swap else xa
+    yl = yb if swap else ya
     s = -sig if swap else sig
-    dx, dy = X[hi] - X[lo], Y[hi] - Y[lo]
+    dx, dy = (xa if swap else xb) - xl, (ya if swap else yb) - yl
     sdx, sdy = s * dx, s * dy
-    return X[lo], Y[lo], dx, dy, s, (sdy < 0.0) | ((sdy == 0.0) & (sdx > 0.0))
+    return xl, yl, dx, dy, s, (sdy < 0.0) | ((sdy == 0.0) & (sdx > 0.0))
 
 
 @jit
@@ -142,32 +131,74 @@ def project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, iW):
 
 
 @jit
-def candidates(faces, X, Y, fc0, fc1, fr0, fr1, out):
-    """Faces that may hold a lattice point, into ``out``; returns how many.
+def _min(a, b):
+    return a if a < b else b
 
-    Written without branches (the verdicts are written and the count moves
-    by 0 or 1): at fine subdivision most triangles hold no lattice point,
-    and a mispredicted branch per triangle would cost more than the test.
-    A triangle is dropped when its box holds no lattice point, or when it
-    holds one that is outside by far more than the rounding of any
-    evaluation of the edge functions; the exact test decides the rest.
+
+@jit
+def _max(a, b):
+    return a if a > b else b
+
+
+# faces per chunk of the candidate pass: its buffers stay in L1
+CHUNK = 256
+
+
+@jit
+def chunk_candidates(faces, s, m, X, Y, F0, F1, R0, R1, buf, keep, idx):
+    """Faces ``s .. s + m - 1`` that may hold a lattice point; returns how many, their positions in
+    the chunk in ``idx``, and every face's lattice coordinates and box (as floats) in ``buf``:
+    rows ``x0 x1 x2 y0 y1 y2 c0 c1 r0 r1``.
+
+    The projected vertices are gathered first, then tested over contiguous
+    lanes (LLVM vectorises that loop), then the kept ones are listed, all
+    without branches: at fine subdivision most triangles hold no lattice
+    point, the gathers of a face's vertices stop vectorisation, and a
+    mispredicted branch per triangle would cost more than the test. A
+    triangle is dropped when its box (clipped to the footprint ``F0..F1,
+    R0..R1``) holds no lattice point, or when it holds one that is outside by
+    far more than the rounding of any evaluation of the edge functions; the
+    exact test decides the rest.
     """
-    n = 0
-    for f in range(faces.shape[0]):
-        _, _, _, x0, x1, x2, y0, y1, y2, c0, c1, r0, r1 = face_box(faces, f, X, Y, fc0, fc1, fr0, fr1)
+    for j in range(m):
+        f = s + j
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        buf[0, j], buf[1, j], buf[2, j] = X[i0], X[i1], X[i2]
+        buf[3, j], buf[4, j], buf[5, j] = Y[i0], Y[i1], Y[i2]
+    for j in range(m):
+        x0, x1, x2, y0, y1, y2 = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
+        c0 = _max(np.ceil(_min(_min(x0, x1), x2)), F0)
+        c1 = _min(np.floor(_max(_max(x0, x1), x2)), F1)
+        r0 = _max(np.ceil(_min(_min(y0, y1), y2)), R0)
+        r1 = _min(np.floor(_max(_max(y0, y1), y2)), R1)
         area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
-        px, py = c0 + 0.0, r0 + 0.0
-        tol = 1e-12 * (abs(x0) + abs(x1) + abs(x2) + abs(y0) + abs(y1) + abs(y2)) ** 2
-        e0 = ((x1 - x0) * (py - y0) - (y1 - y0) * (px - x0)) * area2
-        e1 = ((x2 - x1) * (py - y1) - (y2 - y1) * (px - x1)) * area2
-        e2 = ((x0 - x2) * (py - y2) - (y0 - y2) * (px - x2)) * area2
-        a = abs(area2) * tol
+        t = abs(x0) + abs(x1) + abs(x2) + abs(y0) + abs(y1) + abs(y2)
+        e0 = ((x1 - x0) * (r0 - y0) - (y1 - y0) * (c0 - x0)) * area2
+        e1 = ((x2 - x1) * (r0 - y1) - (y2 - y1) * (c0 - x1)) * area2
+        e2 = ((x0 - x2) * (r0 - y2) - (y0 - y2) * (c0 - x2)) * area2
+        a = abs(area2) * (1e-12 * t * t)
         single = (c0 == c1) & (r0 == r1)
         outside = single & ((e0 < -a) | (e1 < -a) | (e2 < -a))
-        keep = (c0 <= c1) & (r0 <= r1) & (area2 != 0.0) & ~outside
-        out[n] = f
-        n += keep
+        keep[j] = (c0 <= c1) & (r0 <= r1) & (area2 != 0.0) & ~outside
+        buf[6, j], buf[7, j], buf[8, j], buf[9, j] = c0, c1, r0, r1
+    n = 0
+    for j in range(m):
+        idx[n] = j
+        n += keep[j]
     return n
+
+
+@jit
+def face_into(faces, f, X, Y, F0, F1, R0, R1, buf):
+    """One face's lattice coordinates and clipped box into ``buf[:, 0]`` (the layout of
+    :func:`chunk_candidates`)."""
+    i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+    x0, x1, x2, y0, y1, y2 = X[i0], X[i1], X[i2], Y[i0], Y[i1], Y[i2]
+    buf[0, 0], buf[1, 0], buf[2, 0], buf[3, 0], buf[4, 0], buf[5, 0] = x0, x1, x2, y0, y1, y2
+    buf[6, 0] = _max(np.ceil(min(x0, x1, x2)), F0)
+    buf[7, 0] = _min(np.floor(max(x0, x1, x2)), F1)
+    buf[8, 0] = _max(np.ceil(min(y0, y1, y2)), R0)
+    buf[9, 0] = _min(np.floor(max(y0, y1, y2)), R1)
 
 
 @jit
@@ -184,6 +215,7 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     nv, nf = verts.shape[0], faces.shape[0]
     X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
     cand = np.empty(nf, np.int64)
+    buf, keep, idx = np.empty((10, CHUNK)), np.empty(CHUNK, np.bool_), np.empty(CHUNK, np.int64)
     C, R = cols * k, rows * k
     npix = rows * cols
     ik = 1.0 / k
@@ -205,8 +237,8 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                         p, col, row, cone, S, D, U, V, rows, cols, k, k))
                 else:
                     L[row, col] = 0.0
+        n_cand = 0
         if grad:  # only the faces on which the forward pass found a crossing
-            n_cand = 0
             for byte in range(hit.shape[1]):
                 bits = hit[p, byte]
                 if bits == 0:
@@ -214,91 +246,102 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                 for t in range(8):
                     cand[n_cand] = byte * 8 + t
                     n_cand += (bits >> t) & 1
-        else:
-            n_cand = candidates(faces, X, Y, fc0, fc1, fr0, fr1, cand)
-        for j in range(n_cand):
-            f = cand[j]
-            i0, i1, i2, x0, x1, x2, y0, y1, y2, c0, c1, r0, r1 = face_box(faces, f, X, Y, fc0, fc1, fr0, fr1)
-            area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
-            if area2 == 0.0:
-                continue  # seen edge-on: no ray crosses it in a single point
-            sig = 1.0 if area2 > 0 else -1.0
-            bx0, by0, dx0, dy0, s0, t0 = edge_setup(i0, i1, sig, X, Y)
-            bx1, by1, dx1, dy1, s1, t1 = edge_setup(i1, i2, sig, X, Y)
-            bx2, by2, dx2, dy2, s2, t2 = edge_setup(i2, i0, sig, X, Y)
-            # the face's plane terms wait for its first lattice point: at fine
-            # subdivision most triangles whose box holds a point hold none
-            ready = False
-            nU = nV = num = nDS = nr = mu = 0.0
-            sum0 = sum1 = sum2 = 0.0
-            for row in range(r0, r1 + 1):
-                h0, h1, h2 = dx0 * (row - by0), dx1 * (row - by1), dx2 * (row - by2)
-                lin = 0.0
-                seen = False
-                for col in range(c0, c1 + 1):
-                    # the same operations for both triangles of an edge: the same number
-                    g0 = s0 * (h0 - dy0 * (col - bx0))
-                    g1 = s1 * (h1 - dy1 * (col - bx1))
-                    g2 = s2 * (h2 - dy2 * (col - bx2))
-                    if not (passes(g0, t0) & passes(g1, t1) & passes(g2, t2)):
-                        if seen:
-                            break  # each edge test is monotonic along a row: the span is over
-                        continue
-                    if not seen:
-                        seen = True
-                        if not ready:
-                            ready = True
-                            n0, n1, n2 = nrm[f, 0], nrm[f, 1], nrm[f, 2]
-                            nU = n0 * U[p, 0] + n1 * U[p, 1] + n2 * U[p, 2]
-                            nV = n0 * V[p, 0] + n1 * V[p, 1] + n2 * V[p, 2]
-                            mu = fmu[f]
-                            if cone:
-                                # t = n.(x0 - S) |e| / |n.e| along e = D - S + a U + b V
-                                num = offset[f] - (n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
-                                nDS = n0 * (D[p, 0] - S[p, 0]) + n1 * (D[p, 1] - S[p, 1]) + n2 * (D[p, 2] - S[p, 2])
-                            else:
-                                # t = n.(x0 - P) / |n.r| from the pixel point P = D + a U + b V
-                                num = offset[f] - (n0 * D[p, 0] + n1 * D[p, 1] + n2 * D[p, 2])
-                                nr = abs(n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
-                            if not grad:
-                                hit[p, f >> 3] |= np.uint8(1 << (f & 7))
-                        b = row * ik + b_off
-                        lin = nDS + b * nV if cone else num - b * nV
-                    den, val = crossing(col * ik + a_off, cone, lin, num, nU, nr)
-                    if den == 0.0:
-                        continue
-                    count += 1
-                    if not grad:
-                        L[row, col] += mu * val
-                        if stored >= 0:
-                            if stored < cap:
-                                # this crossing's coefficients in the gradient pass, for stored_face_sums
-                                l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
-                                c = mu / (den * (l0 + l1 + l2))
-                                if not pix_rl:
-                                    c *= ray_length(p, col, row, cone, S, D, U, V, rows, cols, k, k)
-                                st_face[stored] = f
-                                st_pix[stored] = p * npix + (row // k) * cols + col // k
-                                st_coef[stored, 0] = c * l0
-                                st_coef[stored, 1] = c * l1
-                                st_coef[stored, 2] = c * l2
-                                stored += 1
-                            else:
-                                stored = -1
-                        continue
-                    w = L[row, col]
-                    if w == 0.0:
-                        continue
-                    # barycentric weight of a vertex: the opposite edge's function over its depth
-                    l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
-                    scale = w * mu / (den * (l0 + l1 + l2))
-                    sum0 += scale * l0
-                    sum1 += scale * l1
-                    sum2 += scale * l2
-            if grad:
-                acc[f, 0] += sum0
-                acc[f, 1] += sum1
-                acc[f, 2] += sum2
+        F0, F1, R0, R1 = float(fc0), float(fc1), float(fr0), float(fr1)
+        for block in range(n_cand if grad else (nf + CHUNK - 1) // CHUNK):
+            if grad:  # a block of one face
+                s = cand[block]
+                face_into(faces, s, X, Y, F0, F1, R0, R1, buf)
+                n_keep = 1
+                idx[0] = 0
+            else:
+                s = block * CHUNK
+                n_keep = chunk_candidates(faces, s, min(CHUNK, nf - s), X, Y, F0, F1, R0, R1, buf, keep, idx)
+            for q in range(n_keep):
+                j = idx[q]
+                f = s + j
+                i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+                x0, x1, x2, y0, y1, y2 = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
+                c0, c1, r0, r1 = int(buf[6, j]), int(buf[7, j]), int(buf[8, j]), int(buf[9, j])
+                area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+                if area2 == 0.0:
+                    continue  # seen edge-on: no ray crosses it in a single point
+                sig = 1.0 if area2 > 0 else -1.0
+                bx0, by0, dx0, dy0, s0, t0 = edge_from(i0, i1, x0, y0, x1, y1, sig)
+                bx1, by1, dx1, dy1, s1, t1 = edge_from(i1, i2, x1, y1, x2, y2, sig)
+                bx2, by2, dx2, dy2, s2, t2 = edge_from(i2, i0, x2, y2, x0, y0, sig)
+                # the face's plane terms wait for its first lattice point: at fine
+                # subdivision most triangles whose box holds a point hold none
+                ready = False
+                nU = nV = num = nDS = nr = mu = 0.0
+                sum0 = sum1 = sum2 = 0.0
+                for row in range(r0, r1 + 1):
+                    h0, h1, h2 = dx0 * (row - by0), dx1 * (row - by1), dx2 * (row - by2)
+                    lin = 0.0
+                    seen = False
+                    for col in range(c0, c1 + 1):
+                        # the same operations for both triangles of an edge: the same number
+                        g0 = s0 * (h0 - dy0 * (col - bx0))
+                        g1 = s1 * (h1 - dy1 * (col - bx1))
+                        g2 = s2 * (h2 - dy2 * (col - bx2))
+                        if not (passes(g0, t0) & passes(g1, t1) & passes(g2, t2)):
+                            if seen:
+                                break  # each edge test is monotonic along a row: the span is over
+                            continue
+                        if not seen:
+                            seen = True
+                            if not ready:
+                                ready = True
+                                n0, n1, n2 = nrm[f, 0], nrm[f, 1], nrm[f, 2]
+                                nU = n0 * U[p, 0] + n1 * U[p, 1] + n2 * U[p, 2]
+                                nV = n0 * V[p, 0] + n1 * V[p, 1] + n2 * V[p, 2]
+                                mu = fmu[f]
+                                if cone:
+                                    # t = n.(x0 - S) |e| / |n.e| along e = D - S + a U + b V
+                                    num = offset[f] - (n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
+                                    nDS = n0 * (D[p, 0] - S[p, 0]) + n1 * (D[p, 1] - S[p, 1]) + n2 * (D[p, 2] - S[p, 2])
+                                else:
+                                    # t = n.(x0 - P) / |n.r| from the pixel point P = D + a U + b V
+                                    num = offset[f] - (n0 * D[p, 0] + n1 * D[p, 1] + n2 * D[p, 2])
+                                    nr = abs(n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
+                                if not grad:
+                                    hit[p, f >> 3] |= np.uint8(1 << (f & 7))
+                            b = row * ik + b_off
+                            lin = nDS + b * nV if cone else num - b * nV
+                        den, val = crossing(col * ik + a_off, cone, lin, num, nU, nr)
+                        if den == 0.0:
+                            continue
+                        count += 1
+                        if not grad:
+                            L[row, col] += mu * val
+                            if stored >= 0:
+                                if stored < cap:
+                                    # this crossing's coefficients in the gradient pass, for stored_face_sums
+                                    l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
+                                    c = mu / (den * (l0 + l1 + l2))
+                                    if not pix_rl:
+                                        c *= ray_length(p, col, row, cone, S, D, U, V, rows, cols, k, k)
+                                    st_face[stored] = f
+                                    st_pix[stored] = p * npix + (row // k) * cols + col // k
+                                    st_coef[stored, 0] = c * l0
+                                    st_coef[stored, 1] = c * l1
+                                    st_coef[stored, 2] = c * l2
+                                    stored += 1
+                                else:
+                                    stored = -1
+                            continue
+                        w = L[row, col]
+                        if w == 0.0:
+                            continue
+                        # barycentric weight of a vertex: the opposite edge's function over its depth
+                        l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
+                        scale = w * mu / (den * (l0 + l1 + l2))
+                        sum0 += scale * l0
+                        sum1 += scale * l1
+                        sum2 += scale * l2
+                if grad:
+                    acc[f, 0] += sum0
+                    acc[f, 1] += sum1
+                    acc[f, 2] += sum2
         if not grad:
             for row in range(fr0, fr1 + 1):
                 for col in range(fc0, fc1 + 1):

@@ -72,11 +72,24 @@ def passes(g, tie):
 
 @jit
 def footprint(X, Y, n_cols, n_rows):
-    """Lattice box (c0, c1, r0, r1) covering every projected vertex, clipped to the detector."""
-    c0 = max(int(np.ceil(X.min())), 0)
-    c1 = min(int(np.floor(X.max())), n_cols - 1)
-    r0 = max(int(np.ceil(Y.min())), 0)
-    r1 = min(int(np.floor(Y.max())), n_rows - 1)
+    """Lattice box (c0, c1, r0, r1) covering every projected vertex, clipped to the detector.
+
+    One pass with selects instead of ``X.min()`` and three more: numpy's
+    NaN-aware reductions are scalar here, 0.8 ms per projection at 256,000
+    vertices. Projected vertices are finite (the projector checks the scene).
+    """
+    lo_x = hi_x = X[0]
+    lo_y = hi_y = Y[0]
+    for i in range(X.shape[0]):
+        x, y = X[i], Y[i]
+        lo_x = x if x < lo_x else lo_x
+        hi_x = x if x > hi_x else hi_x
+        lo_y = y if y < lo_y else lo_y
+        hi_y = y if y > hi_y else hi_y
+    c0 = max(int(np.ceil(lo_x)), 0)
+    c1 = min(int(np.floor(hi_x)), n_cols - 1)
+    r0 = max(int(np.ceil(lo_y)), 0)
+    r1 = min(int(np.floor(hi_y)), n_rows - 1)
     return c0, c1, r0, r1
 
 

@@ -146,17 +146,23 @@ def _resample(p, Mv, Mu, transpose=False):
     """Apply per-projection row (Mv) and column (Mu) interpolation to p (n, R, C).
 
     ``transpose=False``: virtual -> real, ``Mv_i @ p_i @ Mu_i^T``; ``True``:
-    real -> virtual, ``Mv_i^T @ p_i @ Mu_i``.
+    real -> virtual, ``Mv_i^T @ p_i @ Mu_i``. Each result is written into one
+    float32 array: a list of transposed results stacked and then made
+    contiguous cost three times as much (a serial 30 ms per call of the 3D
+    preview on 25 x 256 x 512).
     """
-    out = []
-    for i in range(p.shape[0]):
+    n = p.shape[0]
+    rows = p.shape[1] if Mv is None else (Mv[0].shape[1] if transpose else Mv[0].shape[0])
+    cols = p.shape[2] if Mu is None else (Mu[0].shape[1] if transpose else Mu[0].shape[0])
+    out = np.empty((n, rows, cols), dtype=_F32)
+    for i in range(n):
         q = p[i]
         if Mv is not None:
             q = (Mv[i].T @ q) if transpose else (Mv[i] @ q)
         if Mu is not None:
             q = (Mu[i].T @ q.T).T if transpose else (Mu[i] @ q.T).T
-        out.append(np.asarray(q, dtype=_F32))
-    return np.ascontiguousarray(np.stack(out))
+        out[i] = q
+    return out
 
 
 class _Maps:

@@ -31,11 +31,14 @@ Exact and watertight
 Speed
 -----
 Per projection the vertices are projected once, with the projection's
-constants out of the loop. A first, branch-free pass over the faces keeps
-the candidates: those whose box holds a lattice point, less those whose
-single lattice point is clearly outside (by far more than any rounding);
-at fine subdivision most triangles hold no point, and a mispredicted
-branch per triangle costs more than the test. The forward pass marks, per
+constants out of the loop. The faces then go in chunks of 256: their
+projected vertices are gathered into a small buffer, a branch-free test
+over its contiguous lanes (vectorised) keeps the candidates, those whose
+box holds a lattice point, less those whose single lattice point is
+clearly outside (by far more than any rounding), and each candidate visits
+its lattice points with the coordinates already in the buffer. At fine
+subdivision most triangles hold no point, and a mispredicted branch per
+triangle costs more than the test. The forward pass marks, per
 projection, one bit per face that it found crossed; the gradient pass
 visits only those faces.
 

@@ -57,10 +57,11 @@ def _id_colours(ids):
     return colours, cmap, norm
 
 
-def _id_colourbar(fig, ax, ids, cmap, norm):
+def _id_colourbar(fig, ax, ids, cmap, norm, cax=None):
     from matplotlib.cm import ScalarMappable
 
-    bar = fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, shrink=0.7, pad=0.14)
+    mappable = ScalarMappable(norm=norm, cmap=cmap)
+    bar = fig.colorbar(mappable, cax=cax) if cax is not None else fig.colorbar(mappable, ax=ax, shrink=0.7, pad=0.14)
     bar.set_label("bubble id")
     ids = sorted(ids)
     if len(ids) > 12:  # a readable number of ticks
@@ -187,19 +188,24 @@ def write_mesh_view(path, meshes, ids=None, title="BubSub bubble meshes", elevat
     ids = list(range(len(meshes))) if ids is None else list(ids)
     colours, cmap, norm = _id_colours(ids)
     fig = _figure(figsize=(8, 7), dpi=100)
-    ax = fig.add_subplot(projection="3d")
+    # fixed margins: a tight bounding box costs a second draw of every face
+    ax = fig.add_axes((0.0, 0.03, 0.8, 0.9), projection="3d")
     light = np.array([0.4, -0.5, 0.77])
     light /= np.linalg.norm(light)
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    tris, faces_rgb = [], []
     for m, c in zip(meshes, colours):
         tri = m.vertices[np.asarray(m.faces)]
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
         shade = 0.35 + 0.65 * np.clip(n @ light, 0, 1)
-        face = np.clip(np.asarray(c[:3])[None, :] * shade[:, None], 0, 1)
-        ax.add_collection3d(Poly3DCollection(tri, facecolors=face, edgecolors="none"))
-        lo, hi = np.minimum(lo, m.vertices.min(axis=0)), np.maximum(hi, m.vertices.max(axis=0))
-    if np.all(np.isfinite(lo)):
+        tris.append(tri)
+        faces_rgb.append(np.clip(np.asarray(c[:3])[None, :] * shade[:, None], 0, 1))
+    if tris:
+        # one collection: mplot3d orders faces by depth within a collection but draws
+        # collections whole, so one per bubble let far bubbles cover near ones
+        tri = np.concatenate(tris)
+        ax.add_collection3d(Poly3DCollection(tri, facecolors=np.concatenate(faces_rgb), edgecolors="none"))
+        lo, hi = tri.reshape(-1, 3).min(axis=0), tri.reshape(-1, 3).max(axis=0)
         for setter, a, b in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), lo, hi):
             setter(a, b)
         ax.set_box_aspect(tuple(np.maximum(hi - lo, 1e-9)))
@@ -209,8 +215,8 @@ def write_mesh_view(path, meshes, ids=None, title="BubSub bubble meshes", elevat
     ax.set_zlabel("z (mm)")
     ax.set_title(f"{title} ({len(meshes)} bubbles)", fontsize=10)
     if ids:
-        _id_colourbar(fig, ax, ids, cmap, norm)
-    _save(fig, path)
+        _id_colourbar(fig, ax, ids, cmap, norm, cax=fig.add_axes((0.88, 0.2, 0.02, 0.6)))
+    _save(fig, path, tight=False)
 
 
 def write_size_histogram(path, diameters, ndim, title="Bubble size distribution"):

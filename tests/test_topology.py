@@ -230,3 +230,25 @@ def test_bubble_diagnosis_counts_centres_and_finds_merged_bubbles():
     rows, owner = per_bubble(labels, rec)
     assert [r[4] for r in rows] == [[1, 2], [1, 2], []]
     assert rows[2][3] == pytest.approx(0.0) and 0.3 < rows[0][3] < 0.8
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_inside_matches_the_winding_number_of_every_point(ndim):
+    """The split step's point test: points outside the bounding box are skipped, and the answer is
+    still the one-point coverage of every point (near the surface, inside, far away)."""
+    from bubsub.clients.pipeline.topology import _inside
+    from bubsub.core import sphere_surface
+    from bubsub.core.voxel.raster import coverage
+
+    centre = np.array([0.3, -0.2, 0.1][:ndim])
+    s = (circle_surface(centre, 1.0, 0.1) if ndim == 2 else sphere_surface(centre, 1.0, 0.1)).fine()
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(200, ndim))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    radii = np.concatenate([rng.uniform(0, 3, 150), np.full(50, 0.99)])  # a band just inside the fine surface
+    points = centre + d * radii[:, None]
+    tiny = 1e-6
+    truth = [coverage(s, (1,) * ndim, tuple(np.stack([p - tiny, p + tiny], 1).ravel())).item() > 0 for p in points]
+    got = _inside(s, points)
+    assert got.dtype == bool and got.tolist() == truth
+    assert 0 < got.sum() < len(points)

@@ -101,3 +101,17 @@ def test_fit_and_reconstruction_results_roundtrip():
     assert rr.report == {"bubbles": 1}
     assert isinstance(rr.surfaces[0], SubdivisionSurface)
     assert _roundtrip(ReconstructionSettings(iterations=7)).iterations == 7
+
+
+def test_projector_roundtrip_leaves_derived_arrays_behind_and_projects_the_same():
+    """A used raster projector pickles without the arrays it derived from its frames (the per-pixel
+    ray lengths), rebuilds them on first use, and projects the same values."""
+    g = _geometry_3d()
+    proj = MeshProjector(g, backend="raster")
+    bubble = [sphere_surface((0.1, 0.0, 0.0), 0.7, -0.1)]
+    before = proj.forward(bubble)
+    assert proj._frames.derived  # the ray lengths were derived by the first call
+    copy = _roundtrip(proj)
+    assert copy._frames.derived == {}
+    np.testing.assert_array_equal(copy.forward(bubble), before)
+    assert len(pickle.dumps(proj)) < sum(a.nbytes for a in proj._frames.derived.values())

@@ -31,6 +31,19 @@ class Frames:
     """Per-projection source/ray, detector origin and axes, as (n, 3) arrays.
 
     2D geometries become 3D ones with a single detector row along z.
+
+    Attributes
+    ----------
+    s, d, u, v : (n, 3) float
+        Source (cone) or ray direction (parallel), detector centre, and the
+        detector's column and row steps, per projection (ASTRA's vectors).
+    rows, cols : int
+    cone : bool
+    ndim, n : int
+    derived : dict
+        Arrays a backend derives from the frames once and reuses at every
+        call (a projector keeps one Frames), keyed by the backend's name for
+        them; e.g. the raster backend's per-pixel ray lengths.
     """
 
     def __init__(self, g):
@@ -47,6 +60,14 @@ class Frames:
             self.rows, self.cols = 1, g.det_count
         self.ndim = g.ndim
         self.n = n
+        self.derived = {}
+
+    def __getstate__(self):
+        # derived arrays are rebuilt where they are used: a projector sent to a worker
+        # should not carry, say, 26 MB of ray lengths with it
+        state = self.__dict__.copy()
+        state["derived"] = {}
+        return state
 
     def check_scene(self, scene):
         """Refuse what no backend projects meaningfully.

@@ -245,12 +245,13 @@ class _Job:
 def _pixel_ray_lengths(frames):
     """``(lengths, True)``: every pixel's source-to-detector ray length, computed once per
     :class:`Frames` (a square root per crossing cost 10 % of an objective)."""
-    cached = getattr(frames, "_raster_ray_lengths", None)
+    cached = frames.derived.get("raster pixel ray lengths")
     if cached is None:
         S, D, U, V = (np.ascontiguousarray(a, dtype=np.float64) for a in (frames.s, frames.d, frames.u, frames.v))
         cached = np.empty(frames.n * frames.rows * frames.cols)
         _state["pixel_ray_lengths"](S, D, U, V, int(frames.rows), int(frames.cols), cached)
-        frames._raster_ray_lengths = cached
+        # two threads may both compute it on a projector's first calls: the same array either way
+        frames.derived["raster pixel ray lengths"] = cached
     return cached, True
 
 

@@ -153,6 +153,18 @@ def _max(a, b):
     return a if a > b else b
 
 
+@jit
+def lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1):
+    """The lattice box ``c0..c1, r0..r1`` (as floats) of a triangle's projected vertices, clipped to the
+    footprint ``F0..F1, R0..R1``; empty (c0 > c1 or r0 > r1) when it holds no lattice point. Selects,
+    not branches, so that :func:`chunk_candidates`' loop over it vectorises."""
+    c0 = _max(np.ceil(_min(_min(x0, x1), x2)), F0)
+    c1 = _min(np.floor(_max(_max(x0, x1), x2)), F1)
+    r0 = _max(np.ceil(_min(_min(y0, y1), y2)), R0)
+    r1 = _min(np.floor(_max(_max(y0, y1), y2)), R1)
+    return c0, c1, r0, r1
+
+
 # faces per chunk of the candidate pass: its buffers stay in L1
 CHUNK = 256
 
@@ -180,10 +192,7 @@ def chunk_candidates(faces, s, m, X, Y, F0, F1, R0, R1, buf, keep, idx):
         buf[3, j], buf[4, j], buf[5, j] = Y[i0], Y[i1], Y[i2]
     for j in range(m):
         x0, x1, x2, y0, y1, y2 = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
-        c0 = _max(np.ceil(_min(_min(x0, x1), x2)), F0)
-        c1 = _min(np.floor(_max(_max(x0, x1), x2)), F1)
-        r0 = _max(np.ceil(_min(_min(y0, y1), y2)), R0)
-        r1 = _min(np.floor(_max(_max(y0, y1), y2)), R1)
+        c0, c1, r0, r1 = lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)
         area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
         t = abs(x0) + abs(x1) + abs(x2) + abs(y0) + abs(y1) + abs(y2)
         e0 = ((x1 - x0) * (r0 - y0) - (y1 - y0) * (c0 - x0)) * area2
@@ -208,10 +217,7 @@ def face_into(faces, f, X, Y, F0, F1, R0, R1, buf):
     i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
     x0, x1, x2, y0, y1, y2 = X[i0], X[i1], X[i2], Y[i0], Y[i1], Y[i2]
     buf[0, 0], buf[1, 0], buf[2, 0], buf[3, 0], buf[4, 0], buf[5, 0] = x0, x1, x2, y0, y1, y2
-    buf[6, 0] = _max(np.ceil(min(x0, x1, x2)), F0)
-    buf[7, 0] = _min(np.floor(max(x0, x1, x2)), F1)
-    buf[8, 0] = _max(np.ceil(min(y0, y1, y2)), R0)
-    buf[9, 0] = _min(np.floor(max(y0, y1, y2)), R1)
+    buf[6, 0], buf[7, 0], buf[8, 0], buf[9, 0] = lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)
 
 
 @jit

@@ -62,6 +62,8 @@ class Scene:
         in the shifted frame.
     vertex_offset : (n_items + 1,) int
         First vertex of each item.
+    face_offset : (n_items + 1,) int
+        First face of each item (an item's faces use only its own vertices).
     """
 
     def __init__(self, items, ndim, prisms_2d):
@@ -95,7 +97,8 @@ class Scene:
             verts = [np.c_[p, np.zeros(len(p))] for p in fine]
             faces = [np.stack([np.arange(len(p)), np.roll(np.arange(len(p)), -1)], 1) for p in fine]
         # 3D faces are objects the items keep (worth caching); 2D ones were just built
-        self.faces, self.face_item, self.vertex_offset = _joined_faces(faces, [len(v) for v in verts], cache=ndim == 3)
+        self.faces, self.face_item, self.vertex_offset, self.face_offset = _joined_faces(
+            faces, [len(v) for v in verts], cache=ndim == 3)
         vertices = np.concatenate(verts)
         self.mu = np.array([it.attenuation for it in self.items], dtype=float)
         lo, hi = bounding_box(vertices)
@@ -134,7 +137,8 @@ _JOINED = []  # the last few (face arrays, counts) -> joined faces; an optimiser
 
 
 def _joined_faces(faces, counts, cache=True):
-    """All items' faces as one array into the joined vertices, each face's item, and each item's first vertex.
+    """All items' faces as one array into the joined vertices, each face's item, and each item's first
+    vertex and first face.
 
     Cached on the identity of the face arrays (a subdivision surface keeps
     its fine faces, a Mesh its faces) and the vertex counts: a fit projects
@@ -148,9 +152,11 @@ def _joined_faces(faces, counts, cache=True):
                 if k == key:
                     return value
     offset = np.concatenate([[0], np.cumsum(counts)])
-    face_item = np.repeat(np.arange(len(faces)), [len(f) for f in faces])
+    sizes = [len(f) for f in faces]
+    face_item = np.repeat(np.arange(len(faces)), sizes)
+    face_offset = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     joined = np.concatenate([np.asarray(f) + o for f, o in zip(faces, offset[:-1])])
-    value = (joined, face_item, offset)  # shared by the scenes of one topology: never written to
+    value = (joined, face_item, offset, face_offset)  # shared by the scenes of one topology: never written to
     if cache:
         with _JOINED_LOCK:
             _JOINED.insert(0, (list(faces), key, value))  # holding the arrays keeps their ids from being reused

@@ -207,10 +207,8 @@ class _Job:
         self.face_mu = scene.mu[scene.face_item].astype(np.float64)
         self.vertices = np.ascontiguousarray(scene.vertices, dtype=np.float64)
         # each item's first vertex and first face: the forward pass goes item by item (raster3d)
-        n_items = len(scene.vertex_offset) - 1
         self.item_vertices = np.ascontiguousarray(scene.vertex_offset, dtype=np.int64)
-        self.item_faces = np.zeros(n_items + 1, np.int64)
-        np.cumsum(np.bincount(scene.face_item, minlength=n_items), out=self.item_faces[1:])
+        self.item_faces = scene.face_offset
         # item by item only for scenes whose per-projection data (about 100 bytes a face) outgrows
         # the caches: at 32,000 faces the whole scene stays cached anyway, and the per-item set-up
         # then cost about 10 % (foam3d, level 1), where at 512,000 faces it saved about 20 %

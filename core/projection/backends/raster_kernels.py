@@ -5,7 +5,12 @@ backend is used. Defined at module level rather than in a factory: numba's
 cache key hashes a closure's captured variables, and captured dispatchers
 serialise differently in every process, so closures were compiled again in
 each one (about 2.5 s per process).
-See :mod:`bubsub.core.projection.backends.raster` for the method.
+
+One module on purpose: numba's cache checks only the source file of the
+function it compiled, not of the compiled functions it calls, so a kernel
+calling into another module could keep running stale machine code after
+that module changed. See :mod:`bubsub.core.projection.backends.raster` for
+the method.
 """
 
 from __future__ import annotations
@@ -165,15 +170,21 @@ def lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1):
     return c0, c1, r0, r1
 
 
-# faces per chunk of the candidate pass: its buffers stay in L1
+# faces per chunk of the candidate pass: its buffer stays in the core's first caches
 CHUNK = 256
+# rows of a chunk's flat buffer (chunk_buffers), CHUNK values each: the projected vertices
+# x0 x1 x2 y0 y1 y2 (rows 0-5) and the clipped box c0 c1 r0 r1 (rows 6-9) of each face of the
+# chunk, then SMALL_ROWS rows of its small candidates (gather_small, small_terms). Constant
+# offsets into one array let LLVM vectorise loops over it without run-time checks that the
+# rows do not overlap (with a 2D array's strides it gave up: "too many memory checks").
+BOX, SMALL, SMALL_ROWS = 6, 10, 20
 
 
 @jit
-def chunk_candidates(faces, s, m, X, Y, F0, F1, R0, R1, buf, keep, idx):
-    """Faces ``s .. s + m - 1`` that may hold a lattice point; returns how many, their positions in
-    the chunk in ``idx``, and every face's lattice coordinates and box (as floats) in ``buf``:
-    rows ``x0 x1 x2 y0 y1 y2 c0 c1 r0 r1``.
+def chunk_candidates(faces, s, m, X, Y, F0, F1, R0, R1, w, flags, idx, sidx):
+    """Faces ``s .. s + m - 1`` that may hold a lattice point, in two lists: those whose box holds
+    at most two (``sidx``: small) and the others (``idx``); returns how many of each, and every
+    face's lattice coordinates and box (as floats) in rows 0-9 of ``w`` (:data:`BOX`).
 
     The projected vertices are gathered first, then tested over contiguous
     lanes (LLVM vectorises that loop), then the kept ones are listed, all
@@ -188,10 +199,11 @@ def chunk_candidates(faces, s, m, X, Y, F0, F1, R0, R1, buf, keep, idx):
     for j in range(m):
         f = s + j
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        buf[0, j], buf[1, j], buf[2, j] = X[i0], X[i1], X[i2]
-        buf[3, j], buf[4, j], buf[5, j] = Y[i0], Y[i1], Y[i2]
+        w[j], w[CHUNK + j], w[2 * CHUNK + j] = X[i0], X[i1], X[i2]
+        w[3 * CHUNK + j], w[4 * CHUNK + j], w[5 * CHUNK + j] = Y[i0], Y[i1], Y[i2]
     for j in range(m):
-        x0, x1, x2, y0, y1, y2 = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
+        x0, x1, x2 = w[j], w[CHUNK + j], w[2 * CHUNK + j]
+        y0, y1, y2 = w[3 * CHUNK + j], w[4 * CHUNK + j], w[5 * CHUNK + j]
         c0, c1, r0, r1 = lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)
         area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
         t = abs(x0) + abs(x1) + abs(x2) + abs(y0) + abs(y1) + abs(y2)
@@ -201,52 +213,231 @@ def chunk_candidates(faces, s, m, X, Y, F0, F1, R0, R1, buf, keep, idx):
         a = abs(area2) * (1e-12 * t * t)
         single = (c0 == c1) & (r0 == r1)
         outside = single & ((e0 < -a) | (e1 < -a) | (e2 < -a))
-        keep[j] = (c0 <= c1) & (r0 <= r1) & (area2 != 0.0) & ~outside
-        buf[6, j], buf[7, j], buf[8, j], buf[9, j] = c0, c1, r0, r1
-    n = 0
+        flags[j] = (c0 <= c1) & (r0 <= r1) & (area2 != 0.0) & ~outside
+        flags[CHUNK + j] = (c1 - c0) + (r1 - r0) <= 1.0
+        w[BOX * CHUNK + j], w[(BOX + 1) * CHUNK + j] = c0, c1
+        w[(BOX + 2) * CHUNK + j], w[(BOX + 3) * CHUNK + j] = r0, r1
+    n = n_small = 0
     for j in range(m):
         idx[n] = j
-        n += keep[j]
-    return n
+        sidx[n_small] = j
+        n += flags[j] & ~flags[CHUNK + j]
+        n_small += flags[j] & flags[CHUNK + j]
+    return n, n_small
 
 
 @jit
-def face_into(faces, f, X, Y, F0, F1, R0, R1, buf):
-    """One face's lattice coordinates and clipped box into ``buf[:, 0]`` (the layout of
-    :func:`chunk_candidates`)."""
+def face_into(faces, f, X, Y, F0, F1, R0, R1, w):
+    """One face's lattice coordinates and clipped box into place 0 of rows 0-9 of ``w`` (the
+    layout of :func:`chunk_candidates`)."""
     i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
     x0, x1, x2, y0, y1, y2 = X[i0], X[i1], X[i2], Y[i0], Y[i1], Y[i2]
-    buf[0, 0], buf[1, 0], buf[2, 0], buf[3, 0], buf[4, 0], buf[5, 0] = x0, x1, x2, y0, y1, y2
-    buf[6, 0], buf[7, 0], buf[8, 0], buf[9, 0] = lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)
+    for r, v in enumerate((x0, x1, x2, y0, y1, y2) + lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)):
+        w[r * CHUNK] = v
+
+
+@jit
+def projection_terms(p, cone, S, D, U, V):
+    """Projection p's constants of :func:`plane_terms`: U, V, the ray's reference point (the source
+    for cone beams, the detector's centre for parallel ones), D - S and S."""
+    q = (S[p, 0], S[p, 1], S[p, 2]) if cone else (D[p, 0], D[p, 1], D[p, 2])
+    return (U[p, 0], U[p, 1], U[p, 2], V[p, 0], V[p, 1], V[p, 2]) + q + (
+        D[p, 0] - S[p, 0], D[p, 1] - S[p, 1], D[p, 2] - S[p, 2], S[p, 0], S[p, 1], S[p, 2])
+
+
+@jit
+def plane_terms(n0, n1, n2, off, pc):
+    """A face's plane (unit normal n, offset n.x0) in a projection (:func:`projection_terms`):
+    ``(nU, nV, num, nDS, nr)`` for :func:`crossing` (``nDS`` matters for cone beams, ``nr`` for
+    parallel beams only).
+
+    Cone: t = n.(x0 - S) |e| / |n.e| along e = D - S + a U + b V; parallel:
+    t = n.(x0 - P) / |n.r| from the pixel point P = D + a U + b V.
+    """
+    nU = n0 * pc[0] + n1 * pc[1] + n2 * pc[2]
+    nV = n0 * pc[3] + n1 * pc[4] + n2 * pc[5]
+    num = off - (n0 * pc[6] + n1 * pc[7] + n2 * pc[8])
+    nDS = n0 * pc[9] + n1 * pc[10] + n2 * pc[11]
+    return nU, nV, num, nDS, abs(n0 * pc[12] + n1 * pc[13] + n2 * pc[14])
+
+
+@jit
+def point_forward(col, row, g0, g1, g2, t0, t1, t2, cone, ik, a_off, b_off, nU, nV, num, nDS, nr, mu, w0, w1, w2):
+    """A lattice point's forward terms, given its three edge functions: (crossing: inside and not
+    parallel to the plane, mu times the crossing's value (0 unless a crossing), gradient
+    coefficient, the three unnormalised 3D barycentric weights). Scalars only, without branches,
+    so that it inlines and vectorises."""
+    b = row * ik + b_off
+    den, val = crossing(col * ik + a_off, cone, nDS + b * nV if cone else num - b * nV, num, nU, nr)
+    ok = passes(g0, t0) & passes(g1, t1) & passes(g2, t2) & (den != 0.0)
+    # barycentric weight of a vertex: the opposite edge's function over its depth
+    l0, l1, l2 = g1 * w0, g2 * w1, g0 * w2
+    return ok, mu * val if ok else 0.0, mu / (den * (l0 + l1 + l2)), l0, l1, l2
+
+
+@jit
+def edge_value(bx, by, dx, dy, s, col, row):
+    """An edge's function at lattice point (col, row): the same operations for both triangles of
+    the edge (:func:`edge_from`), so the same number."""
+    return s * (dx * (row - by) - dy * (col - bx))
+
+
+@jit
+def gather_small(faces, s, sidx, n, nrm, offset, iW, w):
+    """Copy the small candidates ``sidx[:n]`` of the chunk at face ``s`` into contiguous rows
+    ``SMALL ..`` of ``w``: coordinates and box (10 rows), vertex indices, normal, plane offset and
+    the vertices' inverse depths (:func:`small_terms`)."""
+    for q in range(n):
+        j = sidx[q]
+        f = s + j
+        for r in range(BOX + 4):
+            w[(SMALL + r) * CHUNK + q] = w[r * CHUNK + j]
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        w[(SMALL + 10) * CHUNK + q], w[(SMALL + 11) * CHUNK + q], w[(SMALL + 12) * CHUNK + q] = i0, i1, i2
+        w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q] = nrm[f, 0], nrm[f, 1]
+        w[(SMALL + 15) * CHUNK + q], w[(SMALL + 16) * CHUNK + q] = nrm[f, 2], offset[f]
+        w[(SMALL + 17) * CHUNK + q], w[(SMALL + 18) * CHUNK + q], w[(SMALL + 19) * CHUNK + q] = iW[i0], iW[i1], iW[i2]
+
+
+@jit
+def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, cross):
+    """The forward terms (:func:`point_forward`) of both lattice points of the ``n`` small
+    candidates in rows ``SMALL ..`` of ``w`` (:func:`gather_small`; attenuation ``mu``), written
+    over those rows: 5 rows (value, coefficient, three weights) for the box's first point (c0,
+    r0), 5 for its second (c1, r1; never a crossing in a one-point box); returns how many are
+    crossings, listed in ``cross`` (twice the candidate, plus 1 for a second point).
+
+    The terms come from one loop without branches over contiguous lanes, which
+    LLVM vectorises: at fine subdivision most candidates are such triangles,
+    and one by one their set-up (edges, plane, depths) and branches cost more
+    than the rest of the pass. Vertex indices come as floats (exact below
+    2^53) for the edges' order.
+    """
+    for q in range(n):
+        x0, x1, x2 = w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q]
+        y0, y1, y2 = w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q], w[(SMALL + 5) * CHUNK + q]
+        c0, c1 = w[(SMALL + 6) * CHUNK + q], w[(SMALL + 7) * CHUNK + q]
+        r0, r1 = w[(SMALL + 8) * CHUNK + q], w[(SMALL + 9) * CHUNK + q]
+        i0, i1, i2 = w[(SMALL + 10) * CHUNK + q], w[(SMALL + 11) * CHUNK + q], w[(SMALL + 12) * CHUNK + q]
+        nU, nV, num, nDS, nr = plane_terms(w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q],
+                                           w[(SMALL + 15) * CHUNK + q], w[(SMALL + 16) * CHUNK + q], pc)
+        w0, w1, w2 = w[(SMALL + 17) * CHUNK + q], w[(SMALL + 18) * CHUNK + q], w[(SMALL + 19) * CHUNK + q]
+        area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+        sig = 1.0 if area2 > 0 else -1.0
+        bx0, by0, dx0, dy0, s0, t0 = edge_from(i0, i1, x0, y0, x1, y1, sig)
+        bx1, by1, dx1, dy1, s1, t1 = edge_from(i1, i2, x1, y1, x2, y2, sig)
+        bx2, by2, dx2, dy2, s2, t2 = edge_from(i2, i0, x2, y2, x0, y0, sig)
+        two = (c1 != c0) | (r1 != r0)
+        # written out twice rather than looped: LLVM vectorises innermost loops only
+        ok, v, c, l0, l1, l2 = point_forward(
+            c0, r0, edge_value(bx0, by0, dx0, dy0, s0, c0, r0), edge_value(bx1, by1, dx1, dy1, s1, c0, r0),
+            edge_value(bx2, by2, dx2, dy2, s2, c0, r0), t0, t1, t2, cone, ik, a_off, b_off, nU, nV, num, nDS, nr,
+            mu, w0, w1, w2)
+        w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q] = v, c, l0
+        w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q] = l1, l2
+        w[(SMALL + 10) * CHUNK + q] = 1.0 if ok else 0.0
+        ok, v, c, l0, l1, l2 = point_forward(
+            c1, r1, edge_value(bx0, by0, dx0, dy0, s0, c1, r1), edge_value(bx1, by1, dx1, dy1, s1, c1, r1),
+            edge_value(bx2, by2, dx2, dy2, s2, c1, r1), t0, t1, t2, cone, ik, a_off, b_off, nU, nV, num, nDS, nr,
+            mu, w0, w1, w2)
+        w[(SMALL + 5) * CHUNK + q], w[(SMALL + 6) * CHUNK + q], w[(SMALL + 7) * CHUNK + q] = v, c, l0
+        w[(SMALL + 8) * CHUNK + q], w[(SMALL + 9) * CHUNK + q] = l1, l2
+        w[(SMALL + 11) * CHUNK + q] = 1.0 if ok & two else 0.0
+    m = 0
+    for q in range(n):
+        cross[m] = 2 * q
+        m += w[(SMALL + 10) * CHUNK + q] != 0.0
+        cross[m] = 2 * q + 1
+        m += w[(SMALL + 11) * CHUNK + q] != 0.0
+    return m
+
+
+@jit
+def lattice_pixel(p, row, col, rows, cols, k):
+    """The flat index of lattice point (col, row)'s pixel in projection p."""
+    # k == 1 apart: two integer divisions per crossing cost a tenth of the forward pass
+    return (p * rows + row) * cols + col if k == 1 else (p * rows + row // k) * cols + col // k
+
+
+@jit
+def put_crossing(st_face, st_pix, st_coef, stored, ok, f, pix, c, l0, l1, l2):
+    """Write a lattice point's face, pixel and gradient coefficients at ``stored`` (room checked by
+    the caller) and return the next place: ``stored + 1`` at a crossing, ``stored`` otherwise."""
+    st_face[stored] = f
+    st_pix[stored] = pix
+    st_coef[stored, 0] = c * l0
+    st_coef[stored, 1] = c * l1
+    st_coef[stored, 2] = c * l2
+    return stored + ok
+
+
+# lattice points of a triangle's box up to which the forward pass evaluates every one without
+# branches (faces_pass); larger boxes first find each row's inside span
+BOX_POINTS = 48
 
 
 @jit
 def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, cone, rows, cols, k, X, Y, iW,
-               fc0, fc1, fr0, fr1, L, grad, acc, hit, st_face, st_pix, st_coef, stored, rl, pix_rl, buf, keep, idx):
+               fc0, fc1, fr0, fr1, L, grad, acc, hit, st_face, st_pix, st_coef, stored, rl, pix_rl, bufs):
     """Rasterise faces ``fa..fb - 1`` (in the gradient pass: the ``n_cand`` faces in ``cand``) in
     projection p, within the lattice box ``fc0..fc1, fr0..fr1``, into the lattice array ``L``
-    (:func:`raster3d`); returns (crossings, stored)."""
+    (:func:`raster3d`); returns (crossings, stored).
+
+    ``bufs``: :func:`chunk_buffers`. The forward pass takes each chunk's small
+    candidates first (:func:`small_terms`), then the others, each lattice
+    point of a box evaluated without branches and its contributions selected
+    by its inside test; boxes of more than :data:`BOX_POINTS` points first find
+    each row's inside span (the edge functions are monotonic along a row).
+    Each face's crossings keep their order (row by row), so face sums do not
+    depend on it. A group whose store has no room for a chunk's boxes stops
+    storing (``stored`` -1): its gradient pass rasterises again.
+    """
+    w, flags, idx, sidx, cross = bufs
     count = 0
     cap = st_face.shape[0]
-    npix = rows * cols
     ik = 1.0 / k
     a_off, b_off = 0.5 * ik - 0.5 * cols, 0.5 * ik - 0.5 * rows  # detector coordinates of lattice point 0
     F0, F1, R0, R1 = float(fc0), float(fc1), float(fr0), float(fr1)
+    pc = projection_terms(p, cone, S, D, U, V)
     for block in range(n_cand if grad else (fb - fa + CHUNK - 1) // CHUNK):
         if grad:  # a block of one face
             s = cand[block]
-            face_into(faces, s, X, Y, F0, F1, R0, R1, buf)
+            face_into(faces, s, X, Y, F0, F1, R0, R1, w)
             n_keep = 1
             idx[0] = 0
         else:
             s = fa + block * CHUNK
-            n_keep = chunk_candidates(faces, s, min(CHUNK, fb - s), X, Y, F0, F1, R0, R1, buf, keep, idx)
+            n_keep, n_small = chunk_candidates(faces, s, min(CHUNK, fb - s), X, Y, F0, F1, R0, R1, w, flags, idx,
+                                               sidx)
+            mu = fmu[s]  # a chunk is one item's faces (raster3d)
+            gather_small(faces, s, sidx, n_small, nrm, offset, iW, w)
+            n_cross = small_terms(n_small, w, mu, pc, cone, ik, a_off, b_off, cross)
+            count += n_cross
+            if stored >= 0 and stored + n_cross > cap:
+                stored = -1
+            for e in range(n_cross):
+                q, pt = cross[e] >> 1, cross[e] & 1
+                j = sidx[q]
+                f = s + j
+                o = (SMALL + 5 * pt) * CHUNK + q
+                col, row = int(w[(BOX + pt) * CHUNK + j]), int(w[(BOX + 2 + pt) * CHUNK + j])
+                L[row, col] += w[o]
+                hit[p, f >> 3] |= np.uint8(1 << (f & 7))
+                if stored >= 0:
+                    c = w[o + CHUNK]
+                    if not pix_rl:
+                        c *= ray_length(p, col, row, cone, S, D, U, V, rows, cols, k, k)
+                    stored = put_crossing(st_face, st_pix, st_coef, stored, True, f,
+                                          lattice_pixel(p, row, col, rows, cols, k), c, w[o + 2 * CHUNK],
+                                          w[o + 3 * CHUNK], w[o + 4 * CHUNK])
         for q in range(n_keep):
             j = idx[q]
             f = s + j
             i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-            x0, x1, x2, y0, y1, y2 = buf[0, j], buf[1, j], buf[2, j], buf[3, j], buf[4, j], buf[5, j]
-            c0, c1, r0, r1 = int(buf[6, j]), int(buf[7, j]), int(buf[8, j]), int(buf[9, j])
+            x0, x1, x2 = w[j], w[CHUNK + j], w[2 * CHUNK + j]
+            y0, y1, y2 = w[3 * CHUNK + j], w[4 * CHUNK + j], w[5 * CHUNK + j]
+            c0, c1 = int(w[BOX * CHUNK + j]), int(w[(BOX + 1) * CHUNK + j])
+            r0, r1 = int(w[(BOX + 2) * CHUNK + j]), int(w[(BOX + 3) * CHUNK + j])
             area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
             if area2 == 0.0:
                 continue  # seen edge-on: no ray crosses it in a single point
@@ -254,80 +445,64 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
             bx0, by0, dx0, dy0, s0, t0 = edge_from(i0, i1, x0, y0, x1, y1, sig)
             bx1, by1, dx1, dy1, s1, t1 = edge_from(i1, i2, x1, y1, x2, y2, sig)
             bx2, by2, dx2, dy2, s2, t2 = edge_from(i2, i0, x2, y2, x0, y0, sig)
-            # the face's plane terms wait for its first lattice point: at fine
-            # subdivision most triangles whose box holds a point hold none
-            ready = False
-            nU = nV = num = nDS = nr = mu = 0.0
+            nU, nV, num, nDS, nr = plane_terms(nrm[f, 0], nrm[f, 1], nrm[f, 2], offset[f], pc)
+            mu = fmu[f]
+            w0, w1, w2 = iW[i0], iW[i1], iW[i2]
+            points = (c1 - c0 + 1) * (r1 - r0 + 1)
+            if not grad and stored >= 0 and stored + points > cap:
+                stored = -1
+            crossed = False
             sum0 = sum1 = sum2 = 0.0
             for row in range(r0, r1 + 1):
-                h0, h1, h2 = dx0 * (row - by0), dx1 * (row - by1), dx2 * (row - by2)
-                lin = 0.0
-                seen = False
-                for col in range(c0, c1 + 1):
-                    # the same operations for both triangles of an edge: the same number
-                    g0 = s0 * (h0 - dy0 * (col - bx0))
-                    g1 = s1 * (h1 - dy1 * (col - bx1))
-                    g2 = s2 * (h2 - dy2 * (col - bx2))
-                    if not (passes(g0, t0) & passes(g1, t1) & passes(g2, t2)):
-                        if seen:
-                            break  # each edge test is monotonic along a row: the span is over
+                lo, hi = c0, c1
+                if points > BOX_POINTS or grad:
+                    while lo <= c1 and not (passes(edge_value(bx0, by0, dx0, dy0, s0, lo, row), t0)
+                                            & passes(edge_value(bx1, by1, dx1, dy1, s1, lo, row), t1)
+                                            & passes(edge_value(bx2, by2, dx2, dy2, s2, lo, row), t2)):
+                        lo += 1
+                    hi = lo - 1
+                    while hi < c1 and (passes(edge_value(bx0, by0, dx0, dy0, s0, hi + 1, row), t0)
+                                       & passes(edge_value(bx1, by1, dx1, dy1, s1, hi + 1, row), t1)
+                                       & passes(edge_value(bx2, by2, dx2, dy2, s2, hi + 1, row), t2)):
+                        hi += 1
+                for col in range(lo, hi + 1):
+                    g0 = edge_value(bx0, by0, dx0, dy0, s0, col, row)
+                    g1 = edge_value(bx1, by1, dx1, dy1, s1, col, row)
+                    g2 = edge_value(bx2, by2, dx2, dy2, s2, col, row)
+                    ok, v, c, l0, l1, l2 = point_forward(col, row, g0, g1, g2, t0, t1, t2, cone, ik, a_off, b_off,
+                                                         nU, nV, num, nDS, nr, mu, w0, w1, w2)
+                    count += ok
+                    if grad:
+                        wt = L[row, col]
+                        scale = wt * c if ok else 0.0
+                        sum0 += scale * l0
+                        sum1 += scale * l1
+                        sum2 += scale * l2
                         continue
-                    if not seen:
-                        seen = True
-                        if not ready:
-                            ready = True
-                            n0, n1, n2 = nrm[f, 0], nrm[f, 1], nrm[f, 2]
-                            nU = n0 * U[p, 0] + n1 * U[p, 1] + n2 * U[p, 2]
-                            nV = n0 * V[p, 0] + n1 * V[p, 1] + n2 * V[p, 2]
-                            mu = fmu[f]
-                            if cone:
-                                # t = n.(x0 - S) |e| / |n.e| along e = D - S + a U + b V
-                                num = offset[f] - (n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
-                                nDS = n0 * (D[p, 0] - S[p, 0]) + n1 * (D[p, 1] - S[p, 1]) + n2 * (D[p, 2] - S[p, 2])
-                            else:
-                                # t = n.(x0 - P) / |n.r| from the pixel point P = D + a U + b V
-                                num = offset[f] - (n0 * D[p, 0] + n1 * D[p, 1] + n2 * D[p, 2])
-                                nr = abs(n0 * S[p, 0] + n1 * S[p, 1] + n2 * S[p, 2])
-                            if not grad:
-                                hit[p, f >> 3] |= np.uint8(1 << (f & 7))
-                        b = row * ik + b_off
-                        lin = nDS + b * nV if cone else num - b * nV
-                    den, val = crossing(col * ik + a_off, cone, lin, num, nU, nr)
-                    if den == 0.0:
-                        continue
-                    count += 1
-                    if not grad:
-                        L[row, col] += mu * val
-                        if stored >= 0:
-                            if stored < cap:
-                                # this crossing's coefficients in the gradient pass, for stored_face_sums
-                                l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
-                                c = mu / (den * (l0 + l1 + l2))
-                                if not pix_rl:
-                                    c *= ray_length(p, col, row, cone, S, D, U, V, rows, cols, k, k)
-                                st_face[stored] = f
-                                st_pix[stored] = p * npix + (row // k) * cols + col // k
-                                st_coef[stored, 0] = c * l0
-                                st_coef[stored, 1] = c * l1
-                                st_coef[stored, 2] = c * l2
-                                stored += 1
-                            else:
-                                stored = -1
-                        continue
-                    w = L[row, col]
-                    if w == 0.0:
-                        continue
-                    # barycentric weight of a vertex: the opposite edge's function over its depth
-                    l0, l1, l2 = g1 * iW[i0], g2 * iW[i1], g0 * iW[i2]
-                    scale = w * mu / (den * (l0 + l1 + l2))
-                    sum0 += scale * l0
-                    sum1 += scale * l1
-                    sum2 += scale * l2
+                    crossed |= ok
+                    L[row, col] += v
+                    if stored >= 0:
+                        # this crossing's coefficients in the gradient pass, for stored_face_sums; written
+                        # at every point, kept (stored moves on) at a crossing
+                        if not pix_rl:
+                            c *= ray_length(p, col, row, cone, S, D, U, V, rows, cols, k, k)
+                        stored = put_crossing(st_face, st_pix, st_coef, stored, ok, f,
+                                              lattice_pixel(p, row, col, rows, cols, k), c, l0, l1, l2)
             if grad:
                 acc[f, 0] += sum0
                 acc[f, 1] += sum1
                 acc[f, 2] += sum2
+            else:
+                hit[p, f >> 3] |= np.uint8(crossed) << np.uint8(f & 7)
     return count, stored
+
+
+@jit
+def chunk_buffers():
+    """Per-thread scratch of :func:`faces_pass`: a chunk's flat buffer (:data:`BOX`), its candidate
+    flags (kept, small) and its two candidate lists."""
+    return (np.empty((SMALL + SMALL_ROWS) * CHUNK), np.empty(2 * CHUNK, np.bool_), np.empty(CHUNK, np.int64),
+            np.empty(CHUNK, np.int64), np.empty(2 * CHUNK, np.int64))
 
 
 @jit
@@ -360,7 +535,7 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     nv, nf = verts.shape[0], faces.shape[0]
     X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
     cand = np.empty(nf, np.int64)
-    buf, keep, idx = np.empty((10, CHUNK)), np.empty(CHUNK, np.bool_), np.empty(CHUNK, np.int64)
+    bufs = chunk_buffers()
     C, R = cols * k, rows * k
     npix = rows * cols
     count = 0
@@ -375,7 +550,7 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                 c, stored = faces_pass(p, item_f[it], item_f[it + 1], cand, 0, faces, nrm, offset, fmu, S, D, U, V,
                                        cone, rows, cols, k, X, Y, iW, fc0, fc1, fr0, fr1,
                                        values[p * npix:(p + 1) * npix].reshape((rows, cols)), grad, acc, hit,
-                                       st_face, st_pix, st_coef, stored, rl, pix_rl, buf, keep, idx)
+                                       st_face, st_pix, st_coef, stored, rl, pix_rl, bufs)
                 count += c
         # the lattice sums times the ray length (the projection-major path adds L * length to a zero)
         for pix in range(p0 * npix, p1 * npix):
@@ -406,10 +581,13 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                 for t in range(8):
                     cand[n_cand] = byte * 8 + t
                     n_cand += (bits >> t) & 1
-        c, stored = faces_pass(p, 0, nf, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, cone, rows, cols, k,
-                               X, Y, iW, fc0, fc1, fr0, fr1, L, grad, acc, hit, st_face, st_pix, st_coef, stored,
-                               rl, pix_rl, buf, keep, idx)
-        count += c
+        # the forward pass's chunks start at each item's first face, as item by item: the same sums
+        for it in range(1 if grad else item_f.shape[0] - 1):
+            fa, fb = (0, nf) if grad else (item_f[it], item_f[it + 1])
+            c, stored = faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, cone, rows, cols,
+                                   k, X, Y, iW, fc0, fc1, fr0, fr1, L, grad, acc, hit, st_face, st_pix, st_coef,
+                                   stored, rl, pix_rl, bufs)
+            count += c
         if not grad:
             for row in range(fr0, fr1 + 1):
                 for col in range(fc0, fc1 + 1):

@@ -427,8 +427,10 @@ def test_backends_agree_on_a_foam(rng, backend):
 @pytest.mark.parametrize("kind", ["cone", "parallel3d"])
 def test_item_by_item_forward_pass_is_the_projection_by_projection_one(rng, monkeypatch, kind, backend):
     """Large scenes are rasterised item by item (each through all projections of a thread's group):
-    the projection, crossing count, f and gradient are the same to the bit as projection by
-    projection, and exact against the convex chords (the other backends ignore the switch)."""
+    the projection, crossing count and f are the same to the bit as projection by projection, the
+    gradient to rounding (its face sums are split among threads by items, so a face's crossings
+    are added in another grouping), and exact against the convex chords (the other backends
+    ignore the switch)."""
     from bubsub.core.projection.backends import raster
 
     g = random_geometry(rng, kind, rows=24, cols=32, pixel=0.12, n_angles=5)
@@ -449,7 +451,7 @@ def test_item_by_item_forward_pass_is_the_projection_by_projection_one(rng, monk
     assert item_major[1] == projection_major[1] > 0
     assert item_major[2][0] == projection_major[2][0]
     for a, b in zip(item_major[2][1], projection_major[2][1]):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
     only_convex = MeshProjector(g)
     o, d = first_rays(g)
     truth = sum(m.attenuation * convex_chords(m, o[..., 0, :], d[..., 0, :]) for m in convex)

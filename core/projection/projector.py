@@ -169,7 +169,7 @@ class MeshProjector:
     def _scene(self, meshes):
         if isinstance(meshes, (Mesh, Polygon, SubdivisionSurface)):
             meshes = [meshes]
-        scene = Scene(meshes, self.geometry.ndim, self._backend.prisms_2d)
+        scene = Scene(meshes, self.geometry.ndim, self._backend.prisms_2d, self.threads)
         self._frames.check_scene(scene)
         return scene
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from bubsub.core.projection.mesh import Mesh, Polygon, bounding_box
 from bubsub.core.projection.subdivision import SubdivisionSurface, control_gradients, fine_vertices
+from bubsub.core.threads import thread_map
 
 __all__ = ["Scene", "Traversal", "StoredCrossings", "Backend", "vertex_gradient"]
 
@@ -45,8 +46,9 @@ class Scene:
         Vertices of each item's projected (fine) mesh or polygon.
     vertices : (n, 3) float
         All vertices minus ``centre``, mm (2D: z = 0, or prism walls).
-    faces : (m, 3) int or (m, 2) int
-        Triangles, or polygon segments (2D without prisms), into ``vertices``.
+    faces : (m, 3) int32 or (m, 2) int32
+        Triangles, or polygon segments (2D without prisms), into ``vertices`` (int64 from 2^31
+        vertices on).
     centre : (3,) float
         The shift, mm.
     half : (3,) float
@@ -64,9 +66,11 @@ class Scene:
         First vertex of each item.
     face_offset : (n_items + 1,) int
         First face of each item (an item's faces use only its own vertices).
+    threads : int
+        Worker threads for the scene's own per-face steps (planes, gradient scatter).
     """
 
-    def __init__(self, items, ndim, prisms_2d):
+    def __init__(self, items, ndim, prisms_2d, threads=1):
         self.items = list(items)
         self.ndim = ndim
         expected = Mesh if ndim == 3 else Polygon
@@ -99,11 +103,13 @@ class Scene:
         # 3D faces are objects the items keep (worth caching); 2D ones were just built
         self.faces, self.face_item, self.vertex_offset, self.face_offset = _joined_faces(
             faces, [len(v) for v in verts], cache=ndim == 3)
-        vertices = np.concatenate(verts)
+        vertices = np.concatenate(verts).astype(np.float64, copy=False)
         self.mu = np.array([it.attenuation for it in self.items], dtype=float)
         lo, hi = bounding_box(vertices)
         self.centre = 0.5 * (lo + hi)
-        self.vertices = vertices - self.centre
+        vertices -= self.centre  # in place: a fresh 6 MB array at 256,000 vertices cost its page faults
+        self.vertices = vertices
+        self.threads = max(1, int(threads))
         self.half = 0.5 * (hi - lo)
         if self.prisms:
             self.half[2] = self.half_height
@@ -112,13 +118,27 @@ class Scene:
             from bubsub.core.projection.backends.common_kernels import triangle_planes
 
             self.normals, self.offsets = np.empty((len(f), 3)), np.empty(len(f))
-            triangle_planes(v, f, self.normals, self.offsets)
+            thread_map(lambda span: triangle_planes(v, f[span[0]:span[1]], self.normals[span[0]:span[1]],
+                                                    self.offsets[span[0]:span[1]]),
+                       self.face_spans(), self.threads)
         else:  # outward normal of a counter-clockwise polygon's segment: the edge turned clockwise
             e = v[f[:, 1]] - v[f[:, 0]]
             n = np.stack([e[:, 1], -e[:, 0], np.zeros(len(e))], axis=1)
             norm = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
             self.normals = np.divide(n, norm, out=n, where=norm > 0)
             self.offsets = np.einsum("ij,ij->i", self.normals, v[f[:, 0]])
+
+    def item_spans(self, parts):
+        """Up to ``parts`` ranges ``(first item, end item)`` of about equal numbers of faces, in order,
+        covering every item: work split by items touches disjoint vertices and faces."""
+        n = len(self.face_offset) - 1
+        cuts = np.searchsorted(self.face_offset, np.linspace(0, self.face_offset[-1], max(1, parts) + 1)[1:-1])
+        bounds = [0, *sorted({int(c) for c in cuts} - {0, n}), n]
+        return list(zip(bounds[:-1], bounds[1:]))
+
+    def face_spans(self):
+        """:meth:`item_spans` for :attr:`threads` as face ranges ``(first face, end face)``."""
+        return [(int(self.face_offset[a]), int(self.face_offset[b])) for a, b in self.item_spans(self.threads)]
 
     def item_gradients(self, vertex_grad):
         """Split per-vertex gradients into one array per item (chain S and the prism)."""
@@ -155,7 +175,10 @@ def _joined_faces(faces, counts, cache=True):
     sizes = [len(f) for f in faces]
     face_item = np.repeat(np.arange(len(faces)), sizes)
     face_offset = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    joined = np.concatenate([np.asarray(f) + o for f, o in zip(faces, offset[:-1])])
+    # int32 while the indices fit: a projection reads every face's corners once per view, and
+    # half the bytes cost the raster backend 4 % at 512,000 faces (Embree wants 32 bits anyway)
+    index = np.int32 if offset[-1] < 2**31 else np.int64
+    joined = np.concatenate([np.asarray(f) + o for f, o in zip(faces, offset[:-1])]).astype(index, copy=False)
     value = (joined, face_item, offset, face_offset)  # shared by the scenes of one topology: never written to
     if cache:
         with _JOINED_LOCK:
@@ -179,7 +202,11 @@ def vertex_gradient(scene, face_sums):
     from bubsub.core.projection.backends.common_kernels import scatter_face_sums
 
     out = np.zeros((len(scene.vertices), 3))
-    scatter_face_sums(scene.faces, np.ascontiguousarray(face_sums, dtype=np.float64), scene.normals, out)
+    sums = np.ascontiguousarray(face_sums, dtype=np.float64)
+    # by items, whose faces use only their own vertices: no two threads add to one vertex
+    thread_map(lambda span: scatter_face_sums(scene.faces[span[0]:span[1]], sums[span[0]:span[1]],
+                                              scene.normals[span[0]:span[1]], out),
+               scene.face_spans(), scene.threads)
     return out
 
 

@@ -44,7 +44,8 @@ def triangle_planes(vertices, faces, normals, offsets):
         n2 = e0 * w1 - e1 * w0
         norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
         if norm > 0:
-            n0, n1, n2 = n0 / norm, n1 / norm, n2 / norm
+            inv = 1.0 / norm  # one division, not three: any unit normal with its own offset is exact
+            n0, n1, n2 = n0 * inv, n1 * inv, n2 * inv
         normals[f, 0], normals[f, 1], normals[f, 2] = n0, n1, n2
         offsets[f] = n0 * a0 + n1 * a1 + n2 * a2
 

@@ -167,6 +167,8 @@ class _RasterTraversal(Traversal):
     def face_sums(self, weights):
         job = self._job
         nf, k = job.scene.faces.shape
+        if job.by_item_store():
+            return self._item_face_sums(weights)
 
         def group(g):
             acc = np.zeros((nf, k))
@@ -177,7 +179,28 @@ class _RasterTraversal(Traversal):
                 job.run(g, None, weights, acc)
             return acc
 
-        return sum(thread_map(group, job.groups, job.threads), np.zeros((nf, k)))
+        sums = thread_map(group, job.groups, job.threads)
+        for other in sums[1:]:  # in place: a fresh sum was two more passes over (faces, 3) per call
+            sums[0] += other
+        return sums[0]
+
+    def _item_face_sums(self, weights):
+        """Face sums from stores kept item by item, split among the threads by items: each thread
+        writes only its items' faces of one shared array. Per group, face-sum arrays (12 MB each
+        at 512,000 faces) competed for the shared cache and cost a reduction."""
+        job = self._job
+        acc = np.zeros(job.scene.faces.shape)
+        kernel = _state["stored_face_sums"]
+
+        def items(span):
+            i0, i1 = span
+            for g in job.groups:
+                face, pix, coef, _ = job.stores[g]
+                a, b = int(job.store_items[g][i0]), int(job.store_items[g][i1])
+                kernel(face[a:b], pix[a:b], coef[a:b], b - a, weights, acc, *job.ray_lengths)
+
+        thread_map(items, job.scene.item_spans(job.threads), job.threads)
+        return acc
 
 
 class _Job:
@@ -201,7 +224,7 @@ class _Job:
         self.ray_lengths = _pixel_ray_lengths(frames) if cone and self.k == 1 and scene.ndim == 3 \
             else (np.ones(1), False)
         f = scene.faces
-        self.faces = np.ascontiguousarray(f, dtype=np.int64)
+        self.faces = np.ascontiguousarray(f)  # int32 (Scene), int64 for the largest scenes
         self.normals = np.ascontiguousarray(scene.normals)
         self.offset = scene.offsets
         self.face_mu = scene.mu[scene.face_item].astype(np.float64)
@@ -213,6 +236,8 @@ class _Job:
         # the caches: at 32,000 faces the whole scene stays cached anyway, and the per-item set-up
         # then cost about 10 % (foam3d, level 1), where at 512,000 faces it saved about 20 %
         self.by_item = len(f) >= _ITEM_MAJOR_FACES
+        # per group, where each item's stored crossings begin (raster3d's item-by-item pass)
+        self.store_items = {}
         n = frames.n
         self.threads = max(1, min(int(threads), n))
         edges = np.linspace(0, n, self.threads + 1).round().astype(int)
@@ -245,12 +270,19 @@ class _Job:
                 weights if grad else dummy1, acc if grad else dummy2, grad)
         if self.scene.ndim == 3:
             store = self.stores[group]
+            starts = self.store_items.setdefault(group, np.zeros(len(self.item_faces), np.int64))
             count, stored = _state["raster3d"](*args, self.hit, *store[:3], *self.ray_lengths,
-                                               self.item_vertices, self.item_faces, self.by_item)
+                                               self.item_vertices, self.item_faces, self.by_item, starts)
             if not grad:
                 store[3] = stored
             return count
         return _state["raster2d"](*args)
+
+
+    def by_item_store(self):
+        """Whether every group kept all its crossings, item by item (raster3d's ``st_item``)."""
+        return self.by_item and self.k == 1 and self.store is not None and all(
+            self.stores[g][3] >= 0 for g in self.groups)
 
 
 def _pixel_ray_lengths(frames):

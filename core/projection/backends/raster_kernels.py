@@ -514,7 +514,7 @@ def project_range(verts, v0, v1, p, cone, S, D, N, Au, Bv, rows, cols, k, X, Y, 
 
 @jit
 def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
-             values, weights, acc, grad, hit, st_face, st_pix, st_coef, rl, pix_rl, item_v, item_f, by_item):
+             values, weights, acc, grad, hit, st_face, st_pix, st_coef, rl, pix_rl, item_v, item_f, by_item, st_item):
     """Forward pass (``grad`` False: ``values``, ``hit``) or gradient pass (``weights`` into ``acc``)
     over projections ``p0..p1``. The forward pass also stores each crossing's face, pixel and
     gradient coefficients while ``st_face`` has room; returns (crossings, stored), with stored
@@ -531,7 +531,9 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     across the projections, where projection by projection the whole scene (about 50 MB at
     512,000 triangles) came from memory once per projection, over a bus the threads share. Each
     pixel and each face gets its crossings in the same order either way, so the results are the
-    same to the bit."""
+    same to the bit. ``st_item`` (n_items + 1,): there, where each item's stored crossings begin
+    (and where the last ends), so that face sums can be split among threads by items
+    (:func:`stored_face_sums`)."""
     nv, nf = verts.shape[0], faces.shape[0]
     X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
     cand = np.empty(nf, np.int64)
@@ -542,6 +544,7 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     stored = 0 if not grad and st_face.shape[0] > 0 else -1
     if by_item and not grad and k == 1:
         for it in range(item_v.shape[0] - 1):
+            st_item[it] = stored
             for p in range(p0, p1):
                 fc0, fc1, fr0, fr1 = project_range(verts, item_v[it], item_v[it + 1], p, cone, S, D, N, Au, Bv,
                                                    rows, cols, k, X, Y, iW)
@@ -552,6 +555,7 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                                        values[p * npix:(p + 1) * npix].reshape((rows, cols)), grad, acc, hit,
                                        st_face, st_pix, st_coef, stored, rl, pix_rl, bufs)
                 count += c
+        st_item[item_v.shape[0] - 1] = stored
         # the lattice sums times the ray length (the projection-major path adds L * length to a zero)
         for pix in range(p0 * npix, p1 * npix):
             if values[pix] != 0.0:

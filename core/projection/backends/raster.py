@@ -31,16 +31,20 @@ Exact and watertight
 Speed
 -----
 Per projection the vertices are projected once, with the projection's
-constants out of the loop. The faces then go in chunks of 256: their
-projected vertices are gathered into a small buffer, a branch-free test
-over its contiguous lanes (vectorised) keeps the candidates, those whose
-box holds a lattice point, less those whose single lattice point is
-clearly outside (by far more than any rounding), and each candidate visits
-its lattice points with the coordinates already in the buffer. At fine
-subdivision most triangles hold no point, and a mispredicted branch per
-triangle costs more than the test. The forward pass marks, per
-projection, one bit per face that it found crossed; the gradient pass
-visits only those faces.
+constants out of the loop. The faces then go in chunks of 256 (never
+across an item): their projected vertices are gathered into a small flat
+buffer, a branch-free test over its contiguous lanes (vectorised) keeps
+the candidates, those whose box holds a lattice point, less those whose
+single lattice point is clearly outside (by far more than any rounding),
+and sorts them into small ones (boxes of one or two lattice points: most
+triangles at fine subdivision) and the others. The small ones are copied
+into contiguous rows of the buffer and their two points evaluated in one
+vectorised loop without branches (edges, plane, crossing, gradient
+coefficients), then their crossings are added; each other candidate
+evaluates its box's lattice points without branches, its contributions
+selected by the inside test (boxes of more than 48 points first find each
+row's inside span). The forward pass marks, per projection, one bit per
+face that it found crossed; the gradient pass visits only those faces.
 
 Gradient
 --------
@@ -57,7 +61,10 @@ thread plus at most that budget.
 
 Threads: projections are split into contiguous groups, one per worker thread
 (compiled code releases the GIL); values are written per projection and face
-sums are accumulated per group, then added, so there are no races.
+sums are accumulated per group, then added, so there are no races. Where the
+forward pass went item by item and kept every crossing, the face sums are
+split among the threads by items instead, into one array (an item's faces
+belong to one thread).
 """
 
 from __future__ import annotations

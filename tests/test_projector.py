@@ -536,3 +536,32 @@ def test_compiled_code_falls_back_to_memory_when_no_cache_folder_is_writable(mon
 
     twice = cached(numba.njit, nogil=True)(lambda x: 2 * x)
     assert twice(21) == 42
+
+
+@pytest.mark.parametrize("parts", [1, 2, 3, 5, 12])
+def test_scene_item_spans_cover_every_item_once_in_order(rng, parts):
+    from bubsub.core.projection.backends.base import Scene
+
+    sizes = [4, 40, 6, 300, 8, 12, 60]
+    items = [convex_mesh(rng.normal(size=(n, 3)) + 5.0 * i) for i, n in enumerate(sizes)]
+    scene = Scene(items, 3, False, threads=parts)
+    spans = scene.item_spans(parts)
+    assert 1 <= len(spans) <= parts
+    assert spans[0][0] == 0 and spans[-1][1] == len(items)
+    assert all(a < b for a, b in spans) and all(b == c for (_, b), (c, _) in zip(spans, spans[1:]))
+
+
+def test_scene_steps_on_threads_are_the_serial_ones(rng, monkeypatch):
+    """The scene's planes and the gradient's vertex scatter split by items over threads give the
+    serial result to the bit (an item's faces use only its own vertices, in the same order)."""
+    from bubsub.core.projection.backends import base
+
+    items = [sphere_surface([0.6 * i - 0.9, 0.1 * i, 0.0], 0.25, 0.3 + 0.1 * i, levels=1) for i in range(4)]
+    serial = base.Scene(items, 3, False, threads=1)
+    monkeypatch.setattr(base, "THREADED_FACES", 0)
+    threaded = base.Scene(items, 3, False, threads=3)
+    assert len(threaded.face_spans()) == 3 and len(serial.face_spans()) == 1
+    np.testing.assert_array_equal(threaded.normals, serial.normals)
+    np.testing.assert_array_equal(threaded.offsets, serial.offsets)
+    sums = rng.normal(size=serial.faces.shape)
+    np.testing.assert_array_equal(base.vertex_gradient(threaded, sums), base.vertex_gradient(serial, sums))

@@ -390,7 +390,8 @@ BOX_POINTS = 96
 @jit
 def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, cone, rows, cols, k, X, Y, iW,
                fc0, fc1, fr0, fr1, L, grad, acc, hit, st_face, st_pix, st_coef, stored, rl, pix_rl, bufs):
-    """Rasterise faces ``fa..fb - 1`` (in the gradient pass: the ``n_cand`` faces in ``cand``) in
+    """Rasterise faces ``fa..fb - 1`` (in the forward pass one item's faces: a chunk takes its
+    attenuation from its first face; in the gradient pass the ``n_cand`` faces in ``cand``) in
     projection p, within the lattice box ``fc0..fc1, fr0..fr1``, into the lattice array ``L``
     (:func:`raster3d`); returns (crossings, stored).
 

@@ -93,6 +93,29 @@ def _objective_time(projector, items, repeats):
     return _median_time(lambda: projector.objective(items, target), repeats)
 
 
+def _interleaved_objective_times(cases, backends, threads, repeats):
+    """Median objective time per (case label, backend), timed in rounds that visit every case once.
+
+    A machine shared with others drifts by tens of percent within a minute;
+    timing the cases one after another put that drift into their ratios
+    (the growth), where rounds spread it over all of them alike.
+    """
+    runs = {}
+    for label, geom, items in cases:
+        for name in backends:
+            projector = MeshProjector(geom, threads=threads, backend=name)
+            target = projector.forward(items) * np.float32(1.01)
+            projector.objective(items, target)  # warm-up (compilation, caches)
+            runs[(label, name)] = (projector, items, target)
+    times = {key: [] for key in runs}
+    for _ in range(repeats):
+        for key, (projector, items, target) in runs.items():
+            t = time.perf_counter()
+            projector.objective(items, target)
+            times[key].append(time.perf_counter() - t)
+    return {key: statistics.median(v) for key, v in times.items()}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m bubsub.bench projector", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -156,17 +179,15 @@ def main(argv=None):
         cases = [(f"subdivision level {lv}", geometry, subdivided_bubbles(meshes, lv)) for lv in (1, 2, 3)]
         cases.append(("level 1, detector 4x (512 x 1024)", foam3d_geometry(rows=512, cols=1024, pixel_size=0.03),
                       cases[0][2]))
+        times = _interleaved_objective_times(cases, backends, args.threads, args.repeats)
         for label, geom, items in cases:
-            times = []
-            for name in backends:
-                times.append(_objective_time(MeshProjector(geom, threads=args.threads, backend=name), items,
-                                             max(1, args.repeats // 2)))
-            base = base or dict(zip(backends, times))
+            base = base or {n: times[(cases[0][0], n)] for n in backends}
             ntri = sum(len(s.fine().faces) for s in items)
-            rows.append([label, f"{ntri:,}"] + [f"{t:.3f}" for t in times] +
-                        [f"{t / base[n]:.1f} x" for n, t in zip(backends, times)])
+            rows.append([label, f"{ntri:,}"] + [f"{times[(label, n)]:.3f}" for n in backends] +
+                        [f"{times[(label, n)] / base[n]:.1f} x" for n in backends])
         _print_table(header, rows)
-        print("growth: objective time relative to subdivision level 1 on the default detector")
+        print(f"growth: objective time relative to subdivision level 1 on the default detector "
+              f"(medians of {args.repeats} rounds, each round timing every case once)")
 
     if args.trimesh:
         t = time.perf_counter()

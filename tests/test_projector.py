@@ -461,14 +461,16 @@ def test_item_by_item_forward_pass_is_the_projection_by_projection_one(rng, monk
 @pytest.mark.parametrize("kind", ["cone", "parallel3d"])
 def test_gradient_is_the_same_from_stored_and_from_rasterised_crossings(rng, monkeypatch, kind):
     """The raster forward pass keeps crossings for the gradient within BUBSUB_RASTER_STORE_MB; a full,
-    an overflowing (groups fall back) and a disabled store give the same objective and gradient
-    (the other backends ignore the setting)."""
+    an overflowing (groups fall back: at once, or after keeping about half their crossings) and a
+    disabled store give the same objective and gradient (the other backends ignore the setting)."""
     g = random_geometry(rng, kind, rows=24, cols=32, pixel=0.12, n_angles=5)
     items = [sphere_surface(c, 0.5, -0.2) for c in ([-0.7, 0.1, 0.0], [0.6, -0.2, 0.1])]
     items = [s.with_vertices(s.vertices + 0.03 * rng.normal(size=s.vertices.shape)) for s in items]
     data = MeshProjector(g).forward(items) * np.float32(0.9)
+    # about half of each group's crossings: a store that fills after keeping some
+    half = f"{MeshProjector(g).trace(items).count * 32 / 2 / 2**20:.6f}"
     results = {}
-    for mb in ("", "0.001", "0"):  # default (all kept), a store too small for one group, none
+    for mb in ("", "0.001", half, "0"):  # default (all kept), too small for one group, half, none
         monkeypatch.setenv("BUBSUB_RASTER_STORE_MB", mb)
         results[mb] = MeshProjector(g, threads=2).objective(items, data)
     f0, g0 = results[""]
@@ -477,9 +479,10 @@ def test_gradient_is_the_same_from_stored_and_from_rasterised_crossings(rng, mon
     if P.backend == "raster":  # the default budget keeps every group's crossings; a tiny one overflows
         monkeypatch.setenv("BUBSUB_RASTER_STORE_MB", "")
         assert all(s[3] > 0 for s in P._trace(P._scene(items), gradient=True)._job.stores.values())
-        monkeypatch.setenv("BUBSUB_RASTER_STORE_MB", "0.001")
-        assert any(s[3] < 0 for s in P._trace(P._scene(items), gradient=True)._job.stores.values())
-    for mb in ("0.001", "0"):
+        for mb in ("0.001", half):
+            monkeypatch.setenv("BUBSUB_RASTER_STORE_MB", mb)
+            assert any(s[3] < 0 for s in P._trace(P._scene(items), gradient=True)._job.stores.values())
+    for mb in ("0.001", half, "0"):
         f, grads = results[mb]
         assert f == pytest.approx(f0, rel=1e-12)
         for x, y in zip(grads, g0):

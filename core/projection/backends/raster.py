@@ -42,9 +42,11 @@ into contiguous rows of the buffer and their two points evaluated in one
 vectorised loop without branches (edges, plane, crossing, gradient
 coefficients), then their crossings are added; each other candidate
 evaluates its box's lattice points without branches, its contributions
-selected by the inside test (boxes of more than 48 points first find each
-row's inside span). The forward pass marks, per projection, one bit per
-face that it found crossed; the gradient pass visits only those faces.
+selected by the inside test (boxes of more than 96 points skip the points
+outside, row by row). The forward pass marks, per projection, one bit per
+face that it found crossed (the small triangles' stored crossings only
+once the store fills: a full store needs no marks); the gradient pass
+visits only those faces.
 
 Gradient
 --------

@@ -310,9 +310,11 @@ def gather_small(faces, s, sidx, n, nrm, offset, iW, w):
 def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, cross):
     """The forward terms (:func:`point_forward`) of both lattice points of the ``n`` small
     candidates in rows ``SMALL ..`` of ``w`` (:func:`gather_small`; attenuation ``mu``), written
-    over those rows: 5 rows (value, coefficient, three weights) for the box's first point (c0,
-    r0), 5 for its second (c1, r1; never a crossing in a one-point box); returns how many are
-    crossings, listed in ``cross`` (twice the candidate, plus 1 for a second point).
+    over the rows it has read: value, coefficient and three weights in rows ``SMALL + 0..4`` for
+    the box's first point (c0, r0) and ``SMALL + 10..14`` for its second (c1, r1; never a crossing
+    in a one-point box), their crossing flags in ``SMALL + 5`` and ``SMALL + 15``; the box stays in
+    ``SMALL + 6..9``. Returns how many points are crossings, listed in ``cross`` (twice the
+    candidate, plus 1 for a second point).
 
     The terms come from one loop without branches over contiguous lanes, which
     LLVM vectorises: at fine subdivision most candidates are such triangles,
@@ -343,21 +345,21 @@ def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, cross):
         c, l0, l1, l2 = point_coefficients(g0, g1, g2, w0, w1, w2, mu, den)
         w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q] = v, c, l0
         w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q] = l1, l2
-        w[(SMALL + 10) * CHUNK + q] = 1.0 if ok else 0.0
+        w[(SMALL + 5) * CHUNK + q] = 1.0 if ok else 0.0
         g0 = edge_value(bx0, by0, dx0, dy0, s0, c1, r1)
         g1 = edge_value(bx1, by1, dx1, dy1, s1, c1, r1)
         g2 = edge_value(bx2, by2, dx2, dy2, s2, c1, r1)
         ok, v, den = point_forward(c1, r1, g0, g1, g2, t0, t1, t2, cone, ik, a_off, b_off, nU, nV, num, nDS, nr, mu)
         c, l0, l1, l2 = point_coefficients(g0, g1, g2, w0, w1, w2, mu, den)
-        w[(SMALL + 5) * CHUNK + q], w[(SMALL + 6) * CHUNK + q], w[(SMALL + 7) * CHUNK + q] = v, c, l0
-        w[(SMALL + 8) * CHUNK + q], w[(SMALL + 9) * CHUNK + q] = l1, l2
-        w[(SMALL + 11) * CHUNK + q] = 1.0 if ok & two else 0.0
+        w[(SMALL + 10) * CHUNK + q], w[(SMALL + 11) * CHUNK + q], w[(SMALL + 12) * CHUNK + q] = v, c, l0
+        w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q] = l1, l2
+        w[(SMALL + 15) * CHUNK + q] = 1.0 if ok & two else 0.0
     m = 0
     for q in range(n):
         cross[m] = 2 * q
-        m += w[(SMALL + 10) * CHUNK + q] != 0.0
+        m += w[(SMALL + 5) * CHUNK + q] != 0.0
         cross[m] = 2 * q + 1
-        m += w[(SMALL + 11) * CHUNK + q] != 0.0
+        m += w[(SMALL + 15) * CHUNK + q] != 0.0
     return m
 
 
@@ -442,10 +444,10 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
                 stored = mark_stored(st_face, st_pix, stored, rows * cols, hit)
             for e in range(n_cross):
                 q, pt = cross[e] >> 1, cross[e] & 1
-                j = sidx[q]
-                f = s + j
-                o = (SMALL + 5 * pt) * CHUNK + q
-                col, row = int(w[(BOX + pt) * CHUNK + j]), int(w[(BOX + 2 + pt) * CHUNK + j])
+                f = s + sidx[q]
+                o = (SMALL + 10 * pt) * CHUNK + q
+                # the box from the candidate's own rows: contiguous, not through sidx into the chunk's
+                col, row = int(w[(SMALL + 6 + pt) * CHUNK + q]), int(w[(SMALL + 8 + pt) * CHUNK + q])
                 L[row, col] += w[o]
                 if stored < 0:  # a stored crossing marks its face only if the store fills (mark_stored)
                     hit[p, f >> 3] |= np.uint8(1 << (f & 7))

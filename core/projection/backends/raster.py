@@ -199,14 +199,11 @@ class _RasterTraversal(Traversal):
         at 512,000 faces) competed for the shared cache and cost a reduction."""
         job = self._job
         acc = np.zeros(job.scene.faces.shape)
-        kernel = _state["stored_face_sums"]
+        # each item's start in the whole store: a group's part begins at its first projection's share
+        starts = np.stack([job.store_items[g] + job.store_offset[g] for g in job.groups])
 
         def items(span):
-            i0, i1 = span
-            for g in job.groups:
-                face, pix, coef, _ = job.stores[g]
-                a, b = int(job.store_items[g][i0]), int(job.store_items[g][i1])
-                kernel(face[a:b], pix[a:b], coef[a:b], b - a, weights, acc, *job.ray_lengths)
+            _state["item_face_sums"](*job.store, starts, span[0], span[1], weights, acc, *job.ray_lengths)
 
         thread_map(items, job.scene.item_spans(job.threads), job.threads)
         return acc
@@ -261,8 +258,10 @@ class _Job:
         per_projection = store_bytes() // 32 // n if store and scene.ndim == 3 and npix < 2**31 else 0
         self.store = _take_store(per_projection * n) if per_projection else None
         self.stores = {}
+        self.store_offset = {}  # where each group's part of the store begins
         for g in self.groups:
             a, b = per_projection * g[0], per_projection * g[1]
+            self.store_offset[g] = a
             self.stores[g] = [x[a:b] for x in self.store] + [-1] if self.store else \
                 [np.empty(0, np.int32), np.empty(0, np.int32), np.empty((0, 3)), -1]
 
@@ -311,4 +310,5 @@ def _compile():
     from bubsub.core.projection.backends import raster_kernels
 
     return {"raster3d": raster_kernels.raster3d, "raster2d": raster_kernels.raster2d,
-            "stored_face_sums": raster_kernels.stored_face_sums, "pixel_ray_lengths": raster_kernels.pixel_ray_lengths}
+            "stored_face_sums": raster_kernels.stored_face_sums, "item_face_sums": raster_kernels.item_face_sums,
+            "pixel_ray_lengths": raster_kernels.pixel_ray_lengths}

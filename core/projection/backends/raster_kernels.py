@@ -20,7 +20,7 @@ import numpy as np
 
 from bubsub.core.projection.backends.jit import cached
 
-__all__ = ["raster3d", "raster2d", "stored_face_sums", "pixel_ray_lengths"]
+__all__ = ["raster3d", "raster2d", "stored_face_sums", "item_face_sums", "pixel_ray_lengths"]
 
 # numpy error model: float division by zero gives inf instead of a checked exception
 jit = cached(numba.njit, nogil=True, error_model="numpy")
@@ -687,6 +687,18 @@ def raster2d(p0, p1, verts, segs, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone,
                 if L[col] != 0.0:
                     values[p * cols + col // k] += L[col] * ray_length(p, col, 0, cone, S, D, U, V, 1, cols, k, 1)
     return count
+
+
+@jit
+def item_face_sums(st_face, st_pix, st_coef, starts, i0, i1, weights, acc, rl, pix_rl):
+    """:func:`stored_face_sums` of items ``i0..i1 - 1`` from stores kept item by item:
+    ``starts[g, it]`` is where item ``it``'s crossings begin in group g's part of the store.
+    Item by item across the groups, so that an item's rows of ``acc`` stay in the core's cache
+    (group by group, each item's rows came back from memory once per group)."""
+    for it in range(i0, i1):
+        for g in range(starts.shape[0]):
+            a, b = starts[g, it], starts[g, it + 1]
+            stored_face_sums(st_face[a:b], st_pix[a:b], st_coef[a:b], b - a, weights, acc, rl, pix_rl)
 
 
 @jit

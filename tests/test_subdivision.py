@@ -110,3 +110,24 @@ def test_batched_subdivision_matches_one_product_per_surface(ndim):
         np.testing.assert_allclose(f, S @ it.vertices if S is not None else it.vertices, rtol=0, atol=1e-13)
         np.testing.assert_allclose(b, S.T @ g if S is not None else g, rtol=0, atol=1e-12)
         assert b.shape == it.vertices.shape
+
+
+def test_subdivision_products_split_among_threads_are_the_serial_ones(monkeypatch):
+    """The sparse products through S, split by surfaces among threads, give the one product's
+    numbers to the bit, for every item and whatever the mix of topologies and meshes."""
+    from bubsub.core.projection import subdivision
+    from bubsub.core.projection.subdivision import control_gradients, fine_vertices
+
+    rng = np.random.default_rng(5)
+    items = [sphere_surface(rng.normal(size=3), 0.3 + 0.1 * k, 0.2, levels=2) for k in range(5)]
+    items.insert(2, Mesh(*icosphere(1), 0.3))  # a plain mesh among them
+    items += [sphere_surface(rng.normal(size=3), 0.4, 0.2, control=12, levels=1) for _ in range(3)]
+    serial = fine_vertices(items)
+    grads = [rng.normal(size=v.shape) for v in serial]
+    serial_grads = control_gradients(items, grads)
+    monkeypatch.setattr(subdivision, "THREADED_FINE_VERTICES", 0)
+    assert len(subdivision._split(items, subdivision._groups(items), 3)) == 6  # 3 parts per topology
+    for a, b in zip(fine_vertices(items, threads=3), serial):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(control_gradients(items, grads, threads=3), serial_grads):
+        np.testing.assert_array_equal(a, b)

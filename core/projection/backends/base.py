@@ -84,7 +84,8 @@ class Scene:
         if not self.items:
             raise ValueError("nothing to project: give at least one mesh")
         # every item's fine vertices; surfaces that share a topology in one sparse product
-        fine = fine_vertices(self.items)
+        self.threads = max(1, int(threads))
+        fine = fine_vertices(self.items, self.threads)
         self.fine_counts = [len(v) for v in fine]
         self.prisms = ndim == 2 and prisms_2d
         if ndim == 3:
@@ -109,7 +110,6 @@ class Scene:
         self.centre = 0.5 * (lo + hi)
         vertices -= self.centre  # in place: a fresh 6 MB array at 256,000 vertices cost its page faults
         self.vertices = vertices
-        self.threads = max(1, int(threads))
         self.half = 0.5 * (hi - lo)
         if self.prisms:
             self.half[2] = self.half_height
@@ -151,7 +151,7 @@ class Scene:
                 n = self.fine_counts[k]
                 g = g[:n, :2] + g[n:, :2] if self.prisms else g[:, :2]
             fine.append(g)
-        return control_gradients(self.items, fine)
+        return control_gradients(self.items, fine, self.threads)
 
 
 # faces from which a scene's own per-face steps (planes, the gradient's scatter) use its threads:

@@ -586,10 +586,14 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                 count += c
         st_item[item_v.shape[0] - 1] = stored
         # the lattice sums times the ray length (the projection-major path adds L * length to a zero)
-        for pix in range(p0 * npix, p1 * npix):
-            if values[pix] != 0.0:
-                values[pix] *= rl[pix] if pix_rl else ray_length(
-                    pix // npix, pix % cols, (pix % npix) // cols, cone, S, D, U, V, rows, cols, 1, 1)
+        if pix_rl:  # one vectorised pass; a zero stays a zero
+            for pix in range(p0 * npix, p1 * npix):
+                values[pix] *= rl[pix]
+        else:
+            for pix in range(p0 * npix, p1 * npix):
+                if values[pix] != 0.0:
+                    values[pix] *= ray_length(pix // npix, pix % cols, (pix % npix) // cols, cone, S, D, U, V, rows,
+                                              cols, 1, 1)
         return count, stored
     L = np.zeros((R, C))  # per lattice point: sum of mu t / |e| (forward) or w |e| (gradient)
     for p in range(p0, p1):

@@ -175,13 +175,12 @@ def main(argv=None):
         header = ["case", "triangles"] + [f"{n} objective s" for n in backends] + \
             [f"{n} growth" for n in backends]
         rows = []
-        base = {}
         cases = [(f"subdivision level {lv}", geometry, subdivided_bubbles(meshes, lv)) for lv in (1, 2, 3)]
         cases.append(("level 1, detector 4x (512 x 1024)", foam3d_geometry(rows=512, cols=1024, pixel_size=0.03),
                       cases[0][2]))
         times = _interleaved_objective_times(cases, backends, args.threads, args.repeats)
+        base = {n: times[(cases[0][0], n)] for n in backends}
         for label, geom, items in cases:
-            base = base or {n: times[(cases[0][0], n)] for n in backends}
             ntri = sum(len(s.fine().faces) for s in items)
             rows.append([label, f"{ntri:,}"] + [f"{times[(label, n)]:.3f}" for n in backends] +
                         [f"{times[(label, n)] / base[n]:.1f} x" for n in backends])

@@ -126,7 +126,7 @@ def test_subdivision_products_split_among_threads_are_the_serial_ones(monkeypatc
     grads = [rng.normal(size=v.shape) for v in serial]
     serial_grads = control_gradients(items, grads)
     monkeypatch.setattr(subdivision, "THREADED_FINE_VERTICES", 0)
-    assert len(subdivision._split(items, subdivision._groups(items), 3)) == 6  # 3 parts per topology
+    assert len(subdivision._split(items, 3)) == 6  # 3 parts per topology
     for a, b in zip(fine_vertices(items, threads=3), serial):
         np.testing.assert_array_equal(a, b)
     for a, b in zip(control_gradients(items, grads, threads=3), serial_grads):

@@ -251,7 +251,7 @@ def fine_vertices(items, threads=1):
         for j, k in enumerate(ks):
             out[k] = fine[:, j]
 
-    thread_map(product, _split(items, _groups(items), threads), threads)
+    thread_map(product, _split(items, threads), threads)
     return out
 
 
@@ -260,10 +260,11 @@ def fine_vertices(items, threads=1):
 THREADED_FINE_VERTICES = 100_000
 
 
-def _split(items, groups, threads):
-    """Each topology's surfaces, in up to ``threads`` parts when it is large enough to be worth it."""
+def _split(items, threads):
+    """Each topology's surfaces (:func:`_groups`), in up to ``threads`` parts when it is large
+    enough to be worth it."""
     parts = []
-    for ks in groups:
+    for ks in _groups(items):
         n = min(int(threads), len(ks)) if items[ks[0]].S.shape[0] * len(ks) >= THREADED_FINE_VERTICES else 1
         parts.extend(part.tolist() for part in np.array_split(np.asarray(ks), max(n, 1)))
     return parts
@@ -293,7 +294,7 @@ def control_gradients(items, fine_gradients, threads=1):
         for j, k in enumerate(ks):
             out[k] = np.ascontiguousarray(control[:, j])
 
-    thread_map(product, _split(items, _groups(items), threads), threads)
+    thread_map(product, _split(items, threads), threads)
     return out
 
 

@@ -241,7 +241,8 @@ class _Job:
         # item by item only for scenes whose per-projection data (about 100 bytes a face) outgrows
         # the caches: at 32,000 faces the whole scene stays cached anyway, and the per-item set-up
         # then cost about 10 % (foam3d, level 1), where at 512,000 faces it saved about 20 %
-        self.by_item = len(f) >= _ITEM_MAJOR_FACES
+        # (the item-by-item pass has no supersampling)
+        self.by_item = len(f) >= _ITEM_MAJOR_FACES and self.k == 1
         # per group, where each item's stored crossings begin (raster3d's item-by-item pass)
         self.store_items = {}
         n = frames.n
@@ -286,10 +287,9 @@ class _Job:
             return count
         return _state["raster2d"](*args)
 
-
     def by_item_store(self):
         """Whether every group kept all its crossings, item by item (raster3d's ``st_item``)."""
-        return self.by_item and self.k == 1 and self.store is not None and all(
+        return self.by_item and self.store is not None and all(
             self.stores[g][3] >= 0 for g in self.groups)
 
 

@@ -529,7 +529,8 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
 @jit
 def chunk_buffers():
     """Per-thread scratch of :func:`faces_pass`: a chunk's flat buffer (:data:`BOX`), its candidate
-    flags (kept, small) and its two candidate lists."""
+    flags (kept, small), its two candidate lists and its small candidates' crossings
+    (:func:`small_terms`)."""
     return (np.empty((SMALL + SMALL_ROWS) * CHUNK), np.empty(2 * CHUNK, np.bool_), np.empty(CHUNK, np.int64),
             np.empty(CHUNK, np.int64), np.empty(2 * CHUNK, np.int64))
 
@@ -561,8 +562,8 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     512,000 triangles) came from memory once per projection, over a bus the threads share. Each
     pixel and each face gets its crossings in the same order either way, so the results are the
     same to the bit. ``st_item`` (n_items + 1,): there, where each item's stored crossings begin
-    (and where the last ends), so that face sums can be split among threads by items
-    (:func:`stored_face_sums`)."""
+    (and where the last ends) in the group's part of the store, so that face sums can be split
+    among threads by items (:func:`item_face_sums`)."""
     nv, nf = verts.shape[0], faces.shape[0]
     X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
     cand = np.empty(nf, np.int64)
@@ -695,8 +696,8 @@ def raster2d(p0, p1, verts, segs, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone,
 
 @jit
 def item_face_sums(st_face, st_pix, st_coef, starts, i0, i1, weights, acc, rl, pix_rl):
-    """:func:`stored_face_sums` of items ``i0..i1 - 1`` from stores kept item by item:
-    ``starts[g, it]`` is where item ``it``'s crossings begin in group g's part of the store.
+    """:func:`stored_face_sums` of items ``i0..i1 - 1`` from stores kept item by item: group g's
+    crossings of item ``it`` are ``starts[g, it] .. starts[g, it + 1] - 1`` of the whole store.
     Item by item across the groups, so that an item's rows of ``acc`` stay in the core's cache
     (group by group, each item's rows came back from memory once per group)."""
     for it in range(i0, i1):

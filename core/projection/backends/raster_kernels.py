@@ -566,7 +566,7 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     among threads by items (:func:`item_face_sums`)."""
     nv, nf = verts.shape[0], faces.shape[0]
     X, Y, iW = np.empty(nv), np.empty(nv), np.empty(nv)
-    cand = np.empty(nf, np.int64)
+    cand = np.empty(nf + 8, np.int64)  # the listing below writes one place past the last face found
     bufs = chunk_buffers()
     C, R = cols * k, rows * k
     npix = rows * cols

@@ -179,7 +179,7 @@ def lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1):
 CHUNK = 256
 # rows of a chunk's flat buffer (chunk_buffers), CHUNK values each: the projected vertices
 # x0 x1 x2 y0 y1 y2 (rows 0-5) and the clipped box c0 c1 r0 r1 (rows 6-9) of each face of the
-# chunk, then SMALL_ROWS rows of its small candidates (gather_small, small_terms). Constant
+# chunk, then SMALL_ROWS rows of its small candidates (gather_small, small_terms; some unused). Constant
 # offsets into one array let LLVM vectorise loops over it without run-time checks that the
 # rows do not overlap (with a 2D array's strides it gave up: "too many memory checks").
 BOX, SMALL, SMALL_ROWS = 6, 10, 20
@@ -297,19 +297,18 @@ def edge_value(bx, by, dx, dy, s, col, row):
 @jit
 def gather_small(faces, s, sidx, n, nrm, offset, iW, w):
     """Copy the small candidates ``sidx[:n]`` of the chunk at face ``s`` into contiguous rows
-    ``SMALL ..`` of ``w``: coordinates and box (10 rows), vertex indices, normal, plane offset and
-    the vertices' inverse depths (:func:`small_terms`). Of the vertex indices only their order
-    is copied (one number: :func:`edge_from`'s three swaps as bits)."""
+    ``SMALL ..`` of ``w``: lattice coordinates (rows 0-5), the vertex indices' order (row 10: one
+    number, :func:`edge_from`'s three swaps as bits), normal and plane offset (13-16) and the
+    vertices' inverse depths (17-19), for :func:`small_terms`. Not the box: computing it again
+    there, vectorised, costs less than copying it (level 3 forward, one thread: 6 ms less)."""
     for q in range(n):
         j = sidx[q]
         f = s + j
         # written out: as a loop over the rows it was not unrolled (3 % slower)
         a0, a1, a2, a3, a4 = w[j], w[CHUNK + j], w[2 * CHUNK + j], w[3 * CHUNK + j], w[4 * CHUNK + j]
-        a5, a6, a7, a8, a9 = w[5 * CHUNK + j], w[6 * CHUNK + j], w[7 * CHUNK + j], w[8 * CHUNK + j], w[9 * CHUNK + j]
+        a5 = w[5 * CHUNK + j]
         w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q] = a0, a1, a2
         w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q], w[(SMALL + 5) * CHUNK + q] = a3, a4, a5
-        w[(SMALL + 6) * CHUNK + q], w[(SMALL + 7) * CHUNK + q], w[(SMALL + 8) * CHUNK + q] = a6, a7, a8
-        w[(SMALL + 9) * CHUNK + q] = a9
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
         w[(SMALL + 10) * CHUNK + q] = (i1 < i0) + 2 * (i2 < i1) + 4 * (i0 < i2)  # edge_from's swaps
         w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q] = nrm[f, 0], nrm[f, 1]
@@ -318,15 +317,16 @@ def gather_small(faces, s, sidx, n, nrm, offset, iW, w):
 
 
 @jit
-def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, C, cross):
+def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, C, F0, F1, R0, R1, cross):
     """The forward terms (:func:`point_forward`) of both lattice points of the ``n`` small
     candidates in rows ``SMALL ..`` of ``w`` (:func:`gather_small`; attenuation ``mu``), written
     over the rows it has read: value, the three gradient coefficients (coefficient times weight,
     :func:`point_coefficients`) and the lattice index ``row * C + col`` (a float, exact) in rows
     ``SMALL + 0..4`` for the box's first point (c0, r0) and ``SMALL + 10..14`` for its second
     (c1, r1; never a crossing in a one-point box), their crossing flags in ``SMALL + 5`` and
-    ``SMALL + 15``; the box stays in ``SMALL + 6..9``. Returns how many points are crossings,
-    listed in ``cross`` (twice the candidate, plus 1 for a second point).
+    ``SMALL + 15``. Returns how many points are crossings, listed in ``cross`` (twice the
+    candidate, plus 1 for a second point). ``F0..F1, R0..R1``: the bounds the candidate pass
+    clipped the boxes to (:func:`lattice_box`), which this computes again.
 
     The terms come from one loop without branches over contiguous lanes, which
     LLVM vectorises: at fine subdivision most candidates are such triangles,
@@ -338,8 +338,7 @@ def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, C, cross):
     for q in range(n):
         x0, x1, x2 = w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q]
         y0, y1, y2 = w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q], w[(SMALL + 5) * CHUNK + q]
-        c0, c1 = w[(SMALL + 6) * CHUNK + q], w[(SMALL + 7) * CHUNK + q]
-        r0, r1 = w[(SMALL + 8) * CHUNK + q], w[(SMALL + 9) * CHUNK + q]
+        c0, c1, r0, r1 = lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)
         order = int(w[(SMALL + 10) * CHUNK + q])
         nU, nV, num, nDS, nr = plane_terms(w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q],
                                            w[(SMALL + 15) * CHUNK + q], w[(SMALL + 16) * CHUNK + q], pc)
@@ -453,7 +452,7 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
                                                sidx)
             mu = fmu[s]  # a chunk is one item's faces (raster3d)
             gather_small(faces, s, sidx, n_small, nrm, offset, iW, w)
-            n_cross = small_terms(n_small, w, mu, pc, cone, ik, a_off, b_off, float(C), cross)
+            n_cross = small_terms(n_small, w, mu, pc, cone, ik, a_off, b_off, float(C), F0, F1, R0, R1, cross)
             count += n_cross
             if stored >= 0 and stored + n_cross > cap:
                 stored = mark_stored(st_face, st_pix, stored, rows * cols, hit)
@@ -548,13 +547,6 @@ def chunk_buffers():
 
 
 @jit
-def project_range(verts, v0, v1, p, cone, S, D, N, Au, Bv, rows, cols, k, XY, iW):
-    """:func:`project_all` for vertices ``v0..v1 - 1`` only; returns their :func:`footprint`."""
-    project_all(verts[v0:v1], p, cone, S, D, N, Au, Bv, rows, cols, k, XY[v0:v1], iW[v0:v1])
-    return footprint(XY[v0:v1], cols * k, rows * k)
-
-
-@jit
 def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
              values, weights, acc, grad, hit, st_face, st_pix, st_coef, rl, pix_rl, item_v, item_f, by_item, st_item):
     """Forward pass (``grad`` False: ``values``, ``hit``) or gradient pass (``weights`` into ``acc``)
@@ -587,13 +579,15 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     if by_item and not grad and k == 1:
         for it in range(item_v.shape[0] - 1):
             st_item[it] = stored
+            v0, v1 = item_v[it], item_v[it + 1]
             for p in range(p0, p1):
-                fc0, fc1, fr0, fr1 = project_range(verts, item_v[it], item_v[it + 1], p, cone, S, D, N, Au, Bv,
-                                                   rows, cols, k, XY, iW)
-                if fc0 > fc1 or fr0 > fr1:
-                    continue
+                project_all(verts[v0:v1], p, cone, S, D, N, Au, Bv, rows, cols, k, XY[v0:v1], iW[v0:v1])
+                # boxes clipped to the detector rather than to the item's footprint: the same boxes
+                # (a face's box lies within its item's footprint), without a pass over the item's
+                # vertices per projection (level 3 forward, one thread: 6 ms of 170); an item off the
+                # detector costs a candidate pass whose boxes all clip to nothing
                 c, stored = faces_pass(p, item_f[it], item_f[it + 1], cand, 0, faces, nrm, offset, fmu, S, D, U, V,
-                                       cone, rows, cols, k, XY, iW, fc0, fc1, fr0, fr1,
+                                       cone, rows, cols, k, XY, iW, 0, C - 1, 0, R - 1,
                                        values[p * npix:(p + 1) * npix].reshape((rows, cols)), grad, acc, hit,
                                        st_face, st_pix, st_coef, stored, rl, pix_rl, bufs)
                 count += c

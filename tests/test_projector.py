@@ -94,6 +94,50 @@ def test_convex_chords_exact_for_non_circular_vector_geometry(rng, backend):
     assert np.median(np.abs(p - truth)[truth > 0]) < 2e-6
 
 
+def box_classes(projector, meshes):
+    """How many triangles the raster backend's candidate pass sorts into each way through a chunk,
+    over all projections: boxes of one or two lattice points, 2 x 2 boxes, larger ones."""
+    from bubsub.core.projection.backends import raster_kernels as K
+    from bubsub.core.projection.backends.base import Scene
+    from bubsub.core.projection.backends.raster import _Job
+
+    job = _Job(Scene(meshes, 3, False), projector._frames, projector._sub, 1)
+    S, D, U, V, N, Au, Bv = job.frames
+    XY, iW = np.empty((len(job.vertices), 2)), np.empty(len(job.vertices))
+    w, flags, idx, sidx, _, _ = K.chunk_buffers()
+    counts = np.zeros(3, int)
+    for p in range(projector.geometry.n_angles):
+        K.project_all(job.vertices, p, job.cone, S, D, N, Au, Bv, job.rows, job.cols, 1, XY, iW)
+        for s in range(0, len(job.faces), K.CHUNK):
+            n_other, n_small = K.chunk_candidates(job.faces, s, min(K.CHUNK, len(job.faces) - s), XY, 0.0,
+                                                  job.cols - 1.0, 0.0, job.rows - 1.0, w, flags, idx, sidx)
+            j = idx[:n_other]
+            box = w.reshape(-1, K.CHUNK)[K.BOX:K.BOX + 4, j]
+            quad = (box[1] - box[0] == 1) & (box[3] - box[2] == 1)
+            counts += [n_small, quad.sum(), n_other - quad.sum()]
+    return counts
+
+
+@pytest.mark.parametrize("kind", ["cone", "parallel3d"])
+def test_triangles_of_every_size_are_exact(rng, kind, backend):
+    """The raster backend takes a chunk's triangles three ways by the lattice box of their projection
+    (one or two points; 2 x 2; larger): a convex mesh with triangles from a fraction of a pixel to
+    many pixels is exact against its chords, and the candidate pass finds all three kinds on it."""
+    directions = rng.normal(size=(1500, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    # points dense on one cap (triangles about a pixel), sparse elsewhere (triangles of many pixels)
+    keep = (directions[:, 2] > 0.3) | (rng.uniform(size=len(directions)) < 0.03)
+    mesh = convex_mesh(directions[keep] * [1.0, 0.8, 0.7], attenuation=0.6)
+    g = random_geometry(rng, kind, rows=40, cols=48, pixel=0.06)
+    P = MeshProjector(g)
+    o, d = first_rays(g)
+    truth = 0.6 * convex_chords(mesh, o[..., 0, :], d[..., 0, :])
+    assert truth.max() > 1.0
+    np.testing.assert_allclose(values64(P, [mesh]), truth, rtol=0, atol=exact_tolerance(backend, truth.max()))
+    if backend == "raster":
+        assert (box_classes(P, [mesh]) > 100).all()
+
+
 @pytest.mark.parametrize("kind", ["parallel3d", "cone"])
 def test_fine_sphere_and_ellipsoid_match_analytic_chords(rng, kind):
     v, f = icosphere(4)  # 5120 triangles

@@ -37,8 +37,9 @@ buffer, a branch-free test over its contiguous lanes (vectorised) keeps
 the candidates, those whose box holds a lattice point, less those whose
 single lattice point is clearly outside (by far more than any rounding),
 and sorts them into small ones (boxes of one or two lattice points: most
-triangles at fine subdivision) and the others. The small ones are copied
-into contiguous rows of the buffer and their two points evaluated in one
+triangles at fine subdivision), 2 x 2 boxes (about 40 % at two levels of
+subdivision) and the others. The small ones, then the 2 x 2 ones, are copied
+into contiguous rows of the buffer and their points evaluated in one
 vectorised loop without branches (edges, plane, crossing, gradient
 coefficients), then their crossings are added; each other candidate
 evaluates its box's lattice points without branches, its contributions
@@ -136,7 +137,7 @@ def store_bytes():
 
 
 # faces from which the forward pass goes item by item (raster_kernels.raster3d, _Job)
-_ITEM_MAJOR_FACES = 200_000
+_ITEM_MAJOR_FACES = 100_000
 
 _POOL_LOCK = threading.Lock()
 _POOL = []  # crossing stores handed back by finished gradients, reused: fresh pages cost a fault each
@@ -239,9 +240,10 @@ class _Job:
         self.item_vertices = np.ascontiguousarray(scene.vertex_offset, dtype=np.int64)
         self.item_faces = scene.face_offset
         # item by item only for scenes whose per-projection data (about 100 bytes a face) outgrows
-        # the caches: at 32,000 faces the whole scene stays cached anyway, and the per-item set-up
-        # then cost about 10 % (foam3d, level 1), where at 512,000 faces it saved about 20 %
-        # (the item-by-item pass has no supersampling)
+        # the caches. Objective on 2 threads, paired medians of 15: foam3d at 32,000 faces (level 1)
+        # +16 ms (of 86), the 76,800 faces of a 60-bubble reconstruction -1 ms (of 85), foam3d at
+        # 128,000 faces (level 2) -9 ms (of 124); at 512,000 faces it saved about 20 % (the
+        # item-by-item pass has no supersampling)
         self.by_item = len(f) >= _ITEM_MAJOR_FACES and self.k == 1
         # per group, where each item's stored crossings begin (raster3d's item-by-item pass)
         self.store_items = {}

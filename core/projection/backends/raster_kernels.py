@@ -182,7 +182,7 @@ CHUNK = 256
 # chunk, then SMALL_ROWS rows of its small candidates (gather_small, small_terms; some unused). Constant
 # offsets into one array let LLVM vectorise loops over it without run-time checks that the
 # rows do not overlap (with a 2D array's strides it gave up: "too many memory checks").
-BOX, SMALL, SMALL_ROWS = 6, 10, 20
+BOX, SMALL, SMALL_ROWS = 6, 10, 36
 
 
 @jit
@@ -317,61 +317,80 @@ def gather_small(faces, s, sidx, n, nrm, offset, iW, w):
 
 
 @jit
-def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, C, F0, F1, R0, R1, cross):
-    """The forward terms (:func:`point_forward`) of both lattice points of the ``n`` small
-    candidates in rows ``SMALL ..`` of ``w`` (:func:`gather_small`; attenuation ``mu``), written
-    over the rows it has read: value, the three gradient coefficients (coefficient times weight,
-    :func:`point_coefficients`) and the lattice index ``row * C + col`` (a float, exact) in rows
-    ``SMALL + 0..4`` for the box's first point (c0, r0) and ``SMALL + 10..14`` for its second
-    (c1, r1; never a crossing in a one-point box), their crossing flags in ``SMALL + 5`` and
-    ``SMALL + 15``. Returns how many points are crossings, listed in ``cross`` (twice the
-    candidate, plus 1 for a second point). ``F0..F1, R0..R1``: the bounds the candidate pass
-    clipped the boxes to (:func:`lattice_box`), which this computes again.
+def point_terms(col, row, edges, w0, w1, w2, cone, ik, a_off, b_off, plane, mu, C):
+    """A small candidate's lattice point (col, row): (crossing, value, the three gradient
+    coefficients, lattice index ``row * C + col``). ``edges``: the three :func:`edge_from` of the
+    face; ``plane``: its :func:`plane_terms`. Scalars only, so that it inlines and vectorises."""
+    bx0, by0, dx0, dy0, s0, t0, bx1, by1, dx1, dy1, s1, t1, bx2, by2, dx2, dy2, s2, t2 = edges
+    nU, nV, num, nDS, nr = plane
+    g0 = edge_value(bx0, by0, dx0, dy0, s0, col, row)
+    g1 = edge_value(bx1, by1, dx1, dy1, s1, col, row)
+    g2 = edge_value(bx2, by2, dx2, dy2, s2, col, row)
+    ok, v, den = point_forward(col, row, g0, g1, g2, t0, t1, t2, cone, ik, a_off, b_off, nU, nV, num, nDS, nr, mu)
+    c, l0, l1, l2 = point_coefficients(g0, g1, g2, w0, w1, w2, mu, den)
+    return ok, v, c * l0, c * l1, c * l2, row * C + col
+
+
+@jit
+def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, C, F0, F1, R0, R1, quad, cross):
+    """The forward terms of the lattice points of the ``n`` small candidates in rows ``SMALL ..`` of
+    ``w`` (:func:`gather_small`; attenuation ``mu``): boxes of one or two points, or with ``quad``
+    boxes of 2 x 2. Each point gets its :func:`point_terms` (value, three coefficients, lattice
+    index as a float, exact) in rows ``SMALL + 10 k + 0..4`` and its crossing flag in
+    ``SMALL + 10 k + 5``, over rows already read: k = 0 for (c0, r0), 1 for (c1, r1) (never a
+    crossing in a one-point box), and for 2 x 2 boxes 2 for (c1, r0) and 3 for (c0, r1). Returns
+    how many points are crossings, listed in ``cross`` as 4 times the candidate plus k, each box's
+    row by row (the order in which the gradient pass would visit them). ``F0..F1, R0..R1``: the
+    bounds the candidate pass clipped the boxes to (:func:`lattice_box`), which this computes again.
 
     The terms come from one loop without branches over contiguous lanes, which
     LLVM vectorises: at fine subdivision most candidates are such triangles,
     and one by one their set-up (edges, plane, depths) and branches cost more
     than the rest of the pass. The products and the lattice index are formed
     here rather than per crossing in the scalar loop that adds them (level 3
-    forward, one thread: about 9 ms less, paired).
+    forward, one thread: about 9 ms less, paired). ``quad`` must be a literal
+    (True or False at the call): numba then compiles one function for each,
+    with the other's branch removed. With a run-time flag LLVM kept the branch
+    and vectorised nothing (3x slower), and so it did with the set-up in a
+    helper taking ``w``: helpers here take scalars only.
     """
+    numba.literally(quad)
     for q in range(n):
         x0, x1, x2 = w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q]
         y0, y1, y2 = w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q], w[(SMALL + 5) * CHUNK + q]
         c0, c1, r0, r1 = lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)
         order = int(w[(SMALL + 10) * CHUNK + q])
-        nU, nV, num, nDS, nr = plane_terms(w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q],
-                                           w[(SMALL + 15) * CHUNK + q], w[(SMALL + 16) * CHUNK + q], pc)
+        plane = plane_terms(w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q], w[(SMALL + 15) * CHUNK + q],
+                            w[(SMALL + 16) * CHUNK + q], pc)
         w0, w1, w2 = w[(SMALL + 17) * CHUNK + q], w[(SMALL + 18) * CHUNK + q], w[(SMALL + 19) * CHUNK + q]
         area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
         sig = 1.0 if area2 > 0 else -1.0
-        bx0, by0, dx0, dy0, s0, t0 = edge_from((order & 1) != 0, x0, y0, x1, y1, sig)
-        bx1, by1, dx1, dy1, s1, t1 = edge_from((order & 2) != 0, x1, y1, x2, y2, sig)
-        bx2, by2, dx2, dy2, s2, t2 = edge_from((order & 4) != 0, x2, y2, x0, y0, sig)
-        two = (c1 != c0) | (r1 != r0)
-        # written out twice rather than looped: LLVM vectorises innermost loops only
-        g0 = edge_value(bx0, by0, dx0, dy0, s0, c0, r0)
-        g1 = edge_value(bx1, by1, dx1, dy1, s1, c0, r0)
-        g2 = edge_value(bx2, by2, dx2, dy2, s2, c0, r0)
-        ok, v, den = point_forward(c0, r0, g0, g1, g2, t0, t1, t2, cone, ik, a_off, b_off, nU, nV, num, nDS, nr, mu)
-        c, l0, l1, l2 = point_coefficients(g0, g1, g2, w0, w1, w2, mu, den)
-        w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q] = v, c * l0, c * l1
-        w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q] = c * l2, r0 * C + c0
+        edges = (edge_from((order & 1) != 0, x0, y0, x1, y1, sig) + edge_from((order & 2) != 0, x1, y1, x2, y2, sig)
+                 + edge_from((order & 4) != 0, x2, y2, x0, y0, sig))
+        # written out point by point rather than looped: LLVM vectorises innermost loops only
+        ok, v, a, b, c, lat = point_terms(c0, r0, edges, w0, w1, w2, cone, ik, a_off, b_off, plane, mu, C)
+        w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q] = v, a, b
+        w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q] = c, lat
         w[(SMALL + 5) * CHUNK + q] = 1.0 if ok else 0.0
-        g0 = edge_value(bx0, by0, dx0, dy0, s0, c1, r1)
-        g1 = edge_value(bx1, by1, dx1, dy1, s1, c1, r1)
-        g2 = edge_value(bx2, by2, dx2, dy2, s2, c1, r1)
-        ok, v, den = point_forward(c1, r1, g0, g1, g2, t0, t1, t2, cone, ik, a_off, b_off, nU, nV, num, nDS, nr, mu)
-        c, l0, l1, l2 = point_coefficients(g0, g1, g2, w0, w1, w2, mu, den)
-        w[(SMALL + 10) * CHUNK + q], w[(SMALL + 11) * CHUNK + q], w[(SMALL + 12) * CHUNK + q] = v, c * l0, c * l1
-        w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q] = c * l2, r1 * C + c1
-        w[(SMALL + 15) * CHUNK + q] = 1.0 if ok & two else 0.0
+        ok, v, a, b, c, lat = point_terms(c1, r1, edges, w0, w1, w2, cone, ik, a_off, b_off, plane, mu, C)
+        w[(SMALL + 10) * CHUNK + q], w[(SMALL + 11) * CHUNK + q], w[(SMALL + 12) * CHUNK + q] = v, a, b
+        w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q] = c, lat
+        w[(SMALL + 15) * CHUNK + q] = 1.0 if ok & ((c1 != c0) | (r1 != r0)) else 0.0
+        if quad:  # a 2 x 2 box: its other two corners
+            ok, v, a, b, c, lat = point_terms(c1, r0, edges, w0, w1, w2, cone, ik, a_off, b_off, plane, mu, C)
+            w[(SMALL + 20) * CHUNK + q], w[(SMALL + 21) * CHUNK + q], w[(SMALL + 22) * CHUNK + q] = v, a, b
+            w[(SMALL + 23) * CHUNK + q], w[(SMALL + 24) * CHUNK + q] = c, lat
+            w[(SMALL + 25) * CHUNK + q] = 1.0 if ok else 0.0
+            ok, v, a, b, c, lat = point_terms(c0, r1, edges, w0, w1, w2, cone, ik, a_off, b_off, plane, mu, C)
+            w[(SMALL + 30) * CHUNK + q], w[(SMALL + 31) * CHUNK + q], w[(SMALL + 32) * CHUNK + q] = v, a, b
+            w[(SMALL + 33) * CHUNK + q], w[(SMALL + 34) * CHUNK + q] = c, lat
+            w[(SMALL + 35) * CHUNK + q] = 1.0 if ok else 0.0
     m = 0
-    for q in range(n):
-        cross[m] = 2 * q
-        m += w[(SMALL + 5) * CHUNK + q] != 0.0
-        cross[m] = 2 * q + 1
-        m += w[(SMALL + 15) * CHUNK + q] != 0.0
+    for q in range(n):  # each box's crossings row by row: (c0, r0), (c1, r0), (c0, r1), (c1, r1)
+        for j in range(4 if quad else 2):
+            k = (0, 2, 3, 1)[j] if quad else j
+            cross[m] = 4 * q + k
+            m += w[(SMALL + 10 * k + 5) * CHUNK + q] != 0.0
     return m
 
 
@@ -422,7 +441,7 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
     (:func:`raster3d`); returns (crossings, stored).
 
     ``bufs``: :func:`chunk_buffers`. The forward pass takes each chunk's small
-    candidates first (:func:`small_terms`), then the others, each lattice
+    candidates first, then its 2 x 2 boxes (both :func:`small_terms`), then the others, each lattice
     point of a box evaluated without branches and its contributions selected
     by its inside test; boxes of more than :data:`BOX_POINTS` points skip the
     points outside and stop a row at the end of its span (the edge functions
@@ -431,7 +450,7 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
     depend on it. A group whose store has no room for a chunk's boxes stops
     storing (``stored`` -1): its gradient pass rasterises again.
     """
-    w, flags, idx, sidx, cross = bufs
+    w, flags, idx, sidx, qidx, cross = bufs
     count = 0
     cap = st_face.shape[0]
     ik = 1.0 / k
@@ -451,24 +470,45 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
             n_keep, n_small = chunk_candidates(faces, s, min(CHUNK, fb - s), XY, F0, F1, R0, R1, w, flags, idx,
                                                sidx)
             mu = fmu[s]  # a chunk is one item's faces (raster3d)
-            gather_small(faces, s, sidx, n_small, nrm, offset, iW, w)
-            n_cross = small_terms(n_small, w, mu, pc, cone, ik, a_off, b_off, float(C), F0, F1, R0, R1, cross)
-            count += n_cross
-            if stored >= 0 and stored + n_cross > cap:
-                stored = mark_stored(st_face, st_pix, stored, rows * cols, hit)
-            for e in range(n_cross):
-                q, pt = cross[e] >> 1, cross[e] & 1
-                f = s + sidx[q]
-                o = (SMALL + 10 * pt) * CHUNK + q
-                lat = int(w[o + 4 * CHUNK])
-                Lf[lat] += w[o]
-                if stored < 0:  # a stored crossing marks its face only if the store fills (mark_stored)
-                    hit[p, f >> 3] |= np.uint8(1 << (f & 7))
+            # the 2 x 2 boxes among the others (at level 2 about 40 % of the candidates) go the small
+            # ones' way too, listed apart; idx keeps the rest, compacted in place
+            n_quad = n_large = 0
+            for q in range(n_keep):
+                j = idx[q]
+                quad = ((w[(BOX + 1) * CHUNK + j] - w[BOX * CHUNK + j] == 1.0)
+                        & (w[(BOX + 3) * CHUNK + j] - w[(BOX + 2) * CHUNK + j] == 1.0))
+                qidx[n_quad] = j
+                idx[n_large] = j
+                n_quad += quad
+                n_large += not quad
+            n_keep = n_large
+            for quad in (False, True):
+                listed, n_listed = (qidx, n_quad) if quad else (sidx, n_small)
+                if n_listed == 0:
+                    continue
+                gather_small(faces, s, listed, n_listed, nrm, offset, iW, w)
+                if quad:  # literal flags: small_terms is compiled once for each
+                    n_cross = small_terms(n_listed, w, mu, pc, cone, ik, a_off, b_off, float(C), F0, F1, R0, R1, True,
+                                          cross)
                 else:
-                    pix = p * npix + lat if k == 1 else lattice_pixel(p, lat // C, lat % C, rows, cols, k)
-                    c = 1.0 if pix_rl else ray_length(p, lat % C, lat // C, cone, S, D, U, V, rows, cols, k, k)
-                    stored = put_crossing(st_face, st_pix, st_coef, stored, True, f, pix, c, w[o + CHUNK],
-                                          w[o + 2 * CHUNK], w[o + 3 * CHUNK])
+                    n_cross = small_terms(n_listed, w, mu, pc, cone, ik, a_off, b_off, float(C), F0, F1, R0, R1,
+                                          False, cross)
+                count += n_cross
+                if stored >= 0 and stored + n_cross > cap:
+                    stored = mark_stored(st_face, st_pix, stored, rows * cols, hit)
+                for e in range(n_cross):
+                    q, pt = cross[e] >> 2, cross[e] & 3
+                    f = s + listed[q]
+                    o = (SMALL + 10 * pt) * CHUNK + q
+                    lat = int(w[o + 4 * CHUNK])
+                    Lf[lat] += w[o]
+                    if stored < 0:  # a stored crossing marks its face only if the store fills (mark_stored)
+                        hit[p, f >> 3] |= np.uint8(1 << (f & 7))
+                    else:
+                        pix = p * npix + lat if k == 1 else lattice_pixel(p, lat // C, lat % C, rows, cols, k)
+                        c = 1.0 if pix_rl else ray_length(p, lat % C, lat // C, cone, S, D, U, V, rows, cols, k, k)
+                        stored = put_crossing(st_face, st_pix, st_coef, stored, True, f, pix, c, w[o + CHUNK],
+                                              w[o + 2 * CHUNK], w[o + 3 * CHUNK])
         for q in range(n_keep):
             j = idx[q]
             f = s + j
@@ -540,10 +580,10 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
 @jit
 def chunk_buffers():
     """Per-thread scratch of :func:`faces_pass`: a chunk's flat buffer (:data:`BOX`), its candidate
-    flags (kept, small), its two candidate lists and its small candidates' crossings
-    (:func:`small_terms`)."""
+    flags (kept, small), its candidate lists (others, small, 2 x 2) and its small candidates'
+    crossings (:func:`small_terms`)."""
     return (np.empty((SMALL + SMALL_ROWS) * CHUNK), np.empty(2 * CHUNK, np.bool_), np.empty(CHUNK, np.int64),
-            np.empty(CHUNK, np.int64), np.empty(2 * CHUNK, np.int64))
+            np.empty(CHUNK, np.int64), np.empty(CHUNK, np.int64), np.empty(4 * CHUNK, np.int64))
 
 
 @jit

@@ -87,10 +87,20 @@ def subdivided_bubbles(meshes, levels):
     return out
 
 
-def _objective_time(projector, items, repeats):
+def _warm_objective(projector, items):
+    """The objective against a target 1 % off the forward projection, as a call of no arguments,
+    called once already (compilation, caches)."""
     target = projector.forward(items) * np.float32(1.01)
-    projector.objective(items, target)  # warm-up (compilation, caches)
-    return _median_time(lambda: projector.objective(items, target), repeats)
+
+    def call():
+        return projector.objective(items, target)
+
+    call()
+    return call
+
+
+def _objective_time(projector, items, repeats):
+    return _median_time(_warm_objective(projector, items), repeats)
 
 
 def _interleaved_objective_times(cases, backends, threads, repeats):
@@ -100,18 +110,13 @@ def _interleaved_objective_times(cases, backends, threads, repeats):
     timing the cases one after another put that drift into their ratios
     (the growth), where rounds spread it over all of them alike.
     """
-    runs = {}
-    for label, geom, items in cases:
-        for name in backends:
-            projector = MeshProjector(geom, threads=threads, backend=name)
-            target = projector.forward(items) * np.float32(1.01)
-            projector.objective(items, target)  # warm-up (compilation, caches)
-            runs[(label, name)] = (projector, items, target)
+    runs = {(label, name): _warm_objective(MeshProjector(geom, threads=threads, backend=name), items)
+            for label, geom, items in cases for name in backends}
     times = {key: [] for key in runs}
     for _ in range(repeats):
-        for key, (projector, items, target) in runs.items():
+        for key, call in runs.items():
             t = time.perf_counter()
-            projector.objective(items, target)
+            call()
             times[key].append(time.perf_counter() - t)
     return {key: statistics.median(v) for key, v in times.items()}
 

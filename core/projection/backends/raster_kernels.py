@@ -496,7 +496,7 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
                                           False, cross)
                 count += n_cross
                 if stored >= 0 and stored + n_cross > cap:
-                    stored = mark_stored(st_face, st_pix, stored, rows * cols, hit)
+                    stored = mark_stored(st_face, st_pix, stored, npix, hit)
                 for e in range(n_cross):
                     q, pt = cross[e] >> 2, cross[e] & 3
                     f = s + listed[q]
@@ -530,7 +530,7 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
             w0, w1, w2 = iW[i0], iW[i1], iW[i2]
             points = (c1 - c0 + 1) * (r1 - r0 + 1)
             if not grad and stored >= 0 and stored + points > cap:
-                stored = mark_stored(st_face, st_pix, stored, rows * cols, hit)
+                stored = mark_stored(st_face, st_pix, stored, npix, hit)
             crossed = False
             sum0 = sum1 = sum2 = 0.0
             # large boxes (and the gradient pass) skip the points outside, instead of evaluating them

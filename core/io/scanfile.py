@@ -389,7 +389,7 @@ def set_scan_attrs(f, bubble_contrast, attrs=None):
 
 
 # -- reading -------------------------------------------------------------------------
-def read_scan(path, *, bubble_contrast=None):
+def read_scan(path, *, bubble_contrast=None, rows=None):
     """Read and validate a scan file.
 
     Parameters
@@ -398,6 +398,12 @@ def read_scan(path, *, bubble_contrast=None):
     bubble_contrast : float, optional
         Overrides (or supplies, if the file lacks it) the root attribute
         ``bubble_contrast``.
+    rows : (start, stop) int, optional
+        3D scans only: read detector rows ``start:stop`` and nothing else
+        (HDF5 hyperslabs of the projections, flats, darks and background), so
+        that a slab of a large scan never holds the whole file in memory. The
+        geometry is :meth:`ScanGeometry.window` of those rows: the same rays,
+        in the same world coordinates.
 
     Returns
     -------
@@ -429,18 +435,21 @@ def read_scan(path, *, bubble_contrast=None):
         raise ValueError(f"{str(p)!r} is not a readable HDF5 file ({exc})") from None
     with f:
         geometry = _read_geometry(f, p)
+        full = geometry
+        if rows is not None:
+            geometry = _row_window(geometry, rows, p)
         if "exchange/data" not in f or not isinstance(f["exchange/data"], h5py.Dataset):
             raise ValueError(f"{p.name}: missing dataset '/exchange/data' (the projections)")
         raw = "exchange/data_white" in f
-        data = _read_dataset(f, "exchange/data", geometry, p)
+        data = _read_dataset(f, "exchange/data", full, p, rows)
         if raw:
-            data = _counts_to_line_integrals(f, data, geometry, p)
+            data = _counts_to_line_integrals(f, data, full, p, rows)
         else:
             _check_finite_named(data, "/exchange/data", p)
         per_subscan = _attr_int(f.attrs, "projections_per_subscan", f"{p.name}: root")
         background = None
         if "exchange/background" in f:
-            background = _read_background(f, geometry, per_subscan, p)
+            background = _read_background(f, full, per_subscan, p, rows)
         theta = _read_per_projection(f, "exchange/theta", geometry, p)
         time_s = _read_per_projection(f, "exchange/time", geometry, p)
         if bubble_contrast is None:
@@ -485,15 +494,33 @@ def _read_per_projection(f, name, geometry, p):
     return arr
 
 
-def _read_background(f, geometry, per_subscan, p):
+def _row_window(geometry, rows, p):
+    """The geometry of detector rows ``rows = (start, stop)`` of ``geometry`` (3D only)."""
+    if geometry.ndim != 3:
+        raise ValueError(f"{p.name}: reading a subset of detector rows needs a 3D scan")
+    try:
+        start, stop = (int(r) for r in rows)
+    except (TypeError, ValueError):
+        raise ValueError(f"rows must be (start, stop), got {rows!r}") from None
+    if not 0 <= start < stop <= geometry.det_rows:
+        raise ValueError(f"{p.name}: rows ({start}, {stop}) do not lie within the detector's {geometry.det_rows} rows")
+    return geometry.window(start, 0, stop - start, geometry.det_cols)
+
+
+def _rows_of(rows):
+    """The index of the detector-row axis of a 3D dataset: all rows, or the slice ``rows``."""
+    return slice(None) if rows is None else slice(int(rows[0]), int(rows[1]))
+
+
+def _read_background(f, geometry, per_subscan, p, rows=None):
     """``/exchange/background``, per projection or (dynamic scans) one subscan's worth repeated."""
     ds = f["exchange/background"]
     if per_subscan is not None and ds.shape == (per_subscan, *geometry.shape[1:]) and ds.shape != geometry.shape:
-        one = np.asarray(ds[()])
+        one = np.asarray(ds[(slice(None), _rows_of(rows)) if rows is not None else ()])
         _check_finite_named(one, "/exchange/background", p)
         reps = -(-geometry.n_angles // per_subscan)
         return np.tile(one, (reps,) + (1,) * (one.ndim - 1))[: geometry.n_angles]
-    background = _read_dataset(f, "exchange/background", geometry, p)
+    background = _read_dataset(f, "exchange/background", geometry, p, rows)
     _check_finite_named(background, "/exchange/background", p)
     return background
 
@@ -564,7 +591,8 @@ def _read_geometry(f, p):
         raise ValueError(f"{where}: {exc}") from None
 
 
-def _read_dataset(f, name, geometry, p):
+def _read_dataset(f, name, geometry, p, rows=None):
+    """Dataset ``name`` of the geometry's shape (checked), or its detector rows ``rows`` only (a hyperslab)."""
     ds = f[name]
     if ds.shape != geometry.shape:
         raise ValueError(
@@ -573,7 +601,7 @@ def _read_dataset(f, name, geometry, p):
         )
     if not (np.issubdtype(ds.dtype, np.floating) or np.issubdtype(ds.dtype, np.integer)):
         raise ValueError(f"{p.name}: '/{name}' must be numeric, got dtype {ds.dtype}")
-    return np.asarray(ds[()])
+    return np.asarray(ds[()] if rows is None else ds[:, _rows_of(rows)])
 
 
 def _check_finite_named(arr, name, p):
@@ -586,10 +614,15 @@ def _check_finite_named(arr, name, p):
         )
 
 
-def _read_field(f, name, det_shape, p):
-    """A flat or dark field averaged to the detector shape (float64)."""
+def _read_field(f, name, det_shape, p, rows=None):
+    """A flat or dark field averaged to the detector shape (float64), or to its rows ``rows``."""
     ds = f[name]
-    arr = np.asarray(ds[()], dtype=np.float64)
+    if rows is not None and ds.ndim in (len(det_shape), len(det_shape) + 1) and ds.shape[-2:] == tuple(det_shape):
+        cut = (_rows_of(rows),) if ds.ndim == len(det_shape) else (slice(None), _rows_of(rows))
+        arr = np.asarray(ds[cut], dtype=np.float64)
+        det_shape = (int(rows[1]) - int(rows[0]), *det_shape[1:])
+    else:
+        arr = np.asarray(ds[()], dtype=np.float64)
     if arr.shape == det_shape:
         field = arr
     elif arr.ndim == len(det_shape) + 1 and arr.shape[1:] == det_shape and arr.shape[0] >= 1:
@@ -605,7 +638,7 @@ def _read_field(f, name, det_shape, p):
     return arr.mean(axis=0) if field is None else field
 
 
-def _counts_to_line_integrals(f, counts, geometry, p):
+def _counts_to_line_integrals(f, counts, geometry, p, rows=None):
     counts = counts.astype(np.float64)
     _check_finite_named(counts, "/exchange/data", p)
     if np.any(counts < 0):
@@ -614,8 +647,11 @@ def _counts_to_line_integrals(f, counts, geometry, p):
             f"but has {int((counts < 0).sum())} negative values"
         )
     det = geometry.shape[1:]
-    white = _read_field(f, "exchange/data_white", det, p)
-    dark = _read_field(f, "exchange/data_dark", det, p) if "exchange/data_dark" in f else np.zeros(det)
+    white = _read_field(f, "exchange/data_white", det, p, rows)
+    if rows is not None:
+        det = white.shape
+    dark = _read_field(f, "exchange/data_dark", geometry.shape[1:], p, rows) if "exchange/data_dark" in f \
+        else np.zeros(det)
     span = white - dark
     if np.any(span <= 0):
         raise ValueError(

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from bubsub.clients.cli.args import add_output_arguments, existing_file, non_negative_int, positive_float, positive_int
+from bubsub.clients.cluster.engine import add_cluster_arguments
 
 _EPILOG = """\
 Order of work: the arguments, the output folder, the scan file's metadata and its
@@ -17,44 +18,19 @@ columns), report.json and PNG pictures. What each parameter does: docs/parameter
 """
 
 
-def connect(url, token):
-    """A :class:`ProjectorClient` for ``url``, checked to answer within seconds.
-
-    Raises
-    ------
-    ValueError
-        One line naming the URL when the server does not answer ``/healthz``
-        or refuses the token.
-    """
-    import httpx
-
-    from bubsub.clients.remote.client import ProjectorClient, RemoteError
-
-    # connection attempts give up after 10 s, so an unreachable host fails in seconds, not minutes
-    client = ProjectorClient(url, token=token, timeout=httpx.Timeout(120.0, connect=10.0), retry_timeout=60.0)
-    if not client.healthy():
-        client.close()
-        raise ValueError(f"no projector server answers at {url} (GET {url.rstrip('/')}/healthz failed); "
-                         f"start one with `bubsub serve` or correct --server")
-    try:
-        client.jobs()  # an authenticated request: a wrong --token fails now, not after the preview
-    except RemoteError as exc:
-        client.close()
-        raise ValueError(f"the projector server at {url} refused the request: {exc}") from None
-    return client
-
-
 def cmd_reconstruct(args):
-    from bubsub.core.io.scanfile import read_scan
+    from bubsub.core.io.scanfile import read_geometry, read_scan
 
+    from bubsub.clients.cluster.engine import open_client, spec_from_args
     from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
     from bubsub.clients.pipeline.outputs import check_output_folder
     from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, load_initial, reconstruct, write_outputs
+    from bubsub.clients.pipeline.slabs import slab_count
 
-    out = check_output_folder(args.out, overwrite=args.overwrite)
+    # --resume continues the slabs of an earlier run in --out, so the folder may hold its results
+    out = check_output_folder(args.out, overwrite=args.overwrite or args.resume)
     if args.token and not args.server:
         raise ValueError("--token is only used with --server")
-    scan = read_scan(args.scan)
     settings = ReconstructionSettings(
         iterations=args.iterations, control_points=args.control_points, levels=args.levels,
         radius=args.radius, estimate_radii=not args.no_radius_estimation, supersampling=args.supersampling,
@@ -62,7 +38,25 @@ def cmd_reconstruct(args):
         preview=args.preview, detector=args.detector, topology=not args.no_topology, repair=not args.no_repair,
         fov_model=args.fov_model, separation=args.separation, refine=not args.no_refine,
     )
-    check_settings(settings, scan.ndim)
+    geometry = read_geometry(args.scan)
+    check_settings(settings, geometry.ndim)
+    spec = spec_from_args(args)
+    slabs, halo = slab_count(args.scan, geometry, settings, args.slabs, args.slab_halo,
+                             whole_needed=bool(args.init or args.holdout))
+    if slabs > 1 or not spec.in_process:
+        if args.init:
+            raise ValueError("--init needs the scan reconstructed whole (--slabs 1)")
+        from bubsub.clients.pipeline.slabs import reconstruct_slabs
+
+        if args.server:
+            from bubsub.clients.remote.client import connect
+
+            connect(args.server, args.token).close()  # checked at start, not after the first slab
+        with open_client(spec) as client:
+            rec = reconstruct_slabs(args.scan, settings, slabs=slabs, halo=halo, client=client, out=out,
+                                    resume=args.resume, server=args.server, token=args.token)
+        return _finish(args, out, rec)
+    scan = read_scan(args.scan)
     if args.holdout and scan.n_angles < 2:
         raise ValueError("--holdout needs a scan with at least two projections")
     check_bubble_signal(scan, background_subtracted=args.background_subtracted)
@@ -73,6 +67,8 @@ def cmd_reconstruct(args):
     client = None
     jobs = []
     if args.server:
+        from bubsub.clients.remote.client import connect
+
         client = connect(args.server, args.token)
 
         def factory(geometry, data, surfaces):
@@ -96,8 +92,20 @@ def cmd_reconstruct(args):
 
         ref = voxel_baseline(scan, args.holdout)
         rec.report["holdout_mse_voxel_bb"] = ref["holdout_mse"]
+    return _finish(args, out, rec)
+
+
+def _finish(args, out, rec):
+    """Write the outputs and print the summary; the exit status (130 when interrupted)."""
+    from bubsub.clients.pipeline.reconstruct import write_outputs
+
     files = write_outputs(out, rec, scan_path=args.scan, progress=not args.quiet)
     r = rec.report
+    if r.get("slabs"):
+        st = r["stitch"]
+        print(f"{len(r['slabs'])} slabs (halo {r['slab_halo_rows']} rows, {r['slabs_computed']} computed now): "
+              f"{st['owned']} bubbles owned, {st['duplicates_dropped']} seam duplicates dropped, "
+              f"{st['claimed_from_halo']} taken from a halo, {st['seam_cut']} cut at a seam")
     print(f"{r['bubbles']} bubbles, {r['iterations']} iterations ({r.get('stop_reason', 'done')}), objective "
           f"{r['initial_objective']:.4g} -> {r['final_objective']:.4g}, {r['seconds_total']:.1f} s")
     if "holdout_mse" in r:
@@ -172,4 +180,21 @@ def register(sub):
                    help="URL of a bubsub projector server to fit against (default: local); checked at start")
     p.add_argument("--token", help="bearer token for --server")
     p.add_argument("--quiet", action="store_true", help="no progress bars or phase lines")
+    g = p.add_argument_group("slabs (parallel-beam 3D scans; docs/scale.md)")
+    g.add_argument("--slabs", type=slabs_argument, default="auto", metavar="N|auto",
+                   help="reconstruct the scan in N slabs of detector rows, each read and fitted on its own "
+                        "(default auto: one slab per about 3 million detector pixels read; 1: the whole scan)")
+    g.add_argument("--slab-halo", type=positive_int, metavar="ROWS",
+                   help="rows read above and below each slab's own rows (default: 1.5 x the largest bubble "
+                        "radius in a preview of the central rows)")
+    g.add_argument("--resume", action="store_true",
+                   help="reuse the finished slabs in --out/slabs of an earlier run with the same scan and settings")
+    add_cluster_arguments(p)
     p.set_defaults(func=cmd_reconstruct)
+
+
+def slabs_argument(text):
+    """``--slabs``: a positive integer or ``auto``."""
+    if text == "auto":
+        return None
+    return positive_int(text)

@@ -41,6 +41,7 @@ import numpy as np
 
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.io.meshio import bubble_table, read_ply, read_polygons_json, unit_column, write_csv
+from bubsub.clients.pipeline.outputs import json_default
 
 __all__ = ["subscan_dir", "write_subscan", "read_subscan_result", "complete_subscans", "track_rows",
            "write_tracks", "write_summary"]
@@ -169,17 +170,11 @@ def write_summary(out, results, *, layout, time_unit, settings, engine="local", 
         },
         "subscans": per,
     }
-    atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=_json_default))
+    atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
     if results:
         plot_growth(out / "growth.png", track_rows(results, time_unit), time_unit)
         plot_mse(out / "mse.png", per)
     return report
-
-
-def _json_default(o):
-    from bubsub.clients.pipeline.reconstruct import _json_default as default
-
-    return default(o)
 
 
 def plot_growth(path, rows, time_unit):

@@ -32,7 +32,7 @@ from pathlib import Path
 
 from bubsub.core.io.atomic import atomic_write_text
 
-__all__ = ["MANIFEST", "RESULT_NAMES", "OutputFolderError", "folder_problem", "earlier_outputs",
+__all__ = ["json_default", "MANIFEST", "RESULT_NAMES", "OutputFolderError", "folder_problem", "earlier_outputs",
            "check_output_folder", "finish_outputs"]
 
 #: Name of the manifest: ``{"bubsub": version, "command": str, "files": [relative paths]}``.
@@ -177,3 +177,17 @@ def finish_outputs(path, files, command, **info):
     doc = {"bubsub": version(), "command": command, "files": names, **info}
     atomic_write_text(folder / MANIFEST, json.dumps(doc, indent=2) + "\n")
     return removed
+
+
+def json_default(o):
+    """``json.dumps(..., default=json_default)``: numpy scalars and arrays as numbers and lists, anything
+    else as its ``str``."""
+    import numpy as np
+
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)

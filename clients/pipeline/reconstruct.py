@@ -37,7 +37,7 @@ from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
 from bubsub.clients.pipeline.fov import (FOV_COLUMN_INFO, field_of_view, fov_columns, fov_report, preview_extension,
                                          truncated_flags, unobserved_control)
 from bubsub.clients.pipeline.initial import choose_initial, default_detector, initial_centres, initial_surfaces
-from bubsub.clients.pipeline.outputs import finish_outputs
+from bubsub.clients.pipeline.outputs import finish_outputs, json_default
 from bubsub.clients.pipeline.refine import can_refine, refine_and_check
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
 from bubsub.clients.progress import phase
@@ -452,7 +452,7 @@ def write_outputs(out_dir, rec, scan_path=None, *, progress=False):
     report["files"] = {k: v.name for k, v in files.items()}
     files["report"] = out / "report.json"
     with atomic_path(files["report"]) as tmp:
-        Path(tmp).write_text(json.dumps(report, indent=2, default=_json_default))
+        Path(tmp).write_text(json.dumps(report, indent=2, default=json_default))
     rec.files = files
     finish_outputs(out, files.values(), command="reconstruct")
     return files
@@ -483,13 +483,3 @@ def write_figures(out, rec, fine, rows, *, progress=False):
             write_mesh_view(files["meshes"], shown, ids)
             bar.update()
     return files
-
-
-def _json_default(o):
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)

@@ -26,7 +26,7 @@ import time
 import httpx
 import numpy as np
 
-__all__ = ["ProjectorClient", "RemoteJob", "RemoteError", "RemoteValueError", "UnknownJobError"]
+__all__ = ["ProjectorClient", "RemoteJob", "RemoteError", "RemoteValueError", "UnknownJobError", "connect"]
 
 log = logging.getLogger("bubsub.client")
 
@@ -487,3 +487,26 @@ class RemoteJob:
         except UnknownJobError:
             pass
         self.job_id = None
+
+
+def connect(url, token=None):
+    """A :class:`ProjectorClient` for ``url``, checked to answer within seconds.
+
+    Raises
+    ------
+    ValueError
+        One line naming the URL when the server does not answer ``/healthz``
+        or refuses the token.
+    """
+    # connection attempts give up after 10 s, so an unreachable host fails in seconds, not minutes
+    client = ProjectorClient(url, token=token, timeout=httpx.Timeout(120.0, connect=10.0), retry_timeout=60.0)
+    if not client.healthy():
+        client.close()
+        raise ValueError(f"no projector server answers at {url} (GET {url.rstrip('/')}/healthz failed); "
+                         f"start one with `bubsub serve` or correct --server")
+    try:
+        client.jobs()  # an authenticated request: a wrong --token fails now, not after the preview
+    except RemoteError as exc:
+        client.close()
+        raise ValueError(f"the projector server at {url} refused the request: {exc}") from None
+    return client

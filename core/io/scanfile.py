@@ -48,7 +48,7 @@ import numpy as np
 from bubsub.core.io.atomic import atomic_path
 from bubsub.core.projection.geometry import KINDS, ScanGeometry
 
-__all__ = ["Scan", "read_scan", "write_scan", "create_scan_datasets", "set_scan_attrs", "theta_from_geometry",
+__all__ = ["Scan", "read_scan", "read_geometry", "write_scan", "create_scan_datasets", "set_scan_attrs", "theta_from_geometry",
            "MIN_TRANSMISSION"]
 
 #: Smallest transmission accepted when converting raw counts (larger line integrals are clamped).
@@ -479,6 +479,27 @@ def read_scan(path, *, bubble_contrast=None, rows=None):
         time=time_s,
         projections_per_subscan=per_subscan,
     )
+
+
+def read_geometry(path):
+    """The :class:`ScanGeometry` of a scan file, read without its projections.
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        As :func:`read_scan` for the file and its ``/geometry/vectors``.
+    """
+    import h5py
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"scan file {str(p)!r} does not exist")
+    try:
+        f = h5py.File(p, "r")
+    except OSError as exc:
+        raise ValueError(f"{str(p)!r} is not a readable HDF5 file ({exc})") from None
+    with f:
+        return _read_geometry(f, p)
 
 
 def _read_per_projection(f, name, geometry, p):

@@ -292,6 +292,29 @@ class ScanGeometry:
         return ScanGeometry(self._kind, v, rows, cols,
                             _repr=f"{self!r}.window(<{n} row starts>, <{n} column starts>, rows={rows}, cols={cols})")
 
+    def translated(self, origin):
+        """The same scan in world coordinates whose origin is ``origin`` of these.
+
+        A point ``x`` of this geometry's world is ``x - origin`` in the new
+        one; the rays, and so every projection, are the same. (A slab of
+        detector rows is reconstructed about its own centre this way.)
+
+        Parameters
+        ----------
+        origin : (ndim,) float
+            mm.
+        """
+        nd = self.ndim
+        o = np.asarray(origin, dtype=float).reshape(-1)
+        if o.shape != (nd,) or not np.all(np.isfinite(o)):
+            raise ValueError(f"origin must be {nd} finite coordinates, got {origin!r}")
+        v = np.array(self._vectors)
+        v[:, nd:2 * nd] -= o  # detector positions; a parallel ray direction does not move
+        if self.is_cone:
+            v[:, :nd] -= o  # the source does
+        return ScanGeometry(self._kind, v, self._rows, self._cols,
+                            _repr=f"{self!r}.translated({o.tolist()!r})")
+
     @staticmethod
     def window_of(projections, row_start, col_start, rows=None, cols=None):
         """``projections[p, r0[p]:r0[p] + rows, c0[p]:c0[p] + cols]`` for every p (see :meth:`window`)."""

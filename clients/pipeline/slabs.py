@@ -1,0 +1,575 @@
+"""Slabs of detector rows: a tall parallel-beam scan reconstructed piece by piece.
+
+In a parallel-beam scan whose detector rows are perpendicular to the
+rotation axis, each row sees one slice of the sample, so the scan splits
+exactly into slabs of rows. Each slab is one task:
+
+1. it reads only its rows from the scan file (:func:`bubsub.core.io.scanfile.read_scan`
+   with ``rows=``: HDF5 hyperslabs; no process holds the whole scan): the rows
+   it *owns* (its core) and a *halo* of rows above and below, at least the
+   largest bubble's radius wide;
+2. it reconstructs them with the full pipeline (:func:`~bubsub.clients.pipeline.reconstruct.reconstruct`)
+   in coordinates centred on the rows read (:meth:`ScanGeometry.translated`),
+   so every stage sees an ordinary, smaller scan: bubbles reaching into the
+   halo are fitted there against the data they really produce, with the
+   neighbours' bubbles of the halo fitted beside them as known signal;
+3. it keeps, in world coordinates, every bubble with its centroid's
+   distance to the rows read.
+
+:func:`stitch` then keeps each bubble once: the bubbles whose centroid lies
+in their slab's core, of two such bubbles of neighbouring slabs at the same
+place (a centroid on a seam) the one further from its slab's edge, and a
+bubble whose centroid fell into the halo of both slabs (claimed by neither)
+from the slab that saw it whole. A bubble is therefore never lost,
+duplicated or cut at a seam as long as the halo holds the bubbles whose
+centres are in the core (the report counts the kept bubbles that reach a
+slab's read edge, ``seam_cut``; zero says the halo was wide enough).
+
+The slabs run one after another in this process (``client=None``) or as
+Dask tasks (:func:`bubsub.clients.cluster.engine.run_tasks`); each finished
+slab is written to ``OUT/slabs/`` at once, so ``resume=True`` continues
+after a crash or Ctrl-C from the slabs already done. Memory is one slab's,
+whatever the number of slabs.
+
+Cone beam: the rows of a cone-beam detector are not slices of the sample
+(the rays diverge), so :func:`check_slab_geometry` refuses it; such a scan
+is reconstructed whole.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from bubsub.core.io.atomic import atomic_path
+from bubsub.core.projection.mesh import Mesh
+from bubsub.core.projection.subdivision import SubdivisionSurface
+
+__all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
+           "auto_slabs", "slab_count", "estimate_halo", "run_slab", "stitch", "reconstruct_slabs", "SLAB_PIXELS"]
+
+#: Detector pixels (projections x rows x columns) read by one slab when the number of slabs is chosen
+#: automatically: a slab of this size reconstructs in well under a gigabyte.
+SLAB_PIXELS = 3_000_000
+
+#: Least core rows of a slab, in halos: thinner slabs spend most of their work on the halo.
+MIN_CORE_HALOS = 2
+
+_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class Slab:
+    """One slab of detector rows.
+
+    Attributes
+    ----------
+    index : int
+    core : (int, int)
+        Rows ``[start, stop)`` it owns.
+    read : (int, int)
+        Rows ``[start, stop)`` it reads: the core and its halo, on the detector.
+    detector_rows : int
+        Rows of the whole detector.
+    """
+
+    index: int
+    core: tuple
+    read: tuple
+    detector_rows: int
+
+    def __repr__(self):
+        return f"Slab({self.index}, core={self.core}, read={self.read}, detector_rows={self.detector_rows})"
+
+    @property
+    def first(self):
+        """Whether the slab starts at the detector's first row."""
+        return self.core[0] == 0
+
+    @property
+    def last(self):
+        """Whether the slab ends at the detector's last row."""
+        return self.core[1] == self.detector_rows
+
+
+@dataclass
+class SlabResult:
+    """What one slab's task returns: its bubbles in world coordinates, and its report.
+
+    Attributes
+    ----------
+    slab : Slab
+    surfaces : list of SubdivisionSurface
+        Every bubble the slab reconstructed (not only those it owns).
+    report : dict
+        :func:`~bubsub.clients.pipeline.reconstruct.reconstruct`'s report, plus ``origin_mm``.
+    """
+
+    slab: Slab
+    surfaces: list
+    report: dict
+
+
+def check_slab_geometry(geometry):
+    """Refuse a geometry whose detector rows are not slices of the sample.
+
+    Raises
+    ------
+    ValueError
+        For 2D and cone-beam geometries, and parallel-beam ones whose row
+        direction changes between projections or is not perpendicular to the rays.
+    """
+    if geometry.ndim != 3:
+        raise ValueError("slabs of detector rows need a 3D scan")
+    if geometry.is_cone:
+        raise ValueError("slabs need a parallel-beam scan: the rows of a cone-beam detector are not slices of the "
+                         "sample; reconstruct it whole (--slabs 1)")
+    vec = geometry.vectors
+    ray, v = vec[:, 0:3], vec[:, 9:12]
+    if not np.allclose(v, v[0], rtol=0, atol=1e-9 * np.linalg.norm(v[0])):
+        raise ValueError("slabs need a detector whose row direction (v) is the same in every projection")
+    cos = np.abs(np.einsum("ij,ij->i", ray, v)) / (np.linalg.norm(ray, axis=1) * np.linalg.norm(v, axis=1))
+    if cos.max() > 1e-6:
+        raise ValueError("slabs need rays perpendicular to the detector's row direction (v)")
+
+
+def plan_slabs(n_rows, slabs, halo):
+    """Split ``n_rows`` detector rows into ``slabs`` slabs of nearly equal cores and their halos.
+
+    Parameters
+    ----------
+    n_rows : int
+    slabs : int
+        Number of slabs (at most ``n_rows``).
+    halo : int
+        Rows read above and below each core (clipped to the detector).
+
+    Returns
+    -------
+    list of Slab
+    """
+    for name, value, least in (("n_rows", n_rows, 1), ("slabs", slabs, 1), ("halo", halo, 0)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+    if slabs > n_rows:
+        raise ValueError(f"cannot split {n_rows} rows into {slabs} slabs")
+    edges = np.linspace(0, n_rows, slabs + 1).round().astype(int)
+    return [Slab(k, (int(a), int(b)), (int(max(0, a - halo)), int(min(n_rows, b + halo))), int(n_rows))
+            for k, (a, b) in enumerate(zip(edges[:-1], edges[1:]))]
+
+
+def default_slab_rows(geometry, halo, pixels=SLAB_PIXELS):
+    """Core rows of a slab that reads about ``pixels`` detector pixels, and at least
+    :data:`MIN_CORE_HALOS` halos."""
+    per_row = geometry.n_angles * geometry.det_cols
+    return max(MIN_CORE_HALOS * halo, int(pixels // per_row) - 2 * halo, 1)
+
+
+def auto_slabs(geometry, halo, pixels=SLAB_PIXELS):
+    """How many slabs a scan gets by default: one unless its detector is much taller than one slab's
+    :func:`default_slab_rows` (cone-beam and 2D scans: always one)."""
+    if geometry.ndim != 3 or geometry.is_cone:
+        return 1
+    core = default_slab_rows(geometry, halo, pixels)
+    return max(1, int(round(geometry.det_rows / core)))
+
+
+def slab_count(scan_path, geometry, settings, slabs=None, halo=None, *, whole_needed=False):
+    """The number of slabs and halo rows a reconstruction of ``scan_path`` uses.
+
+    Parameters
+    ----------
+    slabs : int or None
+        Asked for (``--slabs N``); None: :func:`auto_slabs`, one slab for scans of at most 1.5 x
+        :data:`SLAB_PIXELS` pixels, cone-beam and 2D scans, and when ``whole_needed``.
+    halo : int or None
+        Asked for (``--slab-halo``); None: :func:`estimate_halo` when there are several slabs.
+    whole_needed : bool
+        An option that needs the whole scan at once (``--init``, ``--holdout``).
+
+    Returns
+    -------
+    (int, int)
+        Slabs and halo rows (0 for one slab).
+
+    Raises
+    ------
+    ValueError
+        For several slabs of a geometry :func:`check_slab_geometry` refuses, or with ``whole_needed``.
+    """
+    if slabs == 1:
+        return 1, 0
+    if slabs is None:
+        if whole_needed or geometry.ndim != 3 or geometry.is_cone or \
+                geometry.n_angles * geometry.det_rows * geometry.det_cols <= 1.5 * SLAB_PIXELS:
+            return 1, 0
+    elif whole_needed:
+        raise ValueError("--init and --holdout need the scan reconstructed whole (--slabs 1)")
+    check_slab_geometry(geometry)
+    if halo is None:
+        halo = estimate_halo(scan_path, geometry, settings)
+    return (auto_slabs(geometry, halo) if slabs is None else int(slabs)), int(halo)
+
+
+def slab_origin(geometry, slab):
+    """World position (mm) of the centre of a slab's rows read, its coordinate origin: the detector's
+    centre moved along the row direction ``v`` of ``geometry`` (the whole detector's, or the slab's window)."""
+    v = geometry.vectors[0, 9:12]
+    return (0.5 * (slab.read[0] + slab.read[1]) - 0.5 * slab.detector_rows) * v
+
+
+def _row_height(geometry, slab, row):
+    """Height along the row direction of the edge between rows ``row - 1`` and ``row`` (mm, 0 at the
+    detector's centre)."""
+    return (row - 0.5 * slab.detector_rows) * float(np.linalg.norm(geometry.vectors[0, 9:12]))
+
+
+def _axis(geometry):
+    v = geometry.vectors[0, 9:12]
+    return v / np.linalg.norm(v)
+
+
+def _moved(surface, offset):
+    return surface.with_vertices(np.asarray(surface.vertices) + offset)
+
+
+def run_slab(scan_path, slab, settings, bubble_contrast=None, server=None, token=None):
+    """Reconstruct one slab (a task: module-level, picklable arguments, small result).
+
+    Parameters
+    ----------
+    scan_path : str or Path
+        The scan file; only the slab's rows are read.
+    slab : Slab
+    settings : ReconstructionSettings
+    bubble_contrast : float, optional
+        As :func:`read_scan`'s.
+    server, token : str, optional
+        A projector server to fit against (each slab a fitting job of its own).
+
+    Returns
+    -------
+    SlabResult
+    """
+    from bubsub.core.io.scanfile import read_scan
+
+    from bubsub.clients.pipeline.reconstruct import reconstruct
+
+    scan = read_scan(scan_path, bubble_contrast=bubble_contrast, rows=slab.read)
+    origin = slab_origin(scan.geometry, slab)
+    local = replace(scan, geometry=scan.geometry.translated(origin), path=None)
+    factory, client, jobs = None, None, []
+    if server is not None:
+        from bubsub.clients.remote.client import connect
+
+        client = connect(server, token)
+
+        def factory(geometry, data, surfaces):
+            job = client.create_job(geometry, data=data, surfaces=surfaces, supersampling=settings.supersampling)
+            jobs.append(job)
+            return job
+    try:
+        rec = reconstruct(local, settings, projector_factory=factory)
+    finally:
+        if client is not None:
+            for job in jobs:
+                try:
+                    job.delete()
+                except Exception:  # noqa: BLE001 - the slab's result matters more than the server's clean-up
+                    pass
+            client.close()
+    report = dict(rec.report, origin_mm=origin.tolist(), core_rows=list(slab.core), read_rows=list(slab.read))
+    return SlabResult(slab, [_moved(s, origin) for s in rec.surfaces], report)
+
+
+#: Halo over the largest bubble radius the strip preview of :func:`estimate_halo` finds: its distance-transform
+#: radii are inscribed radii, short of an elongated bubble's half-length.
+HALO_OVER_RADIUS = 1.5
+
+#: Rows of the central strip :func:`estimate_halo` previews.
+STRIP_ROWS = 96
+
+
+def estimate_halo(scan_path, geometry, settings, bubble_contrast=None):
+    """Halo rows for the slabs of a scan: :data:`HALO_OVER_RADIUS` times the largest bubble radius in a voxel
+    preview of the detector's central :data:`STRIP_ROWS` rows (read alone), plus two rows.
+
+    Returns
+    -------
+    int
+    """
+    from bubsub.core.io.scanfile import read_scan
+
+    from bubsub.clients.pipeline.initial import initial_centres
+    from bubsub.clients.pipeline.reconstruct import voxel_preview
+
+    n = min(STRIP_ROWS, geometry.det_rows)
+    start = (geometry.det_rows - n) // 2
+    strip = Slab(0, (start, start + n), (start, start + n), geometry.det_rows)
+    scan = read_scan(scan_path, bubble_contrast=bubble_contrast, rows=strip.read)
+    local = scan.geometry.translated(slab_origin(scan.geometry, strip))
+    image, extent = voxel_preview(scan.bubble_data, local, scan.bubble_contrast, settings.voxel_size,
+                                  method=settings.preview)
+    _, radii = initial_centres(image, extent, detector="dt", contrast=scan.bubble_contrast)
+    pixel = float(np.linalg.norm(geometry.vectors[0, 9:12]))
+    if len(radii) == 0:
+        return max(2, geometry.det_rows // 10)
+    return int(np.ceil(HALO_OVER_RADIUS * float(np.percentile(radii, 95)) / pixel)) + 2
+
+
+def _bubble_heights(result, geometry):
+    """Per bubble of a slab's result: centroid (mm), equivalent radius (mm), lowest and highest height."""
+    axis = _axis(geometry)
+    out = []
+    for s in result.surfaces:
+        fine = s.fine()
+        h = np.asarray(fine.vertices) @ axis
+        out.append((np.asarray(fine.centroid, dtype=float), float(np.cbrt(3 * abs(fine.volume) / (4 * np.pi))),
+                    float(h.min()), float(h.max())))
+    return out
+
+
+def stitch(results, geometry):
+    """One list of bubbles from the slabs' results, each bubble kept once (rules in the module docstring).
+
+    Parameters
+    ----------
+    results : list of SlabResult
+        In slab order.
+    geometry : ScanGeometry
+        The whole scan's.
+
+    Returns
+    -------
+    surfaces : list of SubdivisionSurface
+        Sorted by height along the rotation axis.
+    summary : dict
+        ``owned`` (bubbles whose centroid lies in their slab's core), ``duplicates_dropped``
+        (the same bubble owned by two slabs), ``claimed_from_halo`` (a bubble no slab owned, kept
+        from the one that saw it whole), ``seam_cut`` (kept bubbles reaching a slab's read edge
+        inside the detector: the halo was too narrow for them).
+    """
+    axis = _axis(geometry)
+    pixel = float(np.linalg.norm(geometry.vectors[0, 9:12]))
+    rows = []  # (slab, index, centroid, radius, interior distance, owned, cut by an inner read edge)
+    for res in results:
+        sl = res.slab
+        core_lo = -np.inf if sl.first else _row_height(geometry, sl, sl.core[0])
+        core_hi = np.inf if sl.last else _row_height(geometry, sl, sl.core[1])
+        read_lo = -np.inf if sl.read[0] == 0 else _row_height(geometry, sl, sl.read[0])
+        read_hi = np.inf if sl.read[1] == sl.detector_rows else _row_height(geometry, sl, sl.read[1])
+        for i, (c, r, lo, hi) in enumerate(_bubble_heights(res, geometry)):
+            z = float(c @ axis)
+            interior = min(lo - read_lo, read_hi - hi)
+            rows.append((sl.index, i, c, r, interior, core_lo <= z < core_hi, interior < pixel))
+    by_slab = {res.slab.index: res for res in results}
+    owned = [row for row in rows if row[5]]
+    # the same bubble owned by two neighbouring slabs (its centroid estimates on both sides of the seam)
+    owned.sort(key=lambda row: -row[4])
+    kept, dropped = [], 0
+    for row in owned:
+        if _same_bubble(row, kept):
+            dropped += 1
+            continue
+        kept.append(row)
+    claimed = 0
+    for row in sorted((row for row in rows if not row[5] and not row[6]), key=lambda row: -row[4]):
+        if not _same_bubble(row, kept):
+            kept.append(row)
+            claimed += 1
+    kept.sort(key=lambda row: (float(row[2] @ axis), row[0], row[1]))
+    surfaces = [by_slab[k].surfaces[i] for k, i, *_ in kept]
+    return surfaces, {"owned": len(owned) - dropped, "duplicates_dropped": dropped, "claimed_from_halo": claimed,
+                      "seam_cut": int(sum(row[6] for row in kept))}
+
+
+def _same_bubble(row, kept):
+    """Whether a kept bubble's centroid lies within half the smaller radius of ``row``'s."""
+    if not kept:
+        return False
+    centres = np.array([k[2] for k in kept])
+    radii = np.array([k[3] for k in kept])
+    return bool(np.any(np.linalg.norm(centres - row[2], axis=1) < 0.5 * np.minimum(radii, row[3])))
+
+
+# -- checkpoints ------------------------------------------------------------------------------------------
+def slab_key(scan_path, slab, settings):
+    """What a finished slab's checkpoint must match to be reused by ``resume``: the scan file (path, size,
+    modification time), the slab's rows and every setting."""
+    p = Path(scan_path).resolve()
+    st = p.stat()
+    doc = {"scan": str(p), "size": st.st_size, "mtime_ns": st.st_mtime_ns, "slab": [slab.core, slab.read,
+           slab.detector_rows], "settings": {k: v for k, v in vars(settings).items() if k != "progress"},
+           "format": _FORMAT}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def write_slab(path, result, key):
+    """Write a :class:`SlabResult` atomically (``.npz``: control meshes, levels, report as JSON)."""
+    from bubsub.clients.pipeline.outputs import json_default
+
+    surfaces = result.surfaces
+    arrays = {
+        "key": np.array(key),
+        "slab": np.array([result.slab.index, *result.slab.core, *result.slab.read, result.slab.detector_rows]),
+        "report": np.array(json.dumps(result.report, default=json_default)),
+        "n_vertices": np.array([len(s.vertices) for s in surfaces], dtype=np.int64),
+        "n_faces": np.array([len(s.control_faces) for s in surfaces], dtype=np.int64),
+        "levels": np.array([s.levels for s in surfaces], dtype=np.int64),
+        "attenuation": np.array([s.attenuation for s in surfaces], dtype=float),
+        "vertices": np.concatenate([s.vertices for s in surfaces]) if surfaces else np.zeros((0, 3)),
+        "faces": np.concatenate([s.control_faces for s in surfaces]) if surfaces else np.zeros((0, 3), np.int64),
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+
+def read_slab(path, key=None):
+    """A checkpoint of :func:`write_slab`, or None when it is missing, unreadable or was made with another key."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if key is not None and str(z["key"]) != key:
+                return None
+            idx, c0, c1, r0, r1, n_rows = (int(x) for x in z["slab"])
+            report = json.loads(str(z["report"]))
+            v_end, f_end = np.cumsum(z["n_vertices"]), np.cumsum(z["n_faces"])
+            surfaces = []
+            for k in range(len(v_end)):
+                v = z["vertices"][v_end[k] - z["n_vertices"][k]:v_end[k]]
+                f = z["faces"][f_end[k] - z["n_faces"][k]:f_end[k]]
+                surfaces.append(SubdivisionSurface(Mesh(v, f, float(z["attenuation"][k])), int(z["levels"][k])))
+    except (OSError, ValueError, KeyError):
+        return None
+    return SlabResult(Slab(idx, (c0, c1), (r0, r1), n_rows), surfaces, report)
+
+
+# -- the whole scan ---------------------------------------------------------------------------------------
+def reconstruct_slabs(scan_path, settings=None, *, slabs=None, halo=None, client=None, out=None, resume=False,
+                      server=None, token=None, bubble_contrast=None):
+    """Reconstruct a scan file slab by slab and stitch the bubbles (see the module docstring).
+
+    Parameters
+    ----------
+    scan_path : str or Path
+    settings : ReconstructionSettings, optional
+        Each slab's.
+    slabs : int, optional
+        Number of slabs; default :func:`auto_slabs`.
+    halo : int, optional
+        Halo rows; default :func:`estimate_halo`.
+    client : dask.distributed.Client, optional
+        Run the slabs as tasks on its cluster; None runs them here, one after the other.
+    out : str or Path, optional
+        Folder whose ``slabs/`` subfolder receives each finished slab's checkpoint.
+    resume : bool
+        Reuse the checkpoints in ``out/slabs`` made with the same scan, rows and settings.
+    server, token : str, optional
+        Fit every slab against this projector server.
+    bubble_contrast : float, optional
+
+    Returns
+    -------
+    Reconstruction
+        ``report["slabs"]`` has each slab's rows, bubbles, seconds and stop reason;
+        ``report["stitch"]`` :func:`stitch`'s summary.
+    """
+    from bubsub.core.io.scanfile import read_geometry
+    from bubsub.clients.cluster.engine import run_tasks
+    from bubsub.clients.pipeline.checks import check_settings
+    from bubsub.clients.pipeline.fov import fov_report
+    from bubsub.clients.pipeline.reconstruct import Reconstruction, ReconstructionSettings
+    from bubsub.clients.progress import phase
+
+    s = settings or ReconstructionSettings()
+    t0 = time.perf_counter()
+    geometry = read_geometry(scan_path)
+    check_settings(s, geometry.ndim)
+    check_slab_geometry(geometry)
+    if s.holdout is not None:
+        raise ValueError("--holdout is not available with slabs; reconstruct the scan whole (--slabs 1)")
+    if halo is None:
+        halo = estimate_halo(scan_path, geometry, s, bubble_contrast)
+    if slabs is None:
+        slabs = auto_slabs(geometry, halo)
+    plan = plan_slabs(geometry.det_rows, slabs, halo)
+    folder = None if out is None else Path(out) / "slabs"
+    keys = [slab_key(scan_path, sl, s) for sl in plan]
+    results = [None] * len(plan)
+    if resume and folder is not None:
+        for k, sl in enumerate(plan):
+            results[k] = read_slab(folder / f"slab_{sl.index:03d}.npz", keys[k])
+    todo = [k for k in range(len(plan)) if results[k] is None]
+    task_settings = replace(s, progress=s.progress and client is None and len(plan) == 1)
+    with phase(f"slabs ({len(plan)} of {plan[0].core[1] - plan[0].core[0]} rows, halo {halo})", len(plan),
+               unit="slab", enabled=s.progress) as bar:
+        bar.update(len(plan) - len(todo))
+
+        def done(i, res):
+            k = todo[i]
+            results[k] = res
+            if folder is not None:
+                write_slab(folder / f"slab_{plan[k].index:03d}.npz", res, keys[k])
+            bar.update(1, bubbles=sum(len(r.surfaces) for r in results if r is not None))
+
+        run_tasks(client, run_slab, [(str(scan_path), plan[k], task_settings, bubble_contrast, server, token)
+                                     for k in todo], on_result=done)
+    surfaces, summary = stitch(results, geometry)
+    return Reconstruction(surfaces, _report(results, surfaces, summary, geometry, s, halo, len(todo),
+                                            time.perf_counter() - t0, fov_report(geometry)))
+
+
+_SUMMED = ("iterations", "evaluations", "final_objective", "initial_objective", "bubbles_initial", "bubbles_dropped")
+
+
+def _report(results, surfaces, summary, geometry, settings, halo, computed, seconds, fov):
+    """``report.json`` of a slabbed reconstruction."""
+    per_slab = []
+    for res in results:
+        r = res.report
+        per_slab.append({"index": res.slab.index, "core_rows": list(res.slab.core), "read_rows": list(res.slab.read),
+                         "bubbles": r["bubbles"], "stop_reason": r.get("stop_reason"),
+                         "seconds_total": r.get("seconds_total"), "seconds_parts": r.get("seconds_parts"),
+                         "cpu_seconds_parts": r.get("cpu_seconds_parts"), "iterations": r.get("iterations"),
+                         "final_objective": r.get("final_objective"), "fit_levels": r.get("fit_levels")})
+    parts, cpu = {}, {}
+    for res in results:
+        for name, v in (res.report.get("seconds_parts") or {}).items():
+            parts[name] = parts.get(name, 0.0) + v
+        for name, v in (res.report.get("cpu_seconds_parts") or {}).items():
+            cpu[name] = cpu.get(name, 0.0) + v
+    report = {k: sum(res.report.get(k) or 0 for res in results) for k in _SUMMED}
+    interrupted = any(res.report.get("interrupted") for res in results)
+    report.update({
+        "bubbles": len(surfaces),
+        "dimension": 3,
+        "slabs": per_slab,
+        "slab_halo_rows": halo,
+        "slabs_computed": computed,
+        "stitch": summary,
+        "objective_note": "final_objective and initial_objective are sums over the slabs' own objectives "
+                          "(halo rows counted in two slabs)",
+        "interrupted": interrupted,
+        "stop_reason": "interrupted" if interrupted else "; ".join(sorted({str(p["stop_reason"]) for p in per_slab})),
+        "seconds_total": seconds,
+        "seconds_parts": parts,
+        "cpu_seconds_parts": cpu,
+        "field_of_view_mm": fov,
+        "projections_used": geometry.n_angles,
+        "validity": _merged_validity(results),
+        "settings": {k: v for k, v in vars(settings).items() if k != "progress"},
+    })
+    return report
+
+
+def _merged_validity(results):
+    found = [v for res in results for v in (res.report.get("validity") or {}).get("violations_remaining", [])]
+    return {"violations_found": [], "actions": [], "violations_remaining": found,
+            "dropped": sum((res.report.get("validity") or {}).get("dropped", 0) for res in results)}

@@ -142,7 +142,7 @@ def test_dense_foam_is_dense_disjoint_and_keeps_its_films(make, ndim):
 
 
 def test_footprint_matches_the_dense_projection_it_replaces():
-    from bubsub.clients.pipeline.topology import _Footprint, _others_removed
+    from bubsub.clients.pipeline.local import Footprint, others_removed
 
     rng = np.random.default_rng(3)
     p = np.zeros((5, 7, 9), np.float32)
@@ -150,13 +150,13 @@ def test_footprint_matches_the_dense_projection_it_replaces():
     q = np.zeros_like(p)
     q[2:4, 1:3, 1:3] = rng.random((2, 2, 2))
     residual = rng.standard_normal(p.shape)
-    fp, fq = _Footprint(p), _Footprint(q)
+    fp, fq = Footprint(p), Footprint(q)
     assert len(fp.index) == 24  # only the support is stored
     dense_gain = 0.5 * np.sum((residual - p) ** 2) - 0.5 * np.sum(residual ** 2)
     assert fp.removal_gain(residual) == pytest.approx(dense_gain, rel=1e-12)
     dense_gain = 0.5 * np.sum((residual + p) ** 2) - 0.5 * np.sum(residual ** 2)
     assert fp.addition_gain(residual) == pytest.approx(dense_gain, rel=1e-12)
-    np.testing.assert_allclose(_others_removed(residual, fp, fq), p + q - residual, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(others_removed(residual, fp, fq), p + q - residual, rtol=0, atol=1e-12)
     r = residual.copy()
     fp.add_to(r, -1.0)
     np.testing.assert_allclose(r, residual - p, rtol=0, atol=1e-12)
@@ -167,7 +167,7 @@ def test_window_footprints_and_local_fits_match_the_whole_detector(ndim):
     """A bubble's own projection through a detector window around its shadow is its whole-detector
     projection; local fits on one window rank candidates as the whole detector does."""
     from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
-    from bubsub.clients.pipeline.topology import _Footprint, _Window, _local_fits
+    from bubsub.clients.pipeline.local import Footprint, Window, local_fits
 
     angles = np.linspace(0, np.pi, 6, endpoint=False)
     if ndim == 3:
@@ -180,14 +180,14 @@ def test_window_footprints_and_local_fits_match_the_whole_detector(ndim):
         centres = ([0.5, 0.2], [-0.9, -0.3])
     P = MeshProjector(g)
     s = make(centres[0], 0.4, -0.2)
-    window = _Window(P, [s])
+    window = Window(P, [s])
     assert window.starts is not None and np.prod(window.size[-1]) < g.det_cols  # smaller than the detector
-    fw, ff = window.footprint(s), _Footprint(P.forward([s]))
+    fw, ff = window.footprint(s), Footprint(P.forward([s]))
     np.testing.assert_array_equal(fw.index, ff.index)
     np.testing.assert_allclose(fw.values, ff.values, atol=1e-6)
     # data: one bubble at the first centre, a little larger; candidates: the right one vs. a wrong one
     target = P.forward([make(centres[0], 0.45, -0.2)]).astype(np.float64)
-    (right, f_right), (_, f_wrong) = _local_fits(P, [[s], [make(np.add(centres[0], 0.15), 0.3, -0.2)]], target, 10)
+    (right, f_right), (_, f_wrong) = local_fits(P, [[s], [make(np.add(centres[0], 0.15), 0.3, -0.2)]], target, 10)
     assert f_right < f_wrong
     # the target is zero off the window, and the fitted bubble's shadow stays inside it: the same objective
     assert f_right == pytest.approx(P.objective(right, target)[0], rel=1e-6)

@@ -253,8 +253,9 @@ def repair_bubbles(surfaces, refit=None, *, gap=0.0, rounds=2):
     Parameters
     ----------
     surfaces : list of SubdivisionSurface
-    refit : callable(list of SubdivisionSurface) -> list of SubdivisionSurface, optional
-        A short fit after each repair round (not after the last).
+    refit : callable(surfaces, changed, gone) -> list of SubdivisionSurface, optional
+        A short fit after each repair round (not after the last): ``changed`` are the indices of the
+        repaired bubbles, ``gone`` ``(centre, radius)`` of the dropped ones.
     gap : float
         Liquid film left between separated bubbles, mm.
     rounds : int
@@ -279,6 +280,7 @@ def repair_bubbles(surfaces, refit=None, *, gap=0.0, rounds=2):
         if not violations:
             break
         last = r == rounds
+        before = list(surfaces)
         surfaces, drop = _repair_once(surfaces, violations, gap, actions, r)
         violations = check_bubbles(surfaces)
         bad = {b for v in violations for b in v.bubbles} if last else set()
@@ -289,11 +291,15 @@ def repair_bubbles(surfaces, refit=None, *, gap=0.0, rounds=2):
                 if k not in drop:
                     drop.add(k)
                     actions.append({"round": r, "action": "dropped", "bubble": k, "reason": f"still {v.kind}"})
+        gone = [_centre_radius(before[k]) for k in sorted(drop)]
+        changed = [k for k, s in enumerate(surfaces) if s is not before[k] and k not in drop]
         if drop:
             dropped += len(drop)
-            surfaces = [s for k, s in enumerate(surfaces) if k not in drop]
+            keep = [k for k in range(len(surfaces)) if k not in drop]
+            changed = [keep.index(k) for k in changed]
+            surfaces = [surfaces[k] for k in keep]
         if not last and refit is not None and surfaces:
-            surfaces = list(refit(surfaces))
+            surfaces = list(refit(surfaces, changed, gone))
         violations = check_bubbles(surfaces)
     return surfaces, {
         "violations_found": [v.as_dict() for v in found],
@@ -331,11 +337,12 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
         found = [v.as_dict() for v in check_bubbles(surfaces)]
         return list(surfaces), {"violations_found": found, "actions": [], "violations_remaining": found,
                                 "dropped": 0, "repaired": False}
-    from bubsub.clients.optimise.fit import fit
+    from bubsub.clients.pipeline.local import local_refit
 
-    def refit(items):
-        return fit(projector, items, data, iterations=iterations, progress=False, catch_interrupt=False,
-                   penalty=penalty).surfaces
+    def refit(items, changed, gone):
+        # only the repaired bubbles and their neighbours, on detector windows with the rest held fixed
+        return local_refit(projector, items, data, changed, iterations=iterations, touch=max(gap, 0.0) + 1e-9,
+                           near=gone, penalty=penalty)[0]
 
     kept, summary = repair_bubbles(surfaces, refit, gap=gap, rounds=rounds)
     summary["repaired"] = True

@@ -23,7 +23,10 @@ improves:
   bubbles (at the blobs, or along its long axis), fitted the same way, kept
   when better than the bubble itself.
 
-Then all bubbles are refitted jointly, and the next round starts. Every
+Then the bubbles the round changed, and their neighbours, are refitted on
+detector windows with the rest of the scene held fixed
+(:func:`bubsub.clients.pipeline.local.local_refit`: the cost of a round
+follows what it changed, not the scan's size), and the next round starts. Every
 accepted change is recorded with its objective before and after.
 """
 
@@ -36,8 +39,8 @@ from bubsub.core.projection.mesh import bounding_box
 from bubsub.core.voxel.raster import bubble_mask
 from bubsub.core.voxel.grid import world_to_index
 
-from bubsub.clients.optimise.fit import fit
 from bubsub.clients.pipeline.blobs import log_blobs
+from bubsub.clients.pipeline.local import Footprint, Window, local_fits, local_refit, others_removed, own_projections
 
 __all__ = ["adapt_topology", "adapt_bubbles"]
 
@@ -45,115 +48,6 @@ __all__ = ["adapt_topology", "adapt_bubbles"]
 #: of a 60-bubble fit (25 x 256 x 512 cone scan), 15 and 30 iterations add the same bubble at the
 #: same place, and the add step's CPU time falls from 6.5 s to 3.9 s
 RESIDUAL_PREVIEW_ITERATIONS_3D = 15
-
-
-class _Footprint:
-    """One bubble's own projection, stored on its support only.
-
-    A bubble shadows a small part of the detector; keeping one dense float64
-    projection per bubble cost 60 x 26 MB on a 25 x 256 x 512 scan and set
-    the pipeline's peak memory.
-    """
-
-    __slots__ = ("index", "values")
-
-    def __init__(self, projection):
-        flat = np.asarray(projection).ravel()
-        self.index = np.flatnonzero(flat)
-        self.values = flat[self.index].astype(np.float64)
-
-    @classmethod
-    def from_window(cls, part, starts, full_shape):
-        """From a projection onto a detector window (:meth:`ScanGeometry.window`) starting at ``starts``
-        (row starts, column starts) of a detector of projections ``full_shape``."""
-        fp = cls.__new__(cls)
-        nz = np.nonzero(part)
-        fp.values = part[nz].astype(np.float64)
-        if len(full_shape) == 3:
-            p, r, c = nz
-            fp.index = (p * full_shape[1] + starts[0][p] + r) * full_shape[2] + starts[1][p] + c
-        else:
-            p, c = nz
-            fp.index = p * full_shape[1] + starts[1][p] + c
-        return fp
-
-    def add_to(self, array, sign=1.0):
-        """``array += sign * p`` in place (``array`` C-contiguous, the projection's shape)."""
-        array.reshape(-1)[self.index] += sign * self.values
-
-    def removal_gain(self, residual):
-        """``0.5 ||r - p||^2 - 0.5 ||r||^2`` without forming ``r - p``."""
-        return 0.5 * float(self.values @ self.values) - float(residual.reshape(-1)[self.index] @ self.values)
-
-    def addition_gain(self, residual):
-        """``0.5 ||r + p||^2 - 0.5 ||r||^2`` without forming ``r + p``."""
-        return 0.5 * float(self.values @ self.values) + float(residual.reshape(-1)[self.index] @ self.values)
-
-
-class _Window:
-    """A detector window around some bubbles' shadows, and a projector onto it.
-
-    A bubble shadows a small part of the detector, but a projection and an
-    objective over the whole detector cost a pass over every pixel: the
-    local fits of a merge or split spent most of their time there (25 ms per
-    evaluation of one bubble on a 25 x 256 x 512 scan). The window is the
-    bounding box of the shadows in each projection, grown by ``margin`` of
-    its size and ``pad`` pixels so that the bubbles can move and grow, the
-    same size in every projection (one geometry); the whole detector when
-    that would be most of it. Objectives on one window are comparable with
-    each other: outside it they differ by the same constant.
-    """
-
-    def __init__(self, projector, surfaces, margin=0.3, pad=3):
-        from bubsub.core import MeshProjector
-
-        g = projector.geometry
-        self.projector, self.starts, self.size, self.full_shape = projector, None, None, g.shape
-        col, row, ahead = g.detector_coordinates(np.concatenate([s.fine().vertices for s in surfaces]))
-        if not ahead.all():
-            return
-        starts, size = [], []
-        for coord, n in ((row, g.det_rows), (col, g.det_cols)) if g.ndim == 3 else ((col, g.det_cols),):
-            lo, hi = coord.min(axis=1) + 0.5 * n, coord.max(axis=1) + 0.5 * n  # pixel edges
-            width = int(np.ceil((hi - lo).max() * (1 + 2 * margin))) + 2 * pad
-            width = min(width, n)
-            starts.append(np.clip(np.round(0.5 * (lo + hi) - 0.5 * width), 0, n - width).astype(np.int64))
-            size.append(width)
-        if np.prod(size) > 0.5 * np.prod(g.shape[1:]):
-            return
-        if g.ndim == 2:
-            starts, size = [0] + starts, [None] + size
-        self.starts, self.size = starts, size
-        self.projector = MeshProjector(g.window(starts[0], starts[1], size[0], size[1]),
-                                       supersampling=projector.supersampling, threads=projector.threads,
-                                       backend=projector.backend)
-
-    def cut(self, projections):
-        """The window's part of whole-detector projections."""
-        if self.starts is None:
-            return projections
-        from bubsub.core import ScanGeometry
-
-        return ScanGeometry.window_of(projections, self.starts[0], self.starts[1], self.size[0], self.size[1])
-
-    def footprint(self, surface):
-        """``surface``'s own projection (all of it inside the window) as a whole-detector :class:`_Footprint`."""
-        part = self.projector.forward([surface])
-        if self.starts is None:
-            return _Footprint(part)
-        return _Footprint.from_window(part, self.starts, self.full_shape)
-
-
-def _own_projections(projector, surfaces):
-    return [_Window(projector, [s]).footprint(s) for s in surfaces]
-
-
-def _others_removed(residual, *own):
-    """``data`` minus every bubble but ``own``: ``sum(own) - residual``."""
-    target = -residual
-    for o in own:
-        o.add_to(target)
-    return target
 
 
 def _half_sq(r):
@@ -218,7 +112,7 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
         best = None
         for scale in (0.7, 1.0, 1.3):
             cand = new_bubble(c, r * scale)
-            p = _Window(projector, [cand]).footprint(cand)
+            p = Window(projector, [cand]).footprint(cand)
             g = p.addition_gain(residual)
             if best is None or g < best[0]:
                 best = (g, cand, p)
@@ -232,18 +126,6 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
                             "radius": float(_equivalent_radius(_size(cand), ndim)),
                             "objective_before": f, "objective_after": f + g})
     return surfaces, own
-
-
-def _local_fits(projector, candidates, target, iterations):
-    """Each candidate set of bubbles fitted alone to ``target`` on one detector window around all of
-    them: ``[(surfaces, objective), ...]``, objectives comparable with each other."""
-    window = _Window(projector, [s for items in candidates for s in items])
-    part = np.ascontiguousarray(window.cut(target))
-    out = []
-    for items in candidates:
-        res = fit(window.projector, items, part, iterations=iterations, progress=False, catch_interrupt=False)
-        out.append((res.surfaces, res.objective))
-    return out
 
 
 def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, touch, iterations,
@@ -266,11 +148,11 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     for _, i, j in sorted(pairs)[:max_tries]:
         if i in gone or j in gone:
             continue
-        target = _others_removed(residual, own[i], own[j])
+        target = others_removed(residual, own[i], own[j])
         ndim = surfaces[i].ndim
         size = _size(surfaces[i]) + _size(surfaces[j])
         c = (_centre(surfaces[i]) * _size(surfaces[i]) + _centre(surfaces[j]) * _size(surfaces[j])) / size
-        (pair, f_pair), (one, f_one) = _local_fits(
+        (pair, f_pair), (one, f_one) = local_fits(
             projector, [[surfaces[i], surfaces[j]], [new_bubble(c, _equivalent_radius(size, ndim))]], target,
             iterations)
         if f_one < f_pair + cost:
@@ -278,7 +160,7 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
             residual += p
             own[i].add_to(residual, -1.0)
             own[j].add_to(residual, -1.0)
-            surfaces[i], own[i] = one[0], _Footprint(p)
+            surfaces[i], own[i] = one[0], Footprint(p)
             gone.add(j)
             changes.append({"round": round_no, "change": "merge", "centres": [_centre(pair[0]).tolist(),
                             _centre(pair[1]).tolist()], "objective_before": f_pair, "objective_after": f_one})
@@ -341,15 +223,15 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     extra = []
     for _, k, children in sorted(cand, key=lambda t: t[0])[:max_tries]:
         s = surfaces[k]
-        target = _others_removed(residual, own[k])
-        (single, f_single), (two, f_two) = _local_fits(
+        target = others_removed(residual, own[k])
+        (single, f_single), (two, f_two) = local_fits(
             projector, [[s], [new_bubble(c, r) for c, r in children]], target, iterations)
         if f_two < f_single - cost:
             p0, p1 = (projector.forward([t]).astype(np.float64) for t in two)
             residual += p0 + p1
             own[k].add_to(residual, -1.0)
-            surfaces[k], own[k] = two[0], _Footprint(p0)
-            extra.append((two[1], _Footprint(p1)))
+            surfaces[k], own[k] = two[0], Footprint(p0)
+            extra.append((two[1], Footprint(p1)))
             changes.append({"round": round_no, "change": "split", "centre": _centre(s).tolist(),
                             "objective_before": f_single, "objective_after": f_two})
     for s, p in extra:
@@ -383,7 +265,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     rounds : int
         Rounds of (changes, joint fit); stops early when a round changes nothing.
     iterations : int
-        BFGS iterations of each joint fit.
+        BFGS iterations of each local refit of the changed bubbles and their neighbours.
     threshold : float
         Least LoG response of a residual blob, as a fraction of ``|contrast|``.
     touch : float
@@ -425,9 +307,11 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         blobs = log_blobs(image[0], image[1], contrast, min_radius=min_radius, max_radius=max_radius,
                           threshold=threshold)
     unknowns = new_bubble(np.zeros(surfaces[0].ndim if surfaces else data.ndim), 1.0).vertices.size
+    refits = []
     for r in range(rounds):
         n_before = len(changes)
-        own = _own_projections(projector, surfaces)
+        start = {id(s): s for s in surfaces}
+        own = own_projections(projector, surfaces)
         residual = -np.asarray(data, dtype=np.float64)
         for o in own:
             o.add_to(residual)
@@ -448,10 +332,16 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         done = r + 1
         if len(changes) == n_before or not surfaces:
             break
-        surfaces = fit(projector, surfaces, data, iterations=iterations, progress=progress,
-                       catch_interrupt=False, penalty=penalty, label=f"topology round {r + 1} refit").surfaces
+        # only the bubbles the round changed, and their neighbours, are refitted (on windows, the rest fixed)
+        kept = {id(s) for s in surfaces}
+        changed = [k for k, s in enumerate(surfaces) if id(s) not in start]
+        gone = [(_centre(s), _equivalent_radius(_size(s), s.ndim)) for i, s in start.items() if i not in kept]
+        surfaces, residual, summary = local_refit(projector, surfaces, data, changed, iterations=iterations,
+                                                  touch=touch, near=gone, residual=residual, penalty=penalty,
+                                                  progress=progress, label=f"topology round {r + 1} refit")
+        refits.append(dict(summary, round=r))
     objective = float(projector.objective(surfaces, data)[0]) if surfaces else _half_sq(data)
-    return surfaces, {"changes": changes, "objective": objective, "rounds": done}
+    return surfaces, {"changes": changes, "objective": objective, "rounds": done, "refits": refits}
 
 
 def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, settings, penalty=None):

@@ -12,6 +12,11 @@ Gradient: moving vertex ``i`` of a crossed triangle by ``dv`` changes the
 crossing distance by ``b_i n.dv / (n.d)``; entering crossings count negative,
 so the chord's derivative is ``b_i n / |n.d|`` for both (``b_i`` barycentric
 weight, ``n`` unit normal, ``d`` unit ray direction).
+
+Every operator takes an optional ``deadline`` (a :func:`time.monotonic`
+value): past it the backend stops between chunks of views and the call raises
+:class:`DeadlineExceeded` (a ``TimeoutError``); a server bounds each
+computation this way.
 """
 
 from __future__ import annotations
@@ -21,14 +26,14 @@ import os
 import numpy as np
 
 from bubsub.core.projection.backends import select
-from bubsub.core.projection.backends.base import Scene, Traversal, vertex_gradient
+from bubsub.core.projection.backends.base import DeadlineExceeded, Scene, Traversal, check_deadline, vertex_gradient
 from bubsub.core.projection.backends.frames import Frames
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.projection.subdivision import SubdivisionSurface
 from bubsub.core.threads import thread_map
 
-__all__ = ["MeshProjector", "Traversal", "default_threads"]
+__all__ = ["MeshProjector", "Traversal", "DeadlineExceeded", "default_threads"]
 
 
 def default_threads():
@@ -116,27 +121,32 @@ class MeshProjector:
         return f"MeshProjector({self.geometry!r}, supersampling={self.supersampling}, backend={self.backend!r})"
 
     # -- public operators -----------------------------------------------------------
-    def forward(self, meshes):
-        """Projections of ``meshes``: float32 array of ``geometry.shape``."""
-        return self._projection(self.trace(meshes))
+    def forward(self, meshes, deadline=None):
+        """Projections of ``meshes``: float32 array of ``geometry.shape``.
 
-    def vjp(self, meshes, residual):
+        ``deadline`` (all operators): :func:`time.monotonic` value past which
+        the work stops, between chunks of views, with :class:`DeadlineExceeded`.
+        """
+        return self._projection(self.trace(meshes, deadline))
+
+    def vjp(self, meshes, residual, deadline=None):
         """Gradient of ``<forward(meshes), residual>`` with respect to each item's vertices.
 
         Parameters
         ----------
         meshes : sequence of Mesh, Polygon or SubdivisionSurface
         residual : array of ``geometry.shape``
+        deadline : float, optional
 
         Returns
         -------
         list of (n_i, 3) or (n_i, 2) float
         """
         r = self._check_array(residual, "residual")
-        scene = self._scene(meshes)
-        return self._gradient(scene, self._trace(scene, gradient=True), r)
+        scene = self._scene(meshes, deadline)
+        return self._gradient(scene, self._trace(scene, gradient=True, deadline=deadline), r)
 
-    def objective(self, meshes, data):
+    def objective(self, meshes, data, deadline=None):
         """``f = 0.5 ||forward(meshes) - data||^2`` and its gradient, from one traversal.
 
         Returns
@@ -149,8 +159,8 @@ class MeshProjector:
         # NaN or inf in the data makes f non-finite; the full check then names it (checking every
         # value first cost a pass over the data at every evaluation of a fit)
         d = self._check_array(data, "data", finite=False)
-        scene = self._scene(meshes)
-        traversal = self._trace(scene, gradient=True)
+        scene = self._scene(meshes, deadline)
+        traversal = self._trace(scene, gradient=True, deadline=deadline)
         # the float32 projection is what forward() returns; f and the gradient use it too
         flat = d.ravel() if d.dtype in (np.float32, np.float64) else d.ravel().astype(np.float64)
         values = traversal.values
@@ -161,20 +171,21 @@ class MeshProjector:
             self._check_array(data, "data")
         return f, self._gradient(scene, traversal, residual)
 
-    def trace(self, meshes):
+    def trace(self, meshes, deadline=None):
         """Find every crossing once: the backend's :class:`Traversal` (values and crossing count)."""
-        return self._trace(self._scene(meshes))
+        return self._trace(self._scene(meshes, deadline), deadline=deadline)
 
     # -- internals ----------------------------------------------------------------
-    def _scene(self, meshes):
+    def _scene(self, meshes, deadline=None):
         if isinstance(meshes, (Mesh, Polygon, SubdivisionSurface)):
             meshes = [meshes]
         scene = Scene(meshes, self.geometry.ndim, self._backend.prisms_2d, self.threads)
         self._frames.check_scene(scene)
+        check_deadline(deadline)  # the fine meshes took their time: stop before tracing
         return scene
 
-    def _trace(self, scene, gradient=False):
-        return self._backend.trace(scene, self._frames, self._sub, self.threads, gradient)
+    def _trace(self, scene, gradient=False, deadline=None):
+        return self._backend.trace(scene, self._frames, self._sub, self.threads, gradient, deadline)
 
     def _check_array(self, a, name, finite=True):
         if not isinstance(a, np.ndarray):

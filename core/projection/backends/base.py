@@ -20,11 +20,21 @@ Moving vertex ``j`` of a crossed face ``f`` by ``dv`` changes it by
 the unit normal, ``d`` the unit ray direction). ``face_sums(w)`` returns, per
 face and corner, ``sum over crossings of w[pixel] mu_f b_j / |n_f.d|``; the
 projector multiplies by ``n_f`` and scatters to the vertices.
+
+Deadlines
+---------
+A call may carry a ``deadline`` (a :func:`time.monotonic` value): the
+backend then goes through the views in chunks (:func:`view_chunks`; rays in
+view order for the ray casters) and checks it before each, so that work past
+it really ends; every piece running on a thread stops at its next chunk, and
+:class:`DeadlineExceeded` is raised once all have (:func:`deadline_map`).
+Without a deadline each thread's views go to the kernel in one call.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 
@@ -32,7 +42,60 @@ from bubsub.core.projection.mesh import Mesh, Polygon, bounding_box
 from bubsub.core.projection.subdivision import SubdivisionSurface, control_gradients, fine_vertices
 from bubsub.core.threads import thread_map
 
-__all__ = ["Scene", "Traversal", "StoredCrossings", "Backend", "vertex_gradient"]
+__all__ = ["Scene", "Traversal", "StoredCrossings", "Backend", "vertex_gradient", "DeadlineExceeded",
+           "check_deadline", "view_chunks", "deadline_map", "CHUNK_SECONDS"]
+
+#: with a deadline, chunks of views grow from one view while a chunk takes less than this (s)
+CHUNK_SECONDS = 0.05
+
+
+class DeadlineExceeded(TimeoutError):
+    """A projection stopped at its deadline, between two chunks of views."""
+
+
+def check_deadline(deadline):
+    """Raise :class:`DeadlineExceeded` once :func:`time.monotonic` has passed ``deadline`` (None: never)."""
+    if deadline is not None and time.monotonic() >= deadline:
+        raise DeadlineExceeded(f"projection stopped at its deadline ({time.monotonic() - deadline:.3f} s past it)")
+
+
+def view_chunks(p0, p1, deadline):
+    """Ranges ``(q0, q1)`` covering views ``p0..p1`` in order, the deadline checked before each.
+
+    Without a deadline: ``(p0, p1)`` at once. With one, chunks start at one
+    view and double while a chunk takes under :data:`CHUNK_SECONDS`, so the
+    kernel calls add little and the deadline is checked often enough.
+    """
+    if deadline is None:
+        if p1 > p0:
+            yield p0, p1
+        return
+    size, p = 1, p0
+    while p < p1:
+        check_deadline(deadline)
+        q = min(p1, p + size)
+        t0 = time.monotonic()
+        yield p, q
+        if time.monotonic() - t0 < CHUNK_SECONDS:
+            size *= 2
+        p = q
+
+
+def deadline_map(fn, items, threads):
+    """:func:`~bubsub.core.threads.thread_map` that, when an item stops at its deadline, waits for the
+    others to stop too (each at its next chunk) before raising :class:`DeadlineExceeded`."""
+
+    def guarded(item):
+        try:
+            return fn(item)
+        except DeadlineExceeded as exc:
+            return exc
+
+    out = thread_map(guarded, items, threads)
+    for r in out:
+        if isinstance(r, DeadlineExceeded):
+            raise r
+    return out
 
 
 class Scene:
@@ -256,11 +319,12 @@ class StoredCrossings(Traversal):
         ``bary (k, 3) float32``, ``inv_cos (k,) float32`` (``1 / |n.d|``).
     """
 
-    def __init__(self, values, chunks, scene, pool_map):
+    def __init__(self, values, chunks, scene, pool_map, deadline=None):
         super().__init__(values, sum(c[0].size for c in chunks))
         self.chunks = chunks
         self._scene = scene
         self._map = pool_map
+        self._deadline = deadline
 
     def face_sums(self, weights):
         scene = self._scene
@@ -268,6 +332,7 @@ class StoredCrossings(Traversal):
         nf = len(scene.faces)
 
         def per_chunk(chunk):
+            check_deadline(self._deadline)
             # n is constant on a face, so sum b_j * coef per face first
             pixel, face, bary, inv_cos = chunk
             coef = weights[pixel] * inv_cos * mu[face]
@@ -291,7 +356,7 @@ class Backend:
     name = ""
     prisms_2d = True
 
-    def trace(self, scene, frames, sub, threads, gradient=False):
+    def trace(self, scene, frames, sub, threads, gradient=False, deadline=None):
         """Cast every sub-ray of every pixel through ``scene``.
 
         Parameters
@@ -304,6 +369,10 @@ class Backend:
         gradient : bool
             Whether ``face_sums`` will be called (a backend may then keep
             what it found, within a memory bound).
+        deadline : float, optional
+            :func:`time.monotonic` value past which the work stops, between
+            chunks of views (``face_sums`` keeps it too), with
+            :class:`DeadlineExceeded`.
 
         Returns
         -------

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bubsub.core.projection.backends.base import Backend, StoredCrossings
-from bubsub.core.threads import thread_map
+from bubsub.core.projection.backends.base import Backend, StoredCrossings, check_deadline, deadline_map
 
 __all__ = ["Frames", "RayCaster", "EPS_REL"]
 
@@ -218,7 +217,7 @@ class RayCaster(Backend):
 
     prisms_2d = True
 
-    def trace(self, scene, frames, sub, threads, gradient=False):
+    def trace(self, scene, frames, sub, threads, gradient=False, deadline=None):
         size = float(np.max(scene.half[:scene.ndim])) * 2.0
         eps = EPS_REL * max(size, 1e-3)
         caster = self.prepare(scene, eps)
@@ -227,12 +226,17 @@ class RayCaster(Backend):
         # every ray starts just before the scene's bounding sphere
         radius = float(np.linalg.norm(scene.half)) + 4 * eps
         n_rays = pix.size * sub.shape[0]
-        chunks = thread_map(lambda s: caster.trace_chunk(frames, sub, pix, far, radius, s, min(s + _CHUNK, n_rays)),
-                            range(0, n_rays, _CHUNK), threads)
+
+        def chunk(s):  # rays go in pixel order, so a chunk of rays is a chunk of views
+            check_deadline(deadline)
+            return caster.trace_chunk(frames, sub, pix, far, radius, s, min(s + _CHUNK, n_rays))
+
+        chunks = deadline_map(chunk, range(0, n_rays, _CHUNK), threads)
         values = np.zeros(frames.n * frames.rows * frames.cols)
         for lo, part, _ in chunks:
             values[lo: lo + part.size] += part
-        return StoredCrossings(values, [c for _, _, c in chunks], scene, lambda fn, items: thread_map(fn, items, threads))
+        return StoredCrossings(values, [c for _, _, c in chunks], scene,
+                               lambda fn, items: deadline_map(fn, items, threads), deadline)
 
     def prepare(self, scene, eps):
         """An object with ``trace_chunk(frames, sub, pix, far, radius, start, stop)`` for this scene."""

@@ -68,6 +68,11 @@ sums are accumulated per group, then added, so there are no races. Where the
 forward pass went item by item and kept every crossing, the face sums are
 split among the threads by items instead, into one array (an item's faces
 belong to one thread).
+
+Deadline: with one, a group goes to the kernel in chunks of its views
+(:func:`~bubsub.core.projection.backends.base.view_chunks`), each chunk's
+crossings stored after the previous one's in the group's part of the store;
+values, stores and face sums are the same to the bit as in one call.
 """
 
 from __future__ import annotations
@@ -77,7 +82,7 @@ import threading
 
 import numpy as np
 
-from bubsub.core.projection.backends.base import Backend, Traversal
+from bubsub.core.projection.backends.base import Backend, Traversal, check_deadline, deadline_map, view_chunks
 from bubsub.core.threads import thread_map
 
 __all__ = ["RasterBackend", "available", "unavailable_reason"]
@@ -111,13 +116,17 @@ class RasterBackend(Backend):
     name = "raster"
     prisms_2d = False
 
-    def trace(self, scene, frames, sub, threads, gradient=False):
+    def trace(self, scene, frames, sub, threads, gradient=False, deadline=None):
         if not _load():
             raise RuntimeError(f"the raster backend is unavailable: {unavailable_reason()}")
-        job = _Job(scene, frames, sub, threads, store=gradient)
+        job = _Job(scene, frames, sub, threads, store=gradient, deadline=deadline)
         # each group zeroes its own projections (job.run): 26 MB of zeros were a serial millisecond per call
         values = np.empty(frames.n * frames.rows * frames.cols)
-        counts = thread_map(lambda g: job.run(g, values, None, None), job.groups, job.threads)
+        try:
+            counts = deadline_map(lambda g: job.run(g, values, None, None), job.groups, job.threads)
+        except BaseException:
+            _RasterTraversal(values, 0, job).release()
+            raise
         return _RasterTraversal(values, sum(counts), job)
 
 
@@ -184,12 +193,13 @@ class _RasterTraversal(Traversal):
             acc = np.zeros((nf, k))
             face, pix, coef, n = job.stores[g]
             if n >= 0:  # the forward pass kept this group's crossings
+                check_deadline(job.deadline)
                 _state["stored_face_sums"](face, pix, coef, n, weights, acc, *job.ray_lengths)
             else:
                 job.run(g, None, weights, acc)
             return acc
 
-        sums = thread_map(group, job.groups, job.threads)
+        sums = deadline_map(group, job.groups, job.threads)
         for other in sums[1:]:  # in place: a fresh sum was two more passes over (faces, 3) per call
             sums[0] += other
         return sums[0]
@@ -199,9 +209,10 @@ class _RasterTraversal(Traversal):
         writes only its items' faces of one shared array. Per group, face-sum arrays (12 MB each
         at 512,000 faces) competed for the shared cache and cost a reduction."""
         job = self._job
+        check_deadline(job.deadline)
         acc = np.zeros(job.scene.faces.shape)
-        # each item's start in the whole store: a group's part begins at its first projection's share
-        starts = np.stack([job.store_items[g] + job.store_offset[g] for g in job.groups])
+        # each item's start in the whole store, per chunk of views of every group (rows in view order)
+        starts = np.stack([row for g in job.groups for row in job.store_items[g]])
 
         def items(span):
             _state["item_face_sums"](*job.store, starts, span[0], span[1], weights, acc, *job.ray_lengths)
@@ -213,8 +224,9 @@ class _RasterTraversal(Traversal):
 class _Job:
     """Per-projection frames in the scene's shifted coordinates, and the kernel's arguments."""
 
-    def __init__(self, scene, frames, sub, threads, store=False):
+    def __init__(self, scene, frames, sub, threads, store=False, deadline=None):
         self.scene = scene
+        self.deadline = deadline
         k2 = sub.shape[0]
         self.k = int(round(np.sqrt(k2))) if scene.ndim == 3 else k2
         shift = scene.centre
@@ -245,7 +257,8 @@ class _Job:
         # 128,000 faces (level 2) -9 ms (of 124); at 512,000 faces it saved about 20 % (the
         # item-by-item pass has no supersampling)
         self.by_item = len(f) >= _ITEM_MAJOR_FACES and self.k == 1
-        # per group, where each item's stored crossings begin (raster3d's item-by-item pass)
+        # per group, one row per chunk of views: where each item's stored crossings begin in the
+        # whole store (raster3d's item-by-item pass)
         self.store_items = {}
         n = frames.n
         self.threads = max(1, min(int(threads), n))
@@ -269,25 +282,43 @@ class _Job:
                 [np.empty(0, np.int32), np.empty(0, np.int32), np.empty((0, 3)), -1]
 
     def run(self, group, values, weights, acc):
-        """Forward (``values`` given) or face sums (``weights``, ``acc`` given) for projections ``group``."""
+        """Forward (``values`` given) or face sums (``weights``, ``acc`` given) for projections ``group``,
+        in chunks of views when there is a deadline (checked before each chunk)."""
         p0, p1 = group
         grad = acc is not None
-        if not grad:
-            npix = self.rows * self.cols
-            values[p0 * npix: p1 * npix] = 0.0
+        npix = self.rows * self.cols
         dummy1, dummy2 = np.zeros(1), np.zeros((1, 1))
-        args = (p0, p1, self.vertices, self.faces, self.normals, self.offset, self.face_mu, *self.frames,
-                self.cone, self.rows, self.cols, self.k, values if not grad else dummy1,
-                weights if grad else dummy1, acc if grad else dummy2, grad)
-        if self.scene.ndim == 3:
-            store = self.stores[group]
-            starts = self.store_items.setdefault(group, np.zeros(len(self.item_faces), np.int64))
-            count, stored = _state["raster3d"](*args, self.hit, *store[:3], *self.ray_lengths,
-                                               self.item_vertices, self.item_faces, self.by_item, starts)
+        face, pix, coef, _ = self.stores[group]
+        # where the next chunk's crossings go in the group's part of the store; -1: not storing
+        pos = 0 if self.scene.ndim == 3 and not grad and len(face) > 0 else -1
+        rows = []  # per chunk: where each item's crossings begin in the whole store (item by item)
+        count = 0
+        for q0, q1 in view_chunks(p0, p1, self.deadline):
             if not grad:
-                store[3] = stored
-            return count
-        return _state["raster2d"](*args)
+                values[q0 * npix: q1 * npix] = 0.0
+            args = (q0, q1, self.vertices, self.faces, self.normals, self.offset, self.face_mu, *self.frames,
+                    self.cone, self.rows, self.cols, self.k, values if not grad else dummy1,
+                    weights if grad else dummy1, acc if grad else dummy2, grad)
+            if self.scene.ndim == 2:
+                count += _state["raster2d"](*args)
+                continue
+            at = pos if pos >= 0 else len(face)  # an empty store: the kernel keeps nothing
+            starts = np.zeros(len(self.item_faces), np.int64)
+            c, stored = _state["raster3d"](*args, self.hit, face[at:], pix[at:], coef[at:], *self.ray_lengths,
+                                           self.item_vertices, self.item_faces, self.by_item, starts)
+            count += c
+            if grad or pos < 0:
+                continue
+            if stored < 0:  # the store filled in this chunk: the earlier chunks' faces are marked as well
+                _state["mark_stored"](face, pix, pos, npix, self.hit)
+                pos = -1
+            else:
+                rows.append(starts + self.store_offset[group] + pos)
+                pos += stored
+        if not grad and self.scene.ndim == 3:
+            self.stores[group][3] = pos
+            self.store_items[group] = rows
+        return count
 
     def by_item_store(self):
         """Whether every group kept all its crossings, item by item (raster3d's ``st_item``)."""
@@ -313,4 +344,4 @@ def _compile():
 
     return {"raster3d": raster_kernels.raster3d, "raster2d": raster_kernels.raster2d,
             "stored_face_sums": raster_kernels.stored_face_sums, "item_face_sums": raster_kernels.item_face_sums,
-            "pixel_ray_lengths": raster_kernels.pixel_ray_lengths}
+            "pixel_ray_lengths": raster_kernels.pixel_ray_lengths, "mark_stored": raster_kernels.mark_stored}

@@ -37,6 +37,7 @@ def cmd_reconstruct(args):
         holdout=args.holdout, progress=not args.quiet, background_subtracted=args.background_subtracted,
         preview=args.preview, detector=args.detector, topology=not args.no_topology, repair=not args.no_repair,
         fov_model=args.fov_model, separation=args.separation, refine=not args.no_refine,
+        data_levels=args.data_levels, fit_rtol=None if args.fit_rtol == 0 else args.fit_rtol,
     )
     geometry = read_geometry(args.scan)
     check_settings(settings, geometry.ndim)
@@ -143,6 +144,12 @@ def register(sub):
                    help="maximum BFGS iterations (default 80, the paper's; the fit stops earlier when converged)")
     p.add_argument("--control-points", type=positive_int,
                    help="control points per bubble (3D: 12, 42 or 162, default 42; 2D: >= 3, default 9)")
+    p.add_argument("--data-levels", type=positive_int, metavar="K",
+                   help="fit on pixels binned 2^(K-1) x 2^(K-1), ..., 2 x 2, then on the full detector, each level "
+                        "warm-started (default: 2 for 3D detectors of at least 96 x 96 pixels, else 1)")
+    p.add_argument("--fit-rtol", type=float, default=2e-4, metavar="R",
+                   help="a fit level has converged when its objective fell by less than R times itself over 5 "
+                        "iterations (default 2e-4; 0: run to --iterations)")
     p.add_argument("--levels", type=non_negative_int, default=2,
                    help="Loop/curve subdivision levels of the fitted surface (0-4, default 2)")
     p.add_argument("--radius", type=positive_float,

@@ -171,8 +171,12 @@ def _objective_call(projector, data):
     return lambda surfaces: projector.objective(surfaces, data)
 
 
+#: Iterations over which :func:`fit`'s ``rtol`` compares the objective.
+STALL_ITERATIONS = 5
+
+
 def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progress=True, callback=None,
-        catch_interrupt=True, penalty=None, label="BubSub fit"):
+        catch_interrupt=True, penalty=None, label="BubSub fit", rtol=None):
     """Fit bubble surfaces to projections: minimise ``0.5 ||Proj(S x) - d||^2`` over x.
 
     Parameters
@@ -207,6 +211,11 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         ``penalty(vertex_sets) -> (value, grads)`` on the control vertices of
         all bubbles (a list of ``(n_k, ndim)`` arrays; ``grads`` alike), added
         to the objective, e.g. :func:`bubsub.clients.optimise.separation.separation_penalty`.
+    rtol : float, optional
+        Converged when the objective fell by less than ``rtol`` times its
+        value over the last :data:`STALL_ITERATIONS` iterations (L-BFGS on
+        thousands of unknowns otherwise runs to ``iterations``: its gradient
+        test never triggers on noisy data).
 
     Returns
     -------
@@ -256,11 +265,18 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
     class _Stop(Exception):
         pass
 
+    class _Stalled(Exception):
+        pass
+
     def on_iteration(xk):
         history.append({"iteration": len(history) + 1, "objective": best["f"], "seconds": time.perf_counter() - t0})
         bar.update(1, f=f"{best['f']:.4g}")
         if callback is not None and callback(len(history), best["f"], unpack(best["x"])):
             raise _Stop
+        k = STALL_ITERATIONS
+        if rtol is not None and len(history) > k and \
+                history[-k - 1]["objective"] - best["f"] <= rtol * best["f"]:
+            raise _Stalled
 
     interrupted = False
     reason = "iteration limit"
@@ -280,6 +296,8 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
             raise
     except _Stop:
         reason = "stopped by callback"
+    except _Stalled:
+        reason = "converged"
     finally:
         bar.close(reason)
     if not np.isfinite(best["f"]):  # Ctrl-C before the first evaluation finished: nothing to return

@@ -59,6 +59,10 @@ def check_settings(settings, ndim):
         raise ValueError(f"--separation must be a non-negative number, got {s.separation!r}")
     if s.holdout not in (None, "odd", "even"):
         raise ValueError(f"--holdout must be 'odd' or 'even', got {s.holdout!r}")
+    if s.data_levels is not None:
+        _integer(s.data_levels, "--data-levels", 1)
+    if s.fit_rtol is not None and not (np.isfinite(s.fit_rtol) and 0 <= s.fit_rtol < 1):
+        raise ValueError(f"--fit-rtol must be a number in [0, 1), got {s.fit_rtol!r}")
 
 
 def check_bubble_signal(scan, *, background_subtracted=False):

@@ -5,10 +5,14 @@
    Otsu mask, in 2D whichever explains the data better (:mod:`.initial`).
 3. One spherical control mesh per bubble with a constant radius, optionally
    improved by a radius-only fit (paper eq. 4-5), or a user-given initial mesh.
-4. BFGS on all control vertices (:func:`bubsub.clients.optimise.fit`); topology
-   rounds (:mod:`.topology`); validity check and repair (:mod:`.repair`); one
-   coarse-to-fine step, kept when it explains the data better (:mod:`.refine`),
-   and its check and repair.
+4. BFGS on all control vertices, coarse to fine in the data: binned pixels
+   first, the full detector last, each level ended on convergence
+   (:mod:`bubsub.clients.optimise.levels`); topology rounds (:mod:`.topology`)
+   and the validity check and repair (:mod:`.repair`), each refitting only the
+   bubbles it changed on detector windows (:mod:`.local`); one coarse-to-fine
+   step in the control meshes, kept when it explains the data better
+   (:mod:`.refine`), and its check and repair. A tall parallel-beam scan is
+   reconstructed slab by slab of detector rows (:mod:`.slabs`).
 5. Outputs, each written atomically: ``bubbles.ply`` (3D) or ``bubbles.json``
    (2D), ``bubbles.csv`` (+ ``bubbles.csv-metadata.json``), ``report.json``,
    ``overlay.png``, ``sizes.png`` and (3D) ``meshes.png``
@@ -24,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bubsub.core import MeshProjector
+from bubsub.core import MeshProjector, ScanGeometry
 from bubsub.core.io.atomic import atomic_path
 from bubsub.core.io.meshio import (BUBBLE_COLUMN_INFO, BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D, bubble_table,
                                    csv_metadata_path, read_ply, read_polygons_json, write_csv, write_ply,
@@ -32,7 +36,8 @@ from bubsub.core.io.meshio import (BUBBLE_COLUMN_INFO, BUBBLE_COLUMNS_2D, BUBBLE
 from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
-from bubsub.clients.optimise.fit import estimate_radii, fit
+from bubsub.clients.optimise.fit import estimate_radii
+from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
 from bubsub.clients.pipeline.fov import (FOV_COLUMN_INFO, field_of_view, fov_columns, fov_report, preview_extension,
                                          truncated_flags, unobserved_control)
@@ -51,7 +56,9 @@ __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_
 class ReconstructionSettings:
     """What ``bubsub reconstruct`` can be told (defaults follow the paper)."""
 
-    iterations: int = 80
+    iterations: int = 80  # each data level's cap (.optimise.levels); a level ends earlier on convergence
+    data_levels: int | None = None  # fit on 2^(k-1)-binned, ..., full pixels; default 2 for 3D detectors >= 96 px
+    fit_rtol: float | None = 2e-4  # converged: objective down by < fit_rtol x itself over 5 iterations
     control_points: int | None = None  # 42 in 3D, 9 in 2D
     levels: int = 2
     radius: float | None = None  # initial radius (mm); default: median from the distance transform
@@ -289,12 +296,21 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         fit_data = None
     t_init = time.perf_counter() - t0
     clock.mark("initial_bubbles")
+    factors = bin_factors(g_fit, s.data_levels)
     if s.estimate_radii and init is None and detector != "auto":
-        surfaces = estimate_radii(projector, surfaces, fit_data, progress=s.progress)
+        # on the coarsest level's pixels: the radii need not see every pixel
+        coarse = MeshProjector(g_fit.binned(factors[0]), supersampling=s.supersampling)
+        surfaces = estimate_radii(coarse, surfaces, ScanGeometry.bin_projections(d_fit, factors[0]),
+                                  progress=s.progress)
     clock.mark("radius_estimation")
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     penalty = _separation(s, d_fit, len(surfaces), voxel) if fit_data is not None else None
-    result = fit(projector, surfaces, fit_data, iterations=s.iterations, progress=s.progress, penalty=penalty)
+    # the objective of the initial bubbles on the full detector (the levels' own objectives are on their pixels)
+    f_start = float((projector.objective(surfaces, fit_data) if fit_data is not None
+                     else projector.objective(surfaces))[0])
+    result, fit_levels_report = fit_levels(projector, surfaces, d_fit, factors=factors, iterations=s.iterations,
+                                           rtol=s.fit_rtol, penalty=penalty, progress=s.progress,
+                                           factory=projector_factory)
     clock.mark("fit")
     kept, dropped = prune(result.surfaces, min_radius=voxel)
     topology = refinement = None
@@ -314,7 +330,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         if s.refine and init is None and can_refine(kept) and not interrupted:
             # after the repair, so the refined fit also fills the gas of dropped bubbles; checked again
             kept, refinement, again = refine_and_check(local, kept, d_fit, checked, iterations=s.refine_iterations,
-                                                       penalty=penalty, progress=s.progress)
+                                                       penalty=penalty, progress=s.progress, rtol=s.fit_rtol)
             if again is not None:
                 validity = merged_validity(validity, again)
         clock.mark("refine")
@@ -334,8 +350,9 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "dimension": geometry.ndim,
         "iterations": result.iterations,
         "evaluations": result.evaluations,
+        "fit_levels": fit_levels_report,
         "final_objective": result.objective,
-        "initial_objective": result.history[0]["objective"] if result.history else result.objective,
+        "initial_objective": f_start,
         "method": result.method,
         "interrupted": interrupted,
         "stop_reason": "interrupted" if interrupted else result.stop_reason,

@@ -35,7 +35,7 @@ def can_refine(surfaces):
     return bool(surfaces) and all(s.levels >= 1 for s in surfaces)
 
 
-def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=None, progress=False):
+def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=None, progress=False, rtol=None):
     """Refine the control meshes once, fit, and keep the result if its Akaike score is lower.
 
     Parameters
@@ -54,6 +54,8 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         iterations).
     penalty : callable, optional
         As :func:`bubsub.clients.optimise.fit.fit`'s (it works on any control topology).
+    rtol : float, optional
+        The refined fit's convergence test (:func:`bubsub.clients.optimise.fit.fit`).
 
     Returns
     -------
@@ -81,7 +83,7 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         return iteration == trial and akaike_score(objective, m, k) >= before
 
     result = fit(projector, refined, data, iterations=iterations, progress=progress, catch_interrupt=False,
-                 penalty=penalty, label="refined fit", callback=trial_failed)
+                 penalty=penalty, label="refined fit", callback=trial_failed, rtol=rtol)
     after = akaike_score(result.objective, m, k)
     kept = after < before
     summary = {"kept": bool(kept), "objective_before": f0, "objective_after": result.objective,
@@ -91,7 +93,7 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
     return (result.surfaces if kept else surfaces), summary
 
 
-def refine_and_check(projector, surfaces, data, check, *, iterations, penalty=None, progress=False):
+def refine_and_check(projector, surfaces, data, check, *, iterations, penalty=None, progress=False, rtol=None):
     """:func:`refine_and_fit`, then ``check`` (the pipeline's validity check and repair) on a kept result,
     whose Akaike score must still beat the coarse one's afterwards (else the valid coarse bubbles stay).
 
@@ -109,7 +111,7 @@ def refine_and_check(projector, surfaces, data, check, *, iterations, penalty=No
         ``check``'s summary of the kept refined bubbles.
     """
     refined, summary = refine_and_fit(projector, surfaces, data, iterations=iterations, penalty=penalty,
-                                      progress=progress)
+                                      progress=progress, rtol=rtol)
     if not summary["kept"]:
         return surfaces, summary, None
     repaired, validity = check(refined)

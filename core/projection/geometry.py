@@ -292,6 +292,51 @@ class ScanGeometry:
         return ScanGeometry(self._kind, v, rows, cols,
                             _repr=f"{self!r}.window(<{n} row starts>, <{n} column starts>, rows={rows}, cols={cols})")
 
+    def binned(self, factor):
+        """The detector with ``factor x factor`` pixels joined into one (``factor`` columns in 2D).
+
+        Rows and columns that do not fill a whole binned pixel (the last
+        ``cols % factor``) are dropped; the detector's centre moves so that
+        binned pixel ``(r, c)`` covers pixels ``factor r ... factor r + factor - 1``
+        (and columns alike) of this one. :meth:`bin_projections` bins an array so.
+
+        Parameters
+        ----------
+        factor : int
+            At least 1, at most the detector's columns (and rows).
+        """
+        f = _positive_int("factor", factor)
+        nd = self.ndim
+        if f > self._cols or (nd == 3 and f > self._rows):
+            raise ValueError(f"cannot bin a {self.shape[1:]} detector by {f}")
+        if f == 1:
+            return self
+        v = np.array(self._vectors)
+        u = v[:, 2 * nd:3 * nd].copy()
+        cols = self._cols // f
+        v[:, nd:2 * nd] += 0.5 * (f * cols - self._cols) * u
+        v[:, 2 * nd:3 * nd] = f * u
+        rows = None
+        if nd == 3:
+            w = v[:, 9:12].copy()
+            rows = self._rows // f
+            v[:, nd:2 * nd] += 0.5 * (f * rows - self._rows) * w
+            v[:, 9:12] = f * w
+        return ScanGeometry(self._kind, v, rows, cols, _repr=f"{self!r}.binned({f})")
+
+    @staticmethod
+    def bin_projections(projections, factor):
+        """Projections binned as :meth:`binned`: the mean of each ``factor x factor`` block (float32)."""
+        a = np.asarray(projections, dtype=np.float32)
+        f = int(factor)
+        if f == 1:
+            return a
+        if a.ndim == 2:
+            n, c = a.shape
+            return a[:, :c // f * f].reshape(n, c // f, f).mean(axis=2)
+        n, r, c = a.shape
+        return a[:, :r // f * f, :c // f * f].reshape(n, r // f, f, c // f, f).mean(axis=(2, 4))
+
     def translated(self, origin):
         """The same scan in world coordinates whose origin is ``origin`` of these.
 

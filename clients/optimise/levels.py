@@ -1,0 +1,114 @@
+"""Coarse to fine in the data: the fit on binned projections first, the full detector last.
+
+On a large scan most of the fit's iterations move bubbles by more than a
+pixel: they need not see every pixel. :func:`fit_levels` fits the detector
+binned by ``2^(k-1)``, ..., 2, then 1 (:meth:`ScanGeometry.binned`, the mean
+of each block of pixels: a binned pixel holds the mean line integral of the
+pixels it joins), each level warm-started from the one before and ended on
+convergence (:func:`bubsub.clients.optimise.fit.fit`'s ``rtol``) or its
+iteration cap. A binned level costs about a quarter of the next one's
+evaluations.
+"""
+
+from __future__ import annotations
+
+import time
+
+from bubsub.core import MeshProjector, ScanGeometry
+
+from bubsub.clients.optimise.fit import fit
+
+__all__ = ["bin_factors", "fit_levels", "MIN_BINNED_PIXELS"]
+
+#: Least detector rows and columns (3D; columns in 2D) of a binned level: coarser ones see too little.
+MIN_BINNED_PIXELS = 48
+
+
+def bin_factors(geometry, levels=None):
+    """The binning factor of each level, coarsest first, ending with 1.
+
+    Parameters
+    ----------
+    geometry : ScanGeometry
+    levels : int, optional
+        Number of levels; default as many as keep the coarsest detector at least
+        :data:`MIN_BINNED_PIXELS` pixels along each axis, at most 2 (3D only; 2D scans are small).
+
+    Returns
+    -------
+    list of int
+    """
+    if levels is not None:
+        if isinstance(levels, bool) or not isinstance(levels, int) or levels < 1:
+            raise ValueError(f"data levels must be a positive integer, got {levels!r}")
+        return [2 ** k for k in range(levels - 1, -1, -1)]
+    if geometry.ndim != 3:
+        return [1]
+    smallest = min(geometry.det_rows, geometry.det_cols)
+    n = 1
+    while n < 2 and smallest // 2 ** n >= MIN_BINNED_PIXELS:
+        n += 1
+    return [2 ** k for k in range(n - 1, -1, -1)]
+
+
+def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, penalty=None, progress=False,
+               factory=None):
+    """Fit ``surfaces`` level by level (see the module docstring).
+
+    Parameters
+    ----------
+    projector : MeshProjector or RemoteJob
+        The full detector's (the last level's); a remote job holds its data.
+    surfaces : list of SubdivisionSurface
+    data : ndarray
+        The full detector's projections (binned here for the coarse levels).
+    factors : list of int
+        :func:`bin_factors`.
+    iterations : int
+        Each level's iteration cap.
+    rtol : float, optional
+        Each level's convergence test (:func:`bubsub.clients.optimise.fit.fit`).
+    factory : callable(geometry, data, surfaces) -> projector, optional
+        Makes a binned level's projector holding its data (a remote job; ``projector`` is then the
+        full detector's job, which holds its own); default a local MeshProjector.
+
+    Returns
+    -------
+    result : FitResult
+        The last level's, with ``iterations`` and ``evaluations`` summed over the levels.
+    levels : list of dict
+        Per level: ``bin``, ``detector`` (rows, cols), ``iterations``, ``evaluations``, ``seconds``,
+        ``stop_reason``, ``objective``.
+    """
+    geometry = projector.geometry if hasattr(projector, "geometry") else None
+    summary, result = [], None
+    total_it = total_ev = 0
+    for f in factors:
+        t0 = time.perf_counter()
+        if f == 1:  # a remote job (made by ``factory``) holds its own data
+            level_projector, level_data = projector, (None if factory is not None else data)
+        else:
+            if data is None:
+                raise ValueError("binned levels need the full detector's data")
+            g = geometry.binned(f)
+            level_data = ScanGeometry.bin_projections(data, f)
+            if factory is not None:
+                level_projector, level_data = factory(g, level_data, surfaces), None
+            else:
+                level_projector = MeshProjector(g, supersampling=getattr(projector, "supersampling", 1),
+                                                threads=getattr(projector, "threads", None))
+        label = "BubSub fit" if len(factors) == 1 else f"BubSub fit (pixels binned {f} x {f})" if f > 1 \
+            else "BubSub fit (full detector)"
+        result = fit(level_projector, surfaces, level_data, iterations=iterations, progress=progress,
+                     penalty=penalty, rtol=rtol, label=label, catch_interrupt=True)
+        surfaces = result.surfaces
+        total_it += result.iterations
+        total_ev += result.evaluations
+        shape = level_projector.geometry.shape[1:] if hasattr(level_projector, "geometry") else None
+        summary.append({"bin": f, "detector": list(shape) if shape else None, "iterations": result.iterations,
+                        "evaluations": result.evaluations, "seconds": time.perf_counter() - t0,
+                        "stop_reason": result.stop_reason, "objective": result.objective})
+        if result.interrupted:
+            break
+    result.iterations, result.evaluations = total_it, total_ev
+    return result, summary

@@ -40,7 +40,7 @@ from bubsub.core.voxel.raster import bubble_mask
 from bubsub.core.voxel.grid import world_to_index
 
 from bubsub.clients.pipeline.blobs import log_blobs
-from bubsub.clients.pipeline.local import Footprint, Window, local_fits, local_refit, others_removed, own_projections
+from bubsub.clients.pipeline.local import Footprint, Footprints, Window, local_fits, local_refit, others_removed
 
 __all__ = ["adapt_topology", "adapt_bubbles"]
 
@@ -68,19 +68,26 @@ def _centre(s):
 
 
 def remove_step(surfaces, residual, own, changes, round_no, cost=0.0):
-    """Greedy removal of bubbles whose removal raises ``0.5 ||r||^2`` by at most ``cost`` (in place on ``residual``)."""
-    alive = list(range(len(surfaces)))
-    while alive:
+    """Greedy removal of bubbles whose removal raises ``0.5 ||r||^2`` by at most ``cost`` (in place on ``residual``).
+
+    Every bubble's gain is computed once from its footprint (not kept); the
+    candidates' gains are computed again, best first, after each removal.
+    """
+    candidates = [k for k in range(len(surfaces)) if own.compute(k).removal_gain(residual) <= cost]
+    gone = set()
+    while candidates:
         f = _half_sq(residual)
-        gains = [own[k].removal_gain(residual) for k in alive]
+        gains = [own[k].removal_gain(residual) for k in candidates]
         best = int(np.argmin(gains))
         if gains[best] > cost:
             break
-        k = alive.pop(best)
+        k = candidates.pop(best)
         own[k].add_to(residual, -1.0)
+        gone.add(k)
         changes.append({"round": round_no, "change": "remove", "centre": _centre(surfaces[k]).tolist(),
                         "objective_before": f, "objective_after": f + gains[best]})
-    return [surfaces[k] for k in alive], [own[k] for k in alive]
+    alive = [k for k in range(len(surfaces)) if k not in gone]
+    return [surfaces[k] for k in alive], own.subset(alive)
 
 
 def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, round_no, *, min_radius, max_radius,
@@ -95,7 +102,7 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
     contrast = new_bubble(np.zeros(ndim), 1.0).attenuation
     centres, radii = log_blobs(image, extent, contrast, min_radius=min_radius, max_radius=max_radius,
                                threshold=threshold)
-    surfaces, own = list(surfaces), list(own)
+    surfaces = list(surfaces)
     added = 0
     for c, r in zip(centres, radii):
         if added >= max_add:
@@ -120,7 +127,7 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
             g, cand, p = best
             p.add_to(residual)
             surfaces.append(cand)
-            own.append(p)
+            own.append(cand, p)
             added += 1
             changes.append({"round": round_no, "change": "add", "centre": np.asarray(c).tolist(),
                             "radius": float(_equivalent_radius(_size(cand), ndim)),
@@ -143,7 +150,7 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         d = float(cKDTree(fines[i]).query(fines[j])[0].min())
         if d <= touch:
             pairs.append((d, i, j))
-    surfaces, own = list(surfaces), list(own)
+    surfaces = list(surfaces)
     gone = set()
     for _, i, j in sorted(pairs)[:max_tries]:
         if i in gone or j in gone:
@@ -160,12 +167,13 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
             residual += p
             own[i].add_to(residual, -1.0)
             own[j].add_to(residual, -1.0)
-            surfaces[i], own[i] = one[0], Footprint(p)
+            surfaces[i] = one[0]
+            own.set(i, one[0], Footprint(p))
             gone.add(j)
             changes.append({"round": round_no, "change": "merge", "centres": [_centre(pair[0]).tolist(),
                             _centre(pair[1]).tolist()], "objective_before": f_pair, "objective_after": f_one})
     keep = [k for k in range(len(surfaces)) if k not in gone]
-    return [surfaces[k] for k in keep], [own[k] for k in keep]
+    return [surfaces[k] for k in keep], own.subset(keep)
 
 
 def _axes(s):
@@ -219,7 +227,7 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
             axis = u[:, -1] * np.sqrt(w[-1])  # one standard deviation along the long axis
             half = min(_equivalent_radius(_size(s) / 2, s.ndim), 0.95 * float(np.linalg.norm(axis)))
             cand.append((-np.sqrt(w[-1] / w[0]), k, [(c - axis, half), (c + axis, half)]))
-    surfaces, own = list(surfaces), list(own)
+    surfaces = list(surfaces)
     extra = []
     for _, k, children in sorted(cand, key=lambda t: t[0])[:max_tries]:
         s = surfaces[k]
@@ -230,13 +238,14 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
             p0, p1 = (projector.forward([t]).astype(np.float64) for t in two)
             residual += p0 + p1
             own[k].add_to(residual, -1.0)
-            surfaces[k], own[k] = two[0], Footprint(p0)
+            surfaces[k] = two[0]
+            own.set(k, two[0], Footprint(p0))
             extra.append((two[1], Footprint(p1)))
             changes.append({"round": round_no, "change": "split", "centre": _centre(s).tolist(),
                             "objective_before": f_single, "objective_after": f_two})
     for s, p in extra:
         surfaces.append(s)
-        own.append(p)
+        own.append(s, p)
     return surfaces, own
 
 
@@ -311,10 +320,8 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     for r in range(rounds):
         n_before = len(changes)
         start = {id(s): s for s in surfaces}
-        own = own_projections(projector, surfaces)
-        residual = -np.asarray(data, dtype=np.float64)
-        for o in own:
-            o.add_to(residual)
+        own = Footprints(projector, surfaces)
+        residual = projector.forward(surfaces).astype(np.float64) - data if surfaces else -data.astype(np.float64)
         cost = complexity * unknowns * 2 * _half_sq(residual) / residual.size
         if "remove" in steps:
             surfaces, own = remove_step(surfaces, residual, own, changes, r, cost)

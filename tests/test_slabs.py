@@ -224,3 +224,17 @@ def test_slabs_on_a_local_dask_cluster_match_the_in_process_run(seam_scan):
     for (c1, r1), (c2, r2) in zip(_summary(here.surfaces), _summary(there.surfaces)):
         assert np.allclose(c1, c2, atol=0.01) and abs(r1 - r2) < 0.005
     assert len(here.surfaces) == len(there.surfaces) == 3
+
+
+def test_each_slab_is_a_fitting_job_on_the_projector_server(seam_scan):
+    from service_support import ServerThread
+
+    from bubsub.clients.pipeline.slabs import reconstruct_slabs
+
+    here = reconstruct_slabs(seam_scan, _quick(), slabs=2, halo=10)
+    with ServerThread() as server:
+        there = reconstruct_slabs(seam_scan, _quick(), slabs=2, halo=10, server=server.url)
+        assert len(server.state.store) == 0  # every slab deleted its job
+    assert len(there.surfaces) == 3
+    for (c1, r1), (c2, r2) in zip(_summary(here.surfaces), _summary(there.surfaces)):
+        assert np.allclose(c1, c2, atol=0.01) and abs(r1 - r2) < 0.005

@@ -22,6 +22,7 @@ import json
 import os
 import re
 import resource
+import selectors
 import signal
 import socket
 import subprocess
@@ -329,28 +330,132 @@ def float_range(srv, h):
     return [r1, r2], "PUT data, then objective"
 
 
-def slow_clients(srv, h):
-    """300 connections that never finish their request head, server limited to 256 descriptors."""
-    socks = []
-    for _ in range(300):
-        try:
-            s = socket.create_connection(("127.0.0.1", srv.port), timeout=2)
-            s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")  # the head never ends
-            socks.append(s)
-        except OSError:
-            break
-    codes = []
-    end = time.monotonic() + 8
-    while time.monotonic() < end:  # normal requests while the slow ones hold their sockets
-        try:
-            codes.append(httpx.get(f"{srv.url}/v1/jobs", timeout=2).status_code)
-        except httpx.HTTPError:
-            codes.append("fail")
-        time.sleep(0.2)
-    for s in socks:
+def raw_request(port, data):
+    """A socket to ``127.0.0.1:port`` that has sent ``data`` (a request, whole or in part)."""
+    s = socket.create_connection(("127.0.0.1", port), timeout=5)
+    s.sendall(data)
+    return s
+
+
+def read_until_closed(sock):
+    """Every byte ``sock`` receives until the server closes the connection."""
+    reply = b""
+    while chunk := sock.recv(4096):
+        reply += chunk
+    return reply
+
+
+class SlowClients:
+    """``n`` connections to ``127.0.0.1:port`` that never finish their request head, in a thread.
+
+    Non-blocking sockets under one selector: each sends ``head`` (no blank
+    line) once connected and then nothing. With ``reconnect``, a connection
+    the server closes (or that fails to connect) is opened again at once, so
+    ``n`` connections keep pressing on the server for as long as it runs.
+    ``opened`` and ``closed`` count connections; ``held`` is how many are
+    connected now.
+    """
+
+    def __init__(self, port, n=300, reconnect=True, head=b"GET /healthz HTTP/1.1\r\nHost: x\r\n"):
+        self.port, self.n, self.reconnect, self.head = port, int(n), reconnect, head
+        self.opened = self.closed = self.held = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _open(self, sel):
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        s.setblocking(False)
+        s.connect_ex(("127.0.0.1", self.port))
+        sel.register(s, selectors.EVENT_WRITE, "connecting")
+        self.opened += 1
+
+    def _drop(self, sel, s):
+        if sel.get_key(s).data == "sent":
+            self.held -= 1
+        sel.unregister(s)
         s.close()
+        self.closed += 1
+        if self.reconnect and not self._stop.is_set():
+            self._open(sel)
+
+    def _run(self):
+        with selectors.DefaultSelector() as sel:
+            for _ in range(self.n):
+                self._open(sel)
+            while not self._stop.is_set():
+                for key, _ in sel.select(0.05):
+                    s = key.fileobj
+                    try:
+                        if key.data == "connecting":
+                            if s.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR):
+                                raise ConnectionError
+                            s.send(self.head)
+                            sel.modify(s, selectors.EVENT_READ, "sent")
+                            self.held += 1
+                        elif not s.recv(4096):
+                            raise ConnectionError  # closed by the server
+                    except OSError:
+                        self._drop(sel, s)
+            for key in list(sel.get_map().values()):
+                key.fileobj.close()
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join(30)
+
+
+def probe_health(url, seconds, interval=0.1, timeout=5.0):
+    """``/healthz`` and ``/readyz`` in turn on a fresh connection each (as a load balancer probes) for
+    ``seconds``; returns ``[(path, status or error name, seconds)]``."""
+    out = []
+    end = time.monotonic() + seconds
+    paths = ("/healthz", "/readyz")
+    while time.monotonic() < end:
+        path = paths[len(out) % 2]
+        t0 = time.perf_counter()
+        try:
+            with httpx.Client(timeout=timeout) as h:
+                status = h.get(url + path).status_code
+        except httpx.HTTPError as exc:
+            status = type(exc).__name__
+        out.append((path, status, time.perf_counter() - t0))
+        time.sleep(interval)
+    return out
+
+
+def slow_clients(srv, h, reconnect=False):
+    """300 connections that never finish their request head, server limited to 256 descriptors; health
+    probes and normal requests meanwhile."""
+    with SlowClients(srv.port, 300, reconnect=reconnect) as attack:
+        time.sleep(1.0)  # all connected (or queued)
+        probes = []
+        prober = threading.Thread(target=lambda: probes.extend(probe_health(srv.url, 8)))
+        prober.start()
+        codes = []
+        end = time.monotonic() + 8
+        while time.monotonic() < end:  # normal requests while the slow ones press on
+            try:
+                r = httpx.get(f"{srv.url}/v1/jobs", timeout=2)
+                codes.append(r.status_code if r.status_code != 503 or "retry-after" not in r.headers
+                             else "503+Retry-After")
+            except httpx.HTTPError:
+                codes.append("fail")
+            time.sleep(0.2)
+        prober.join()
     ok = sum(c == 200 for c in codes)
-    return codes, f"{len(socks)} slow connections; {ok}/{len(codes)} normal requests answered 200"
+    health_ok = sum(st == 200 for _, st, _ in probes)
+    worst = max(dt for _, _, dt in probes)
+    return codes, (f"{attack.opened} slow connections opened, {attack.closed} closed by the server; {ok}/{len(codes)} "
+                   f"normal requests 200; health probes {health_ok}/{len(probes)} 200, worst {1e3 * worst:.0f} ms")
+
+
+def slow_clients_reconnecting(srv, h):
+    """As slow_clients, each connection opened again as soon as the server closes it."""
+    return slow_clients(srv, h, reconnect=True)
 
 
 def junk_methods(srv, h):
@@ -418,6 +523,7 @@ ATTACKS = {
     "malformed": (malformed, {"BUBSUB_SCAN_DIR": "{scan_dir}"}, False),
     "float_range": (float_range, {}, False),
     "slow_clients": (slow_clients, {"nofile": 256}, False),
+    "slow_clients_reconnecting": (slow_clients_reconnecting, {"nofile": 256}, False),
     "junk_methods": (junk_methods, {}, False),
     "token_quota": (token_quota, {"BUBSUB_TOKENS": "alpha,beta", "BUBSUB_MAX_MEMORY_BYTES": str(16 * MiB)}, False),
     "shutdown_timeout": (shutdown_timeout, {"BUBSUB_SHUTDOWN_TIMEOUT_SECONDS": "1", "BUBSUB_WORKERS": "1",

@@ -19,11 +19,13 @@ from fastapi.openapi.utils import get_openapi
 
 from . import errors
 from .body import BodyLimitMiddleware
+from .concurrency import RequestLimitMiddleware
 from .config import Settings, get_settings
 from .metrics import MetricsMiddleware
 from .openapi import EXTRA_MODELS
 from .routes import ROUTERS
 from .schemas import DataFile
+from .server import connection_limits
 from .state import ServiceState
 
 __all__ = ["create_app", "app"]
@@ -126,6 +128,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """
     settings = settings or get_settings()
     state = ServiceState.from_settings(settings)
+    state.limits = connection_limits(settings)  # from the descriptor limit at start; uvicorn_config uses them too
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -169,6 +172,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in ROUTERS:
         app.include_router(router)
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes, metrics=state.requests)
+    app.add_middleware(RequestLimitMiddleware, limit=state.limits.requests, retry_after=settings.retry_after_seconds,
+                       metrics=state.requests)
     app.add_middleware(MetricsMiddleware, metrics=state.requests)
     app.openapi = lambda: _openapi(app)
     return app

@@ -69,14 +69,12 @@ def run_serve(args):
     args : argparse.Namespace
         From the ``serve`` parser.
     """
-    import uvicorn
-
     from .app import create_app
-    from .server import uvicorn_config
+    from .server import Server, uvicorn_config
 
     settings = settings_from_args(args)
     config = uvicorn_config(create_app(settings), settings)
-    uvicorn.Server(config).run()
+    Server(config).run()
     return 0
 
 

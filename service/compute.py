@@ -56,6 +56,7 @@ class ComputePool:
         self.running = 0
         self.rejected_total = 0
         self.cancelled_total = 0
+        self.timeouts_total = 0  # computations stopped at their compute timeout (504)
         self.seconds = {}  # op -> total seconds
         self.calls = {}  # op -> count
         self._owners = {}  # owner -> admitted calls

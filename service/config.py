@@ -100,11 +100,15 @@ class Settings(BaseSettings):
     max_json_bytes : int
         Largest JSON document (job metadata, file reference); larger: 413.
     max_connections : int
-        Open connections and requests at once (uvicorn ``limit_concurrency``):
-        a connection beyond it is closed at once, a request beyond it gets
-        503. Lowered to the file-descriptor limit minus ``backlog`` minus 64.
+        Open connections at once, lowered at start to fit the file-descriptor
+        limit (:func:`~bubsub.service.server.connection_limits`). A connection
+        beyond it takes the place of the oldest one still waiting for its
+        request head, or gets 503 when all are busy; requests at once are
+        bounded a little lower (503 beyond), keeping connections for
+        ``/healthz``, ``/readyz`` and ``/metrics``.
     backlog : int
-        Pending connections the kernel queues (and asyncio accepts in one go).
+        Pending connections the kernel queues (and asyncio accepts in one go);
+        lowered to a third of the connections.
     header_timeout_seconds : float
         A connection must deliver a complete request head within this time
         (from connecting, or from the end of the previous response); else it
@@ -113,6 +117,10 @@ class Settings(BaseSettings):
         The whole request body must arrive within this time; else 408.
     keepalive_timeout_seconds : int
         An idle keep-alive connection is closed after this time.
+    compute_timeout_seconds : float
+        Longest a forward, vjp or objective may compute (a job may ask for
+        less, never more); past it the projection stops between chunks of
+        views and the request is answered 504.
     log_level : str
         ``critical``, ``error``, ``warning``, ``info`` or ``debug``.
     """
@@ -152,6 +160,7 @@ class Settings(BaseSettings):
     header_timeout_seconds: float = Field(10.0, gt=0)
     body_timeout_seconds: float = Field(120.0, gt=0)
     keepalive_timeout_seconds: int = Field(5, ge=1)
+    compute_timeout_seconds: float = Field(120.0, gt=0)
     log_level: Literal["critical", "error", "warning", "info", "debug", "trace"] = "info"
 
     @field_validator("tokens_file", "scan_dir", "sweep_interval_seconds", "projector_threads", "blas_threads",

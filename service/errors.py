@@ -35,6 +35,7 @@ _CODES = {
     429: "too_many_requests",
     500: "internal",
     503: "busy",
+    504: "timeout",
     507: "insufficient_storage",
 }
 
@@ -85,7 +86,7 @@ def error_responses(*statuses):
 
 
 #: statuses that mean "refused by a limit, quota or timeout", counted in /metrics by error code
-REFUSED = frozenset({408, 413, 429, 503, 507})
+REFUSED = frozenset({408, 413, 429, 503, 504, 507})
 
 
 def count_refusal(app, code):
@@ -95,15 +96,25 @@ def count_refusal(app, code):
         state.requests.refuse(code)
 
 
+def _retry_after(request, status, headers):
+    """``headers`` with ``Retry-After`` added to a 503 that lacks one (every 503 tells when to come back)."""
+    headers = dict(headers or {})
+    if status == 503 and not any(k.lower() == "retry-after" for k in headers):
+        state = getattr(request.app.state, "service", None)
+        headers["Retry-After"] = str(state.settings.retry_after_seconds if state is not None else 1)
+    return headers
+
+
 async def _api_error(request: Request, exc: APIError):
     if exc.status in REFUSED:
         count_refusal(request.app, exc.code)
-    return exc.response()
+    return error_response(exc.status, exc.detail, exc.code, _retry_after(request, exc.status, exc.headers))
 
 
-async def _http_error(_request: Request, exc: StarletteHTTPException):
+async def _http_error(request: Request, exc: StarletteHTTPException):
     detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
-    return error_response(exc.status_code, detail, headers=getattr(exc, "headers", None))
+    return error_response(exc.status_code, detail,
+                          headers=_retry_after(request, exc.status_code, getattr(exc, "headers", None)))
 
 
 async def _validation_error(_request: Request, exc: RequestValidationError):

@@ -20,7 +20,7 @@ import numpy as np
 from ..core import Mesh, MeshProjector, Polygon, ScanGeometry, SubdivisionSurface, loop_subdivision
 from .errors import APIError
 
-__all__ = ["Group", "Job", "regular_polygon", "topology_bytes", "build_job"]
+__all__ = ["Group", "Job", "regular_polygon", "topology_bytes", "build_job", "check_compute_timeout"]
 
 _F32_MAX = float(np.finfo(np.float32).max)
 
@@ -137,6 +137,8 @@ class Job:
     data, background : float32 arrays of ``geometry.shape`` or None
     target : float32 array or None
         ``data - background`` (or ``data``), the objective's default target.
+    compute_timeout : float
+        Seconds one computation may take (``BUBSUB_COMPUTE_TIMEOUT_SECONDS`` or less).
     """
 
     id: str
@@ -148,6 +150,7 @@ class Job:
     data: np.ndarray | None = None
     background: np.ndarray | None = None
     target: np.ndarray | None = None
+    compute_timeout: float = 120.0
     created: float = field(default_factory=time.time)
     last_used: float = field(default_factory=time.monotonic)
     active: int = 0
@@ -267,21 +270,29 @@ class Job:
                     raise APIError(422, f"surface {len(out)}: {exc}", "invalid_surface") from None
         return out
 
-    def forward(self, x):
-        """Projection of the surfaces, float32 of ``geometry.shape``."""
-        return self.projector.forward(self.items(x))
+    def deadline(self):
+        """The :func:`time.monotonic` value by which a computation starting now must end."""
+        return time.monotonic() + self.compute_timeout
 
-    def vjp(self, x, residual):
+    def forward(self, x, deadline=None):
+        """Projection of the surfaces, float32 of ``geometry.shape``.
+
+        ``deadline`` (all three): past it the projector stops between chunks of
+        views and raises :class:`~bubsub.core.projection.projector.DeadlineExceeded`.
+        """
+        return self.projector.forward(self.items(x), deadline)
+
+    def vjp(self, x, residual, deadline=None):
         """Gradient w.r.t. the stacked control vertices of ``<forward, residual>``."""
-        return np.concatenate(self.projector.vjp(self.items(x), residual), axis=0)
+        return np.concatenate(self.projector.vjp(self.items(x), residual, deadline), axis=0)
 
-    def objective(self, x, data=None):
+    def objective(self, x, data=None, deadline=None):
         """``(f, gradient)`` against ``data`` or, by default, the job's target."""
         target = self.target if data is None else data
         if target is None:
             raise APIError(409, "the job has no data: upload it (PUT /v1/jobs/{id}/data) or send "
                                 "'data' with the request", "no_data")
-        f, grads = self.projector.objective(self.items(x), target)
+        f, grads = self.projector.objective(self.items(x), target, deadline)
         return f, np.concatenate(grads, axis=0)
 
 
@@ -324,6 +335,18 @@ def build_groups(specs, ndim):
     return groups
 
 
+def check_compute_timeout(spec, settings):
+    """The job's compute timeout: what it asks for, at most the server's (422 beyond)."""
+    limit = settings.compute_timeout_seconds
+    asked = spec.compute_timeout_seconds
+    if asked is None:
+        return limit
+    if asked > limit:
+        raise APIError(422, f"compute_timeout_seconds {asked:g} is over the server's limit of {limit:g} s "
+                            "(BUBSUB_COMPUTE_TIMEOUT_SECONDS); a job may ask for less, never more", "invalid")
+    return float(asked)
+
+
 def build_job(job_id, owner, spec, settings, vertices=None, data=None, background=None):
     """A validated :class:`Job` (runs in a worker thread: builds S and the projector).
 
@@ -344,10 +367,11 @@ def build_job(job_id, owner, spec, settings, vertices=None, data=None, backgroun
     if spec.supersampling > settings.max_supersampling:
         raise APIError(422, f"supersampling {spec.supersampling} is over the server's limit of "
                             f"{settings.max_supersampling} (BUBSUB_MAX_SUPERSAMPLING)", "invalid")
+    timeout = check_compute_timeout(spec, settings)
     geometry = build_geometry(spec.geometry)
     groups = build_groups(spec.surfaces, geometry.ndim)
     projector = MeshProjector(geometry, spec.supersampling, threads=settings.projector_threads)
-    job = Job(job_id, owner, geometry, spec.supersampling, groups, projector)
+    job = Job(job_id, owner, geometry, spec.supersampling, groups, projector, compute_timeout=timeout)
     arrays = {}
     if data is not None:
         arrays["data"] = job.check_projection(data, "data")

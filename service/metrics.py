@@ -146,6 +146,8 @@ def render(requests, store, pool, ready, settings):
            [({}, pool.rejected_total)])
     metric("bubsub_compute_cancelled_total", "counter", "Computations whose request was cancelled (503).",
            [({}, pool.cancelled_total)])
+    metric("bubsub_compute_timeouts_total", "counter", "Computations stopped at their compute timeout (504).",
+           [({}, pool.timeouts_total)])
     metric("bubsub_compute_reserved_bytes", "gauge", "Estimated memory reserved by running computations.",
            [({}, pool.budget.reserved if pool.budget is not None else 0)])
     metric("bubsub_ready", "gauge", "1 when the server accepts work.", [({}, int(bool(ready)))])

@@ -72,6 +72,9 @@ class JobCreate(_Strict):
     geometry: GeometrySpec
     surfaces: list[SurfaceGroupSpec] = Field(..., min_length=1, max_length=MAX_GROUPS)
     supersampling: int = Field(1, ge=1, le=64)
+    compute_timeout_seconds: float | None = Field(
+        None, gt=0, description="longest one forward, vjp or objective of this job may compute, seconds; at most "
+                                "the server's BUBSUB_COMPUTE_TIMEOUT_SECONDS (its value when omitted)")
 
     @model_validator(mode="after")
     def _totals(self):
@@ -113,6 +116,7 @@ class JobInfo(BaseModel):
     expires_in_seconds: float
     calls: int
     compute_seconds: float
+    compute_timeout_seconds: float = Field(..., description="past this a computation is stopped and answered 504")
 
 
 class JobList(BaseModel):

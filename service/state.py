@@ -30,6 +30,8 @@ class ServiceState:
     requests : RequestMetrics
     ready : bool
         False before start-up has finished and from the moment shutdown begins.
+    limits : ConnectionLimits or None
+        Connection and request limits, derived from the descriptor limit when the app is made.
     """
 
     settings: Settings
@@ -39,6 +41,7 @@ class ServiceState:
     auth: TokenAuth
     requests: RequestMetrics = field(default_factory=RequestMetrics)
     ready: bool = False
+    limits: object = None
 
     @classmethod
     def from_settings(cls, settings):

@@ -12,10 +12,11 @@ def test_healthz_and_readyz(server):  # noqa: F811
 
 
 def test_readyz_false_when_not_ready():
-    with ServerThread() as s:
+    with ServerThread(retry_after_seconds=4) as s:
         s.state.ready = False  # what shutdown does first
         r = httpx.get(f"{s.url}/readyz")
         assert r.status_code == 503 and r.json()["status"] == "not ready"
+        assert r.headers["retry-after"] == "4"  # every 503 says when to come back
         assert httpx.get(f"{s.url}/healthz").status_code == 200
 
 

@@ -34,6 +34,8 @@ NPY = "application/x-npy"
 NPZ = "application/x-npz"
 
 _RETRY_STATUS = {502, 503, 504}
+#: error codes of those statuses that a retry would only repeat (the server stopped the computation at its timeout)
+_FINAL_CODES = {"compute_timeout"}
 _RETRY_ERRORS = (httpx.ConnectError, httpx.ConnectTimeout, httpx.ReadError, httpx.WriteError,
                  httpx.RemoteProtocolError, httpx.PoolTimeout)
 
@@ -221,7 +223,7 @@ class ProjectorClient:
             else:
                 if response.status_code in ok:
                     return response
-                if response.status_code not in _RETRY_STATUS:
+                if response.status_code not in _RETRY_STATUS or _error(response).code in _FINAL_CODES:
                     raise _error(response)
                 wait = max(delay, _retry_after(response))
                 if time.monotonic() + wait > deadline:

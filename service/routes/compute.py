@@ -6,6 +6,7 @@ import time
 
 from fastapi import APIRouter, Request, Response
 
+from ...core.projection.projector import DeadlineExceeded
 from ..budget import check_job, estimate
 from ..codec import NPY, NPZ, content_type, encode_npy, encode_npz
 from ..decoding import decode_compute_body
@@ -16,17 +17,24 @@ from ..openapi import binary_body, binary_response, errors
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["compute"])
 
 _VERTICES = "stacked control vertices of all the job's surfaces, float (n_control_total, ndim), in job order"
-_ERRORS = errors(400, 401, 404, 409, 413, 415, 422, 503, 507)
+_ERRORS = errors(400, 401, 404, 409, 413, 415, 422, 503, 504, 507)
 
 
 async def _compute(state, job, op, fn, arrays, need):
-    """Run ``fn(job, arrays)`` in the compute pool within its memory estimate, mapping core errors to 422."""
+    """Run ``fn(job, arrays)`` in the compute pool within its memory estimate and its job's compute
+    timeout, mapping core errors to 422 and a computation stopped at its deadline to 504."""
     job.active += 1
     t0 = time.perf_counter()
     try:
         return await state.pool.run(op, fn, job, arrays, owner=job.owner, nbytes=need.total)
     except APIError:
         raise
+    except DeadlineExceeded:
+        state.pool.timeouts_total += 1
+        raise APIError(504, f"{op} stopped after its compute timeout of {job.compute_timeout:g} s "
+                            "(BUBSUB_COMPUTE_TIMEOUT_SECONDS, or the job's compute_timeout_seconds); retrying "
+                            "will not help: use fewer pixels, views, surfaces, levels or less supersampling "
+                            "per job", "compute_timeout") from None
     except (ValueError, TypeError, IndexError) as exc:
         raise APIError(422, f"{op}: {exc}", "invalid") from None
     except MemoryError:
@@ -56,21 +64,23 @@ async def _arrays(request: Request, body: bytes, state, job, op, allowed, requir
 
 
 def _forward(job, arrays):
-    return encode_npy(job.forward(arrays["vertices"]))
+    return encode_npy(job.forward(arrays["vertices"], job.deadline()))
 
 
 def _vjp(job, arrays):
+    deadline = job.deadline()  # from the moment a worker takes it
     x = arrays["vertices"]
     r = job.check_projection(arrays["residual"], "residual")
-    return encode_npy(job.vjp(x, r))
+    return encode_npy(job.vjp(x, r, deadline))
 
 
 def _objective(job, arrays):
+    deadline = job.deadline()
     x = arrays["vertices"]
     data = arrays.get("data")
     if data is not None:
         data = job.check_projection(data, "data")
-    f, g = job.objective(x, data)
+    f, g = job.objective(x, data, deadline)
     return f, encode_npz({"value": f, "gradient": g})
 
 

@@ -22,5 +22,7 @@ async def healthz() -> Status:
 async def readyz(state: StateDep):
     """200 when the server takes new work; 503 while starting or once shutdown has begun."""
     if not state.ready:
-        return JSONResponse({"status": "not ready", "detail": "starting up or shutting down"}, status_code=503)
+        retry = state.settings.retry_after_seconds
+        return JSONResponse({"status": "not ready", "detail": "starting up or shutting down"}, status_code=503,
+                            headers={"Retry-After": str(retry)})
     return Status(status="ready")

@@ -32,6 +32,7 @@ def job_info(job: Job, ttl: float) -> JobInfo:
         has_data=job.data is not None, has_background=job.background is not None,
         memory_bytes=job.nbytes(), created=job.created, idle_seconds=idle,
         expires_in_seconds=max(0.0, ttl - idle), calls=job.calls, compute_seconds=job.compute_seconds,
+        compute_timeout_seconds=job.compute_timeout,
     )
 
 

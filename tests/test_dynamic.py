@@ -188,12 +188,12 @@ def test_a_bubble_that_is_not_there_collapses_and_ends_its_track(small):
 
 
 def test_a_diverged_fit_is_flagged_and_keeps_the_last_good_state(small, monkeypatch):
-    from bubsub.clients.optimise import fit as fit_module
+    from bubsub.clients.optimise import levels
 
     def diverging(*a, **k):
         raise RuntimeError("the objective became NaN")
 
-    monkeypatch.setattr(fit_module, "fit", diverging)
+    monkeypatch.setattr(levels, "fit", diverging)  # the warm start's fit, level by level
     sub, _, starts = small
     state = BubbleState.from_surfaces([7, 3, 5], starts)
     res = reconstruct_subscan(sub, state, DynamicSettings(iterations=15, progress=False, holdout="odd"))
@@ -307,13 +307,13 @@ def three():
 
 
 def test_a_diverged_subscan_is_kept_flagged_and_the_chain_goes_on(three, tmp_path, monkeypatch):
-    from bubsub.clients.optimise import fit as fit_module
+    from bubsub.clients.optimise import levels
     from bubsub.clients.pipeline import dynamic_outputs
     from bubsub.clients.pipeline.dynamic import run_chain
 
     scan, starts = three
     layout = subscan_layout(scan)
-    real, calls = fit_module.fit, []
+    real, calls = levels.fit, []
 
     def nan_in_subscan_1(*a, **k):  # the second fit of the chain (subscan 1) ends with a NaN objective
         calls.append(1)
@@ -322,7 +322,7 @@ def test_a_diverged_subscan_is_kept_flagged_and_the_chain_goes_on(three, tmp_pat
             res.objective = float("nan")
         return res
 
-    monkeypatch.setattr(fit_module, "fit", nan_in_subscan_1)
+    monkeypatch.setattr(levels, "fit", nan_in_subscan_1)  # the warm starts' fits, level by level
     settings = DynamicSettings(iterations=15, progress=False, holdout="odd")
     results, interrupted = run_chain(
         lambda k: subscan(scan, layout, k), [2, 1, 0], settings, start=BubbleState.from_surfaces([7, 3, 5], starts),

@@ -176,7 +176,7 @@ STALL_ITERATIONS = 5
 
 
 def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progress=True, callback=None,
-        catch_interrupt=True, penalty=None, label="BubSub fit", rtol=None):
+        catch_interrupt=True, penalty=None, label="BubSub fit", rtol=None, rtol_window=STALL_ITERATIONS):
     """Fit bubble surfaces to projections: minimise ``0.5 ||Proj(S x) - d||^2`` over x.
 
     Parameters
@@ -213,9 +213,11 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         to the objective, e.g. :func:`bubsub.clients.optimise.separation.separation_penalty`.
     rtol : float, optional
         Converged when the objective fell by less than ``rtol`` times its
-        value over the last :data:`STALL_ITERATIONS` iterations (L-BFGS on
-        thousands of unknowns otherwise runs to ``iterations``: its gradient
-        test never triggers on noisy data).
+        value over the last ``rtol_window`` iterations (L-BFGS on thousands
+        of unknowns otherwise runs to ``iterations``: its gradient test never
+        triggers on noisy data).
+    rtol_window : int
+        Default :data:`STALL_ITERATIONS`.
 
     Returns
     -------
@@ -273,7 +275,7 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         bar.update(1, f=f"{best['f']:.4g}")
         if callback is not None and callback(len(history), best["f"], unpack(best["x"])):
             raise _Stop
-        k = STALL_ITERATIONS
+        k = rtol_window
         if rtol is not None and len(history) > k and \
                 history[-k - 1]["objective"] - best["f"] <= rtol * best["f"]:
             raise _Stalled

@@ -16,7 +16,7 @@ import time
 
 from bubsub.core import MeshProjector, ScanGeometry
 
-from bubsub.clients.optimise.fit import fit
+from bubsub.clients.optimise.fit import STALL_ITERATIONS, fit
 
 __all__ = ["bin_factors", "fit_levels", "MIN_BINNED_PIXELS"]
 
@@ -52,7 +52,7 @@ def bin_factors(geometry, levels=None):
 
 
 def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, penalty=None, progress=False,
-               factory=None):
+               factory=None, rtol_window=STALL_ITERATIONS):
     """Fit ``surfaces`` level by level (see the module docstring).
 
     Parameters
@@ -66,7 +66,7 @@ def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, pen
         :func:`bin_factors`.
     iterations : int
         Each level's iteration cap.
-    rtol : float, optional
+    rtol, rtol_window : float, int
         Each level's convergence test (:func:`bubsub.clients.optimise.fit.fit`).
     factory : callable(geometry, data, surfaces) -> projector, optional
         Makes a binned level's projector holding its data (a remote job; ``projector`` is then the
@@ -100,7 +100,7 @@ def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, pen
         label = "BubSub fit" if len(factors) == 1 else f"BubSub fit (pixels binned {f} x {f})" if f > 1 \
             else "BubSub fit (full detector)"
         result = fit(level_projector, surfaces, level_data, iterations=iterations, progress=progress,
-                     penalty=penalty, rtol=rtol, label=label, catch_interrupt=True)
+                     penalty=penalty, rtol=rtol, rtol_window=rtol_window, label=label, catch_interrupt=True)
         surfaces = result.surfaces
         total_it += result.iterations
         total_ev += result.evaluations

@@ -221,7 +221,7 @@ def _equivalent_radius(surface):
 
 
 def _warm(scan, previous, settings):
-    from bubsub.clients.optimise.fit import fit
+    from bubsub.clients.optimise.levels import bin_factors, fit_levels
     from bubsub.clients.pipeline.reconstruct import preview_voxel_size
 
     g_fit, d_fit, _, _ = _split(scan, settings.holdout)
@@ -241,16 +241,13 @@ def _warm(scan, previous, settings):
     if not starts:
         return BubbleState.from_surfaces([], [], scan.bubble_contrast, settings.levels), report, ended
     projector = MeshProjector(g_fit, supersampling=settings.supersampling)
-    seen = []
-
-    def plateau(_, objective, __):
-        seen.append(objective)
-        w = settings.warm_window
-        return len(seen) > w and seen[-w - 1] - seen[-1] < settings.warm_rtol * seen[-1]
-
+    initial = float(projector.objective(starts, d_fit)[0])
     try:
-        result = fit(projector, starts, d_fit, iterations=settings.iterations, progress=settings.progress,
-                     callback=plateau if settings.warm_rtol > 0 else None)
+        # the static pipeline's coarse-to-fine data levels, each ended on the warm plateau test
+        result, levels = fit_levels(projector, starts, d_fit, factors=bin_factors(g_fit), iterations=settings.iterations,
+                                    rtol=settings.warm_rtol if settings.warm_rtol > 0 else None,
+                                    rtol_window=settings.warm_window, progress=settings.progress)
+        report["fit_levels"] = levels
         if not np.isfinite(result.objective):
             raise FloatingPointError(f"objective {result.objective}")
     except (RuntimeError, ValueError, FloatingPointError) as exc:
@@ -260,8 +257,8 @@ def _warm(scan, previous, settings):
     report["seconds_parts"]["fit"] = result.seconds
     report.update(iterations=result.iterations, evaluations=result.evaluations, objective=result.objective,
                   interrupted=result.interrupted,
-                  stop_reason="objective plateau" if result.stop_reason == "stopped by callback" else result.stop_reason,
-                  initial_objective=result.history[0]["objective"] if result.history else result.objective)
+                  stop_reason="objective plateau" if result.stop_reason == "converged" else result.stop_reason,
+                  initial_objective=initial)
     kept_ids, kept = [], []
     for i, s in zip(ids, result.surfaces):
         r = _equivalent_radius(s)

@@ -19,6 +19,8 @@ def cmd_simulate(args):
         return _simulate_raw(args, out)
     if args.phantom in DYNAMIC_PHANTOMS:
         return _simulate_dynamic(args, out)
+    if args.phantom == "column":
+        return _simulate_column(args, out)
     scan, truth, meta = simulate_to_dir(out, args.phantom, angles=args.angles or 25, photons=args.photons,
                                         seed=args.seed, beam=args.beam, det_count=args.det_count,
                                         n_bubbles=args.bubbles)
@@ -40,6 +42,28 @@ def _simulate_raw(args, out):
     return 0
 
 
+def _simulate_column(args, out):
+    from bubsub.core.foam.column import column_phantom, simulate_column, write_column
+    from bubsub.clients.pipeline.outputs import finish_outputs
+
+    if args.beam == "cone":
+        raise ValueError("the column phantom is a parallel-beam scan; drop --beam cone")
+    cols = args.det_count or 768
+    if cols < 3:
+        raise ValueError(f"--det-count must be at least 3 for the column (rows are a third of it), got {cols}")
+    phantom = column_phantom(args.bubbles or 600, seed=args.seed, rows=cols // 3, cols=cols,
+                             pixel_size=0.012 * 768 / cols)
+    scan = simulate_column(phantom, n_angles=args.angles or 40, photons=args.photons)
+    files, meta = write_column(out, phantom, scan)
+    finish_outputs(out, files, command="simulate")
+    c = meta["column"]
+    print(f"wrote {out / 'scan.h5'} ({meta['angles']} parallel projections of {c['rows']} x {c['cols']}, "
+          f"I0={meta['photons']:g}, seed {meta['seed']}), ground truth {out / 'truth.ply'} ({meta['bubbles']} "
+          f"bubbles, {c['bubbles_cut_top']} cut by the top and {c['bubbles_cut_bottom']} by the bottom row; gas "
+          f"fraction {c['gas_fraction_in_fov']:.3f})")
+    return 0
+
+
 def _simulate_dynamic(args, out):
     scan, truth, meta = simulate_dynamic_to_dir(
         out, args.phantom, subscans=args.subscans or 8, projections_per_subscan=args.projections_per_subscan or 50,
@@ -56,17 +80,19 @@ def register(sub):
                        description="Simulate a foam scan (scan.h5, with its liquid background) and write its "
                                    "ground truth (truth.json in 2D, truth.ply in 3D, truth/ per subscan for a "
                                    "dynamic scan) and phantom.json.")
-    p.add_argument("--phantom", choices=PHANTOMS + DYNAMIC_PHANTOMS, default="foam2d",
+    p.add_argument("--phantom", choices=PHANTOMS + ("column",) + DYNAMIC_PHANTOMS, default="foam2d",
                    help="foam2d / foam3d: random static foam; foam3d-benchmark: the fixed 3D benchmark foam; "
+                        "column: a synchrotron foam column (parallel beam, 40 x 256 x 768, about --bubbles 600 "
+                        "ellipsoids, cut by the top and bottom rows; docs/scale.md); "
                         "expanding2d / expanding3d: an expanding foam for a dynamic scan (default foam2d)")
-    p.add_argument("--angles", type=positive_int, help="number of projections (default 25; static phantoms)")
+    p.add_argument("--angles", type=positive_int, help="number of projections (default 25, column 40; static phantoms)")
     p.add_argument("--subscans", type=positive_int, help="dynamic phantoms: number of subscans (default 8)")
     p.add_argument("--projections-per-subscan", type=positive_int,
                    help="dynamic phantoms: projections per subscan, one rotation each (default 50)")
     p.add_argument("--photons", type=positive_float, default=1e4, help="flat-field photon count I0 (default 1e4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the phantom and the noise (default 0)")
     p.add_argument("--beam", choices=("parallel", "cone"), help="default: parallel in 2D, cone in 3D")
-    p.add_argument("--det-count", type=positive_int, help="detector columns (2D default 2400, 3D 512)")
+    p.add_argument("--det-count", type=positive_int, help="detector columns (2D default 2400, 3D 512, column 768 with a third as many rows)")
     p.add_argument("--bubbles", type=positive_int, help="number of bubbles (random phantoms)")
     p.add_argument("--raw", action="store_true",
                    help="a raw beamline scan (raw.h5: counts, flats, darks, phase contrast) of a 2D foam in a "

@@ -1,7 +1,7 @@
 """The ``bubsub`` command line.
 
-``bubsub simulate``, ``prepare``, ``reconstruct``, ``reconstruct4d``, ``evaluate``, ``experiment``, ``demo``,
-``serve`` and ``bench``; ``bubsub COMMAND --help`` explains each.
+``bubsub simulate``, ``prepare``, ``reconstruct``, ``reconstruct4d``, ``evaluate``, ``analyse``, ``experiment``,
+``demo``, ``serve`` and ``bench``; ``bubsub COMMAND --help`` explains each.
 
 Errors are one line on stderr (``bubsub COMMAND: error: ...``) and exit
 status 2; ``bubsub --debug COMMAND ...`` shows the traceback instead.
@@ -15,7 +15,7 @@ import sys
 __all__ = ["main", "build_parser"]
 
 #: The command modules, in the order ``bubsub --help`` lists them; each has ``register(sub)``.
-COMMANDS = ("simulate", "prepare", "reconstruct", "reconstruct4d", "evaluate", "experiment", "bench")
+COMMANDS = ("simulate", "prepare", "reconstruct", "reconstruct4d", "evaluate", "analyse", "experiment", "bench")
 
 _EPILOG = """\
 Typical use:

@@ -1,0 +1,324 @@
+"""``bubsub analyse`` on folders: read a reconstruction, analyse it, write the tables and pictures.
+
+:func:`analyse` reads a ``bubsub reconstruct`` folder (``bubbles.ply``,
+``bubbles.csv``, ``report.json``) or a ``bubsub reconstruct4d`` folder
+(``tracks.csv`` and ``subscan_NNNN/``, each a reconstruct folder) and returns
+an :class:`Analysis`: every table as a list of rows with its column
+descriptions, and a summary. :meth:`Analysis.write` writes them
+(:mod:`bubsub.clients.pipeline.outputs` policy) with the pictures of
+:mod:`bubsub.clients.analysis.figures`.
+
+Default contact gap
+-------------------
+One voxel of the reconstruction's voxel preview (``settings.voxel_size`` of
+its report, or the default preview voxel: the field of view's diameter over
+160): films of wet foams (micrometres) are far thinner than any scan
+resolves, so bubbles pressed against each other come out of ``bubsub
+reconstruct`` with a small gap (the fit keeps a quarter of a preview voxel
+between neighbours); one voxel is four times that, while bubbles apart across
+a Plateau border or a liquid node are separated by a sizeable fraction of
+their radius. docs/analysis.md gives the numbers.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bubsub.core.analysis.columns import describe, dynamics_columns, named_rows
+from bubsub.core.analysis.dynamics import fit_growth_law, growth_rates, size_tables, t1_events, track_events
+from bubsub.core.analysis.snapshot import SNAPSHOT_TABLES, analyse_meshes
+
+__all__ = ["Analysis", "analyse", "read_reconstruction", "reconstruction_kind", "default_contact_gap",
+           "PREVIEW_VOXELS_3D", "TABLE_FILES"]
+
+#: Voxels across the field of view of the default 3D voxel preview (``preview_voxel_size`` of the pipeline).
+PREVIEW_VOXELS_3D = 160
+
+#: Table name -> file name.
+TABLE_FILES = {"bubbles": "bubbles.csv", "contacts": "contacts.csv", "grid": "regions_grid.csv",
+               "shells": "regions_shells.csv", "rates": "rates.csv", "t1": "t1_events.csv",
+               "events": "track_events.csv", "sizes": "sizes.csv", "distribution": "size_distribution.csv"}
+
+_TITLES = {"bubbles": "bubbles: size, shape, internal strain, coordination",
+           "contacts": "contacts: pairs of bubbles closer than the contact gap",
+           "grid": "liquid fraction and texture on a Cartesian grid",
+           "shells": "liquid fraction and texture in cylindrical shells about the rotation axis",
+           "rates": "growth rates per bubble and subscan", "t1": "T1 neighbour swaps",
+           "events": "disappearances, coalescences and appearances", "sizes": "bubble sizes per subscan",
+           "distribution": "size distribution per subscan"}
+
+
+@dataclass
+class Reconstruction3D:
+    """What ``analyse`` reads of one reconstruct folder."""
+
+    folder: Path
+    meshes: list
+    ids: list
+    report: dict
+    truncated: list | None
+    volume_in_fov: list | None
+
+    @property
+    def field_of_view(self):
+        fov = self.report.get("field_of_view_mm")
+        return None if fov is None else (float(fov["radius"]), float(fov["half_height"]))
+
+
+@dataclass
+class Analysis:
+    """The tables of one analysis.
+
+    Attributes
+    ----------
+    kind : {"3d", "4d"}
+    tables : dict
+        Table name -> list of rows (dicts); names in :data:`TABLE_FILES`.
+    columns : dict
+        Table name -> ``{column: (unit, meaning)}``.
+    summary : dict
+    """
+
+    kind: str
+    tables: dict
+    columns: dict
+    summary: dict = field(default_factory=dict)
+
+    def write(self, out, *, overwrite=False, pictures=True):
+        """Write the tables (CSV with their column sidecars), ``summary.json`` and the pictures into ``out``.
+
+        Returns
+        -------
+        list of pathlib.Path
+            The files written.
+        """
+        from bubsub.clients.analysis.figures import write_figures
+        from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs, json_default
+        from bubsub.core.io.atomic import atomic_write_text
+        from bubsub.core.io.meshio import csv_metadata_path, write_csv
+
+        out = check_output_folder(out, overwrite=overwrite)
+        out.mkdir(parents=True, exist_ok=True)
+        files = []
+        for name, rows in self.tables.items():
+            path = out / TABLE_FILES[name]
+            write_csv(path, rows, list(self.columns[name]), describe=self.columns[name], title=_TITLES[name])
+            files += [path, csv_metadata_path(path)]
+        if pictures:
+            files += write_figures(out, self)
+        atomic_write_text(out / "summary.json", json.dumps(self.summary, indent=2, default=json_default) + "\n")
+        files.append(out / "summary.json")
+        finish_outputs(out, files, command="analyse")
+        return files
+
+
+def _problem(folder):
+    p = Path(folder)
+    if not p.exists():
+        return f"{str(folder)!r} does not exist"
+    if not p.is_dir():
+        return f"{str(folder)!r} is a file; give the output folder of bubsub reconstruct or reconstruct4d"
+    return None
+
+
+def reconstruction_kind(folder):
+    p = Path(folder)
+    if (p / "tracks.csv").is_file() and any(d.is_dir() and d.name.startswith("subscan_") for d in p.iterdir()):
+        return "4d"
+    if (p / "bubbles.ply").is_file():
+        return "3d"
+    if (p / "bubbles.json").is_file() or (p / "tracks.csv").is_file():
+        raise ValueError(f"{str(folder)!r} holds a 2D reconstruction (bubbles.json) or a 4D one without its "
+                         f"subscan folders; bubsub analyse measures 3D bubbles (bubbles.ply)")
+    raise ValueError(f"{str(folder)!r} is not the output of bubsub reconstruct or reconstruct4d (it has neither "
+                     f"bubbles.ply nor tracks.csv with subscan_NNNN folders)")
+
+
+def _read_json(path):
+    try:
+        doc = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: invalid JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a JSON object")
+    return doc
+
+
+def _fov_columns(table, ids):
+    """``truncated`` and ``volume_in_fov_mm3`` of a reconstruct ``bubbles.csv``, in the order of ``ids``."""
+    if not table.is_file():
+        return None, None
+    with open(table, newline="") as fh:
+        rows = {int(r["id"]): r for r in csv.DictReader(fh)}
+    if not rows or "truncated" not in next(iter(rows.values())):
+        return None, None
+    missing = [i for i in ids if i not in rows]
+    if missing:
+        raise ValueError(f"{table}: no row for bubble ids {missing[:5]} of bubbles.ply")
+    flags = [int(rows[i]["truncated"]) for i in ids]
+    vol = [float(rows[i]["volume_in_fov_mm3"]) if rows[i].get("volume_in_fov_mm3", "") != "" else np.nan
+           for i in ids]
+    return flags, vol
+
+
+def read_reconstruction(folder):
+    """The fine meshes, ids, report and field-of-view columns of a ``bubsub reconstruct`` folder.
+
+    Raises
+    ------
+    ValueError
+        If the folder is missing, not a 3D reconstruct output, or its files are malformed.
+    """
+    from bubsub.core.io.meshio import read_ply
+
+    problem = _problem(folder)
+    if problem:
+        raise ValueError(problem)
+    folder = Path(folder)
+    if reconstruction_kind(folder) != "3d":
+        raise ValueError(f"{str(folder)!r} is a 4D reconstruction; read its subscan folders")
+    meshes, ids = read_ply(folder / "bubbles.ply", with_ids=True)
+    if not meshes:
+        raise ValueError(f"{folder / 'bubbles.ply'} holds no bubbles")
+    report = _read_json(folder / "report.json") if (folder / "report.json").is_file() else {}
+    if report.get("dimension", 3) != 3:
+        raise ValueError(f"{folder / 'report.json'} describes a {report.get('dimension')}D reconstruction")
+    flags, vol = _fov_columns(folder / "bubbles.csv", ids)
+    return Reconstruction3D(folder, meshes, ids, report, flags, vol)
+
+
+def default_contact_gap(report):
+    """One preview voxel of the reconstruction (see the module docstring), mm.
+
+    Raises
+    ------
+    ValueError
+        When the report gives neither the preview's voxel size nor the field of view.
+    """
+    voxel = (report.get("settings") or {}).get("voxel_size")
+    if voxel:
+        return float(voxel)
+    fov = report.get("field_of_view_mm")
+    if not fov or not fov.get("radius"):
+        raise ValueError("the reconstruction's report.json gives no field of view to derive the default contact "
+                         "gap from; pass --contact-gap MM (contact_gap=)")
+    return 2.0 * float(fov["radius"]) / PREVIEW_VOXELS_3D
+
+
+def _snapshot(rec, gap, options):
+    return analyse_meshes(rec.meshes, rec.ids, contact_gap=gap, field_of_view=rec.field_of_view,
+                          truncated=rec.truncated, volume_in_fov=rec.volume_in_fov, **options)
+
+
+def _check_gap(contact_gap):
+    if contact_gap is None:
+        return None
+    gap = float(contact_gap)
+    if not (gap > 0 and np.isfinite(gap)):
+        raise ValueError(f"the contact gap must be positive and finite, got {contact_gap!r} mm")
+    return gap
+
+
+def analyse(folder, *, contact_gap=None, grid=None, shells=None, spacing=None, progress=None):
+    """Analyse a reconstruct or reconstruct4d output folder.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+    contact_gap : float, optional
+        mm; default :func:`default_contact_gap` of the (first subscan's) report.
+    grid : (3,) int, optional
+    shells : int, optional
+    spacing : float, optional
+        Regions and liquid-fraction sampling (:func:`bubsub.core.analysis.snapshot.default_regions`).
+    progress : callable, optional
+        Called with a line of text per analysed subscan.
+
+    Returns
+    -------
+    Analysis
+    """
+    gap = _check_gap(contact_gap)
+    problem = _problem(folder)
+    if problem:
+        raise ValueError(problem)
+    options = {"grid": grid, "shells": shells, "spacing": spacing}
+    if reconstruction_kind(folder) == "3d":
+        rec = read_reconstruction(folder)
+        gap = default_contact_gap(rec.report) if gap is None else gap
+        snap = _snapshot(rec, gap, options)
+        tables = {"bubbles": snap.bubbles, "contacts": snap.contacts, "grid": snap.grid, "shells": snap.shells}
+        summary = {"kind": "3d", "reconstruction": str(Path(folder)), "contact_gap_default": contact_gap is None,
+                   **snap.summary}
+        return Analysis("3d", tables, dict(SNAPSHOT_TABLES), summary)
+    return _analyse_4d(Path(folder), gap, options, progress)
+
+
+def _subscans(folder):
+    found = []
+    for d in sorted(folder.iterdir()):
+        if d.is_dir() and d.name.startswith("subscan_") and (d / "bubbles.ply").is_file():
+            try:
+                found.append((int(d.name[len("subscan_"):]), d))
+            except ValueError:
+                continue
+    if not found:
+        raise ValueError(f"{folder}: no complete subscan_NNNN folder with bubbles.ply")
+    return found
+
+
+def _time_unit(folder):
+    report = folder / "report.json"
+    if report.is_file():
+        unit = _read_json(report).get("time_unit")
+        if unit in ("s", "subscan"):
+            return unit
+    with open(folder / "tracks.csv", newline="") as fh:
+        header = next(csv.reader(fh), [])
+    return "s" if "time_s" in header else "subscan"
+
+
+def _analyse_4d(folder, gap, options, progress):
+    unit = _time_unit(folder)
+    spec = dynamics_columns(unit)
+    t_col, t_info = spec["rates"]["time"][0], spec["rates"]["time"][1:]
+    steps, per_table, summaries = [], {k: [] for k in SNAPSHOT_TABLES}, []
+    found = _subscans(folder)
+    for n, (index, d) in enumerate(found):
+        rec = read_reconstruction(d)
+        if gap is None:
+            gap = default_contact_gap(rec.report)
+        time = float(rec.report.get("time", index))
+        snap = _snapshot(rec, gap, options)
+        for name in SNAPSHOT_TABLES:
+            per_table[name] += [{"subscan": index, t_col: time, **r} for r in getattr(snap, name)]
+        steps.append(snap.step(index, time))
+        summaries.append({"subscan": index, "time": time, **{k: v for k, v in snap.summary.items() if k != "domain"}})
+        if progress:
+            progress(f"subscan {index} ({n + 1} of {len(found)}): {snap.summary['bubbles']} bubbles, "
+                     f"{snap.summary['contacts']} contacts")
+    columns = {name: {"subscan": ("", "subscan index"), t_col: t_info, **info}
+               for name, info in SNAPSHOT_TABLES.items()}
+    rates = growth_rates(steps)
+    whole = [r for r in rates if np.isfinite(r["two_thirds_rate"])]
+    law = fit_growth_law([r["coordination"] for r in whole], [r["two_thirds_rate"] for r in whole])
+    sizes, distribution = size_tables(steps)
+    dyn = {"rates": rates, "t1": t1_events(steps), "events": track_events(steps), "sizes": sizes,
+           "distribution": distribution}
+    tables = dict(per_table)
+    for name, rows in dyn.items():
+        tables[name] = named_rows(rows, spec[name])
+        columns[name] = describe(spec[name])
+    kinds = [r["kind"] for r in dyn["events"]]
+    summary = {"kind": "4d", "reconstruction": str(folder), "time_unit": unit, "contact_gap_mm": gap,
+               "subscans": len(steps),
+               "growth_law": {"model": f"d(V^(2/3))/dt = k (Z - Z0), k in mm^2/{unit}", **law},
+               "t1_events": len(dyn["t1"]), "coalescences": kinds.count("coalescence"),
+               "disappearances": kinds.count("disappearance"), "appearances": kinds.count("appearance"),
+               "per_subscan": summaries}
+    return Analysis("4d", tables, columns, summary)

@@ -12,6 +12,7 @@ BENCHMARKS = {
     "fov": ("fov", "bubbles cut by the field of view: DDI inside it with and without modelling its boundary"),
     "cluster": ("cluster", "4D and experiment runs in-process versus on a Dask LocalCluster"),
     "attacks": ("attacks", "bounded attacks on a projector server: status codes, memory rise, health latency"),
+    "scale": ("scale", "bubsub reconstruct on foam columns of ~150/600/2400 bubbles: phases, peak RSS, DDI, growth"),
     "bubbles": ("bubbles", "BubSub on one experiment case, bubble by bubble: missed, merged, spurious, boundary error"),
 }
 

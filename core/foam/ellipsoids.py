@@ -22,6 +22,8 @@ is ``sqrt(e^T S e)``.
   ``L = r^T M w``, ``Q = w^T M w``): a quadratic in the pixel coordinates.
 * :func:`ellipsoid_mesh`: an icosphere mapped onto the ellipsoid, scaled so
   that the mesh encloses the ellipsoid's exact volume.
+* :func:`ellipsoid_labels`: a label image of ellipsoids, testing each voxel
+  centre exactly (only within each ellipsoid's bounding box).
 * :func:`fraction_below`: the exact fraction of an ellipsoid's volume below a
   horizontal plane (an affine image of a ball's cap).
 """
@@ -35,7 +37,7 @@ from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh
 
 __all__ = ["shape_matrices", "contact_function", "ellipsoid_chords", "cylinder_chords", "project_ellipsoids",
-           "project_cylinder", "ellipsoid_mesh", "fraction_below", "ellipsoid_volumes"]
+           "project_cylinder", "ellipsoid_mesh", "fraction_below", "ellipsoid_volumes", "ellipsoid_labels"]
 
 #: Elements of one temporary array of :func:`project_ellipsoids` (views are taken in chunks below this).
 _CHUNK = 1 << 21
@@ -381,3 +383,39 @@ def fraction_below(centres, shapes, z):
     """
     t = np.clip((float(z) - np.asarray(centres)[:, 2]) / np.sqrt(np.asarray(shapes)[:, 2, 2]), -1.0, 1.0)
     return (1.0 + t) ** 2 * (2.0 - t) / 4.0
+
+
+def ellipsoid_labels(centres, axes, rotations, shape, extent):
+    """Label image of ellipsoids: voxel centres inside ellipsoid ``i`` get ``i + 1``, the rest 0.
+
+    Parameters
+    ----------
+    centres, axes : (n, 3) float
+        mm.
+    rotations : (n, 3, 3) float
+    shape : (slices, rows, cols)
+    extent : (xmin, xmax, ymin, ymax, zmin, zmax)
+        The grid convention of :mod:`bubsub.core.voxel.raster` (``vol[z, y, x]``, y decreasing with the row).
+
+    Returns
+    -------
+    (slices, rows, cols) int32
+        Where ellipsoids overlap, the later one wins.
+    """
+    from bubsub.core.voxel.raster import pixel_centres
+
+    z, y, x = pixel_centres(shape, extent)
+    c = np.atleast_2d(np.asarray(centres, dtype=float))
+    m, s = shape_matrices(axes, rotations, -2), shape_matrices(axes, rotations, 2)
+    half = np.sqrt(np.diagonal(s, axis1=1, axis2=2))
+    out = np.zeros(tuple(shape), dtype=np.int32)
+    for b in range(len(c)):
+        zi, yi, xi = (np.flatnonzero(np.abs(t - c[b, k]) <= half[b, k]) for t, k in ((z, 2), (y, 1), (x, 0)))
+        if not (len(zi) and len(yi) and len(xi)):
+            continue
+        q = [z[zi][:, None, None] - c[b, 2], y[yi][None, :, None] - c[b, 1], x[xi][None, None, :] - c[b, 0]]
+        mb = m[b][::-1, ::-1]  # (z, y, x) order
+        form = sum(mb[i, j] * q[i] * q[j] for i in range(3) for j in range(3))
+        box = out[zi[0]:zi[-1] + 1, yi[0]:yi[-1] + 1, xi[0]:xi[-1] + 1]  # y indices are contiguous too
+        box[form <= 1.0] = b + 1
+    return out

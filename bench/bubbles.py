@@ -66,7 +66,7 @@ def _value(text, current):
 
 
 def main(argv=None):
-    from bubsub.clients.experiments.runner import EXPERIMENTS, _config, _simulate
+    from bubsub.clients.experiments.runner import EXPERIMENTS, case_config, simulate_case
     from bubsub.clients.pipeline.initial import initial_centres
     from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, voxel_preview
     from bubsub.core.metrics import dice_dissimilarity
@@ -82,8 +82,8 @@ def main(argv=None):
                    help="a ReconstructionSettings field, e.g. detector=dt, separation=1, control_points=162")
     a = p.parse_args(argv)
     exp = EXPERIMENTS[a.experiment]
-    cfg = _config(exp, a.quick)
-    ph, scan, shape, extent = _simulate(exp.ndim, a.seed, a.angles, a.photons, cfg, a.quick, exp.phantom == "dense")
+    cfg = case_config(exp, a.quick)
+    ph, scan, shape, extent = simulate_case(exp.ndim, a.seed, a.angles, a.photons, cfg, a.quick, exp.phantom == "dense")
     truth_labels = label_image(ph.bubbles, shape, extent)
     truth = truth_labels > 0
     print(f"{a.experiment}{' (quick)' if a.quick else ''}, {a.angles} views, seed {a.seed}: "

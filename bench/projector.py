@@ -13,14 +13,22 @@ like on a noisy machine):
 * scaling of the objective with the triangle count (the bubbles as Loop
   subdivision surfaces of 42 control vertices at 1, 2 and 3 levels: 320,
   1280 and 5120 triangles each) and with a 4x larger detector (512 x 1024);
-* optionally trimesh's multi-hit ray interface on the same rays (forward only).
+* optionally trimesh's multi-hit ray interface on the same rays (forward only);
+* with ``--startup N``: a fresh process's first projection per backend
+  (medians of N new interpreters, compiled kernels from numba's disk cache):
+  seconds from the interpreter's launch to the imports done and to the
+  first ``forward`` of the README's example (2 bubbles, 25 x 64 x 128 cone
+  beam) done, and the CPU seconds by then.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import statistics
+import subprocess
+import sys
 import time
 import tracemalloc
 
@@ -121,6 +129,35 @@ def _interleaved_objective_times(cases, backends, threads, repeats):
     return {key: statistics.median(v) for key, v in times.items()}
 
 
+#: A fresh interpreter's first projection: launch time in argv[1], backend in argv[2]; prints seconds as JSON.
+_STARTUP = """
+import resource, sys, time, json
+launched, backend = float(sys.argv[1]), sys.argv[2]
+import numpy as np
+from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
+imported = time.time() - launched
+# the README's first example: 2 bubbles, 25 cone projections of 64 x 128 pixels
+geometry = ScanGeometry.cone(np.linspace(0, 2 * np.pi, 25, endpoint=False), source_origin=300.0,
+                             origin_detector=15.0, pixel_size=0.06, cols=128, rows=64)
+meshes = [sphere_surface([0.5, 0.0, 0.0], 0.8, attenuation=-0.1), sphere_surface([-1.2, 0.4, 0.3], 0.6, attenuation=-0.1)]
+t = time.time()
+MeshProjector(geometry, backend=backend).forward(meshes)
+first = time.time() - t
+ru = resource.getrusage(resource.RUSAGE_SELF)
+print(json.dumps({"imports": imported, "first": first, "total": time.time() - launched, "cpu": ru.ru_utime + ru.ru_stime}))
+"""
+
+
+def startup_times(backend, runs):
+    """Medians over ``runs`` fresh interpreters of the startup seconds of :data:`_STARTUP`."""
+    out = []
+    for _ in range(runs):
+        res = subprocess.run([sys.executable, "-c", _STARTUP, repr(time.time()), backend], capture_output=True,
+                             text=True, timeout=600, check=True)
+        out.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    return {k: statistics.median(r[k] for r in out) for k in out[0]}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m bubsub.bench projector", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -130,6 +167,8 @@ def main(argv=None):
                     help=f"comma-separated backends to time (default: {','.join(NAMES)}); native is the reference")
     ap.add_argument("--no-scaling", action="store_true", help="skip the subdivision-level and detector-size rows")
     ap.add_argument("--trimesh", action="store_true", help="also time trimesh's multi-hit ray interface (slow)")
+    ap.add_argument("--startup", type=int, default=0, metavar="N",
+                    help="only time a fresh process's first projection per backend, median of N processes")
     args = ap.parse_args(argv)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     unknown = sorted(set(backends) - set(NAMES))
@@ -138,6 +177,17 @@ def main(argv=None):
     missing = sorted(set(backends) - set(available_backends()))
     if missing:
         ap.error(f"backend(s) {', '.join(missing)} cannot run here")
+
+    if args.startup:
+        startup_times(backends[0], 1)  # fills numba's disk cache if it is empty: not timed
+        rows = []
+        for name in backends:
+            t = startup_times(name, args.startup)
+            rows.append([name, f"{t['imports']:.2f}", f"{t['first']:.2f}", f"{t['total']:.2f}", f"{t['cpu']:.2f}"])
+        _print_table(["backend", "imports done s", "first forward s", "launch to first projection s", "CPU s"], rows)
+        print(f"medians of {args.startup} fresh processes each; first forward: the README's example (2 bubbles, "
+              f"25 x 64 x 128 cone), backend loading included")
+        return 0
 
     phantom = foam3d_benchmark()
     meshes = list(phantom.bubbles)

@@ -20,9 +20,9 @@ def test_quick_experiment_writes_csv_png_and_summary(tmp_path):
 
 
 def test_baselines_and_bubsub_are_scored_on_one_grid(tmp_path):
-    from bubsub.clients.experiments.runner import _QUICK_2D, _simulate, run_case
+    from bubsub.clients.experiments.runner import QUICK_2D, run_case, simulate_case
 
-    ph, scan, shape, extent = _simulate(2, 0, 20, 1e4, _QUICK_2D, quick=True)
+    ph, scan, shape, extent = simulate_case(2, 0, 20, 1e4, QUICK_2D, quick=True)
     scores = {m: run_case(m, scan, ph, shape, extent, iterations=40)[0] for m in ("fbp", "sirt", "bubsub")}
     assert all(0 <= v <= 1 for v in scores.values())
     assert scores["bubsub"] < 0.5 * min(scores["fbp"], scores["sirt"])
@@ -95,3 +95,53 @@ def test_ctrl_c_inside_a_fit_stops_the_experiment_and_keeps_the_finished_runs(tm
         rows = list(csv.DictReader(f))
     assert [float(r["radius"]) for r in rows] == [1.0]
     assert json.loads((tmp_path / "fig5.json").read_text())["interrupted"] is True
+
+
+def test_experiment_folders_follow_the_output_folder_policy(tmp_path, capsys):
+    from bubsub.clients.pipeline.outputs import MANIFEST
+
+    _fake_runs(tmp_path / "fig5.csv", True)
+    args = ["experiment", "fig5", "--quick", "--values", "1.0", "--out", str(tmp_path), "--quiet"]
+    # this experiment's earlier results: refused before any computation unless --resume or --overwrite
+    assert main(args) == 2
+    assert "already holds results of experiment fig5" in capsys.readouterr().err
+    assert main(args + ["--resume"]) == 0
+    manifest = json.loads((tmp_path / MANIFEST).read_text())
+    assert manifest["command"] == "experiment"
+    assert manifest["experiments"] == {"fig5": ["fig5.csv", "fig5.json", "fig5.png"]}
+    # another experiment shares the folder; both stay listed and on disk
+    with open(tmp_path / "fig1a.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["experiment", "angles", "method", "seed", "ddi", "seconds", "quick"])
+        w.writeheader()
+        w.writerow({"experiment": "fig1a", "angles": 10, "method": "fbp", "seed": 0, "ddi": 0.3, "seconds": 1.0,
+                    "quick": True})
+    assert main(["experiment", "fig1a", "--quick", "--values", "10", "--methods", "fbp", "--out", str(tmp_path),
+                 "--quiet", "--resume"]) == 0
+    manifest = json.loads((tmp_path / MANIFEST).read_text())
+    assert sorted(manifest["experiments"]) == ["fig1a", "fig5"] and len(manifest["files"]) == 6
+    assert all((tmp_path / f).is_file() for f in manifest["files"])
+    # a folder holding another command's results is refused unless --overwrite
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "report.json").write_text("{}")
+    assert main(["experiment", "fig5", "--quick", "--out", str(rec), "--quiet"]) == 2
+    assert "--overwrite" in capsys.readouterr().err and (rec / "report.json").is_file()
+
+
+def test_ctrl_c_inside_a_fig6_fit_stops_the_experiment(tmp_path, monkeypatch, capsys):
+    from bubsub.clients.pipeline import dynamic
+
+    def interrupted_chain(scan, out, settings, **kw):
+        # what reconstruct_dynamic returns when Ctrl-C stops a fit after the last subscan was finished
+        (out / "subscan_0001").mkdir(parents=True)
+        (out / "subscan_0001" / "report.json").write_text("{}")
+        return {"interrupted": True, "subscans": [{"subscan": 1}]}
+
+    monkeypatch.setattr(dynamic, "reconstruct_dynamic", interrupted_chain)
+    assert main(["experiment", "fig6", "--quick", "--out", str(tmp_path), "--quiet"]) == 130
+    assert "rerun with --resume" in capsys.readouterr().out
+    assert not (tmp_path / "fig6.csv").exists()  # nothing scored
+    manifest = json.loads((tmp_path / "bubsub-outputs.json").read_text())
+    assert "bubsub/subscan_0001/report.json" in manifest["files"] and "sim/scan.h5" in manifest["files"]
+    # the kept subscans are this experiment's results: a plain rerun is refused
+    assert main(["experiment", "fig6", "--quick", "--out", str(tmp_path), "--quiet"]) == 2

@@ -15,7 +15,8 @@ def _experiments_epilog():
     for e in EXPERIMENTS.values():
         values = ", ".join(f"{v:g}" for v in e.values)
         lines.append(f"  {e.name:<6} {e.title}\n         {e.variable}: {values}; methods: {' '.join(e.methods)}")
-    lines.append("\nWrites OUT/NAME.csv (one row per run), OUT/NAME.png and OUT/NAME.json (summary).")
+    lines.append("\nWrites OUT/NAME.csv (one row per run), OUT/NAME.png and OUT/NAME.json (summary). OUT may hold "
+                 "other experiments; this one's earlier results need --resume (continue) or --overwrite (replace).")
     return "\n".join(lines)
 
 
@@ -31,7 +32,8 @@ def cmd_experiment(args):
         return _fig6(args)
     with open_client(spec) as client:
         summary = run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values,
-                                 methods=args.methods, resume=args.resume, progress=not args.quiet, client=client)
+                                 methods=args.methods, resume=args.resume, overwrite=args.overwrite,
+                                 progress=not args.quiet, client=client)
     return 130 if summary["interrupted"] else 0  # Ctrl-C: the finished runs are written; --resume continues
 
 
@@ -40,7 +42,12 @@ def _fig6(args):
 
     if args.values or args.methods or (args.seeds or 1) != 1:
         raise ValueError(f"{args.name} runs one seed of every method; --values, --methods and --seeds do not apply")
-    s = run_fig6(args.out, ndim=3 if args.name == "fig6-3d" else 2, quick=args.quick, progress=not args.quiet)
+    s = run_fig6(args.out, ndim=3 if args.name == "fig6-3d" else 2, quick=args.quick, progress=not args.quiet,
+                 resume=args.resume, overwrite=args.overwrite)
+    if s["interrupted"]:
+        print(f"{args.name}: interrupted after {len(s['subscans'])} finished subscan(s), kept in {args.out}/bubsub; "
+              f"rerun with --resume to continue")
+        return 130
     ratio = s["ddi_ratio_bubsub_to_sirt_otsu"]
     print("mean DDI: " + ", ".join(f"{m} {v:.4f}" for m, v in s["mean_ddi"].items() if v is not None)
           + (f" (BubSub / SIRT+Otsu = {ratio:.3f})" if ratio is not None else ""))
@@ -71,7 +78,7 @@ def register(sub):
     p.add_argument("name", choices=tuple(EXPERIMENTS) + ("fig6", "fig6-3d"),
                    help="the figure to reproduce (listed below; fig6 / fig6-3d: 4D BubSub against voxel "
                         "baselines on an expanding foam, docs/dynamic.md)")
-    p.add_argument("--out", required=True, metavar="FOLDER", help="folder for NAME.csv, NAME.png and NAME.json")
+    add_output_arguments(p, "NAME.csv, NAME.png and NAME.json (other experiments' results may share it)")
     p.add_argument("--quick", action="store_true",
                    help="a small version (coarser grids, fewer settings, 1 seed) that runs in about a minute")
     p.add_argument("--seeds", type=positive_int, help="runs per point (default: 10, quick: 1)")
@@ -80,7 +87,8 @@ def register(sub):
     p.add_argument("--methods", nargs="+", metavar="METHOD",
                    help="run only these methods (e.g. bubsub tv; the experiment's list is below)")
     p.add_argument("--resume", action="store_true",
-                   help="keep the runs already in OUT/NAME.csv and run only the missing ones")
+                   help="keep the runs already in OUT/NAME.csv and run only the missing ones (fig6: reuse the "
+                        "simulation and the finished subscans)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_cluster_arguments(p)
     p.set_defaults(func=cmd_experiment)

@@ -54,9 +54,9 @@ def _grid(meta, cfg):
 
 
 def _sirt_mask(scan, shape, extent):
-    from bubsub.clients.experiments.runner import _baseline_mask
+    from bubsub.clients.experiments.runner import baseline_mask
 
-    return _baseline_mask("sirt", scan, shape, extent, scan.ndim)
+    return baseline_mask("sirt", scan, shape, extent, scan.ndim)
 
 
 def _score_subscan(sim_dir, rec_dir, k, shape, extent, report_k):
@@ -105,13 +105,21 @@ def _simulated(sim_dir, cfg, ndim, seed, photons):
     return meta if all(meta.get(k) == v for k, v in want.items()) else None
 
 
-def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, config=None, jobs=1):
+def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, config=None, jobs=1, resume=True,
+             overwrite=False):
     """Run the experiment into ``out``; returns the summary dict (also ``fig6.json``).
 
     ``config`` overrides entries of :data:`FIG6_CONFIGS` (e.g. ``{"subscans": 10}``).
-    A simulation and the complete subscans of an earlier run in ``out`` with
-    the same settings are reused. ``jobs`` > 1 scores the subscans (voxel
-    baselines, DDI) in that many processes.
+    With ``resume``, a simulation and the complete subscans of an earlier run
+    in ``out`` with the same settings are reused; without it, a folder
+    holding an earlier fig6 run is refused unless ``overwrite``, which
+    simulates and reconstructs again (the experiment folders' policy,
+    :mod:`.folders`). ``jobs`` > 1 scores the subscans (voxel baselines,
+    DDI) in that many processes.
+
+    Ctrl-C in a fit stops the run: the finished subscans stay in
+    ``out/bubsub`` (``resume`` continues them), nothing is scored, and the
+    summary is ``{"interrupted": True, "subscans": [...]}``.
     """
     from bubsub.core.io.scanfile import read_scan
 
@@ -119,12 +127,15 @@ def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, co
     from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
     from bubsub.clients.pipeline.simulation import simulate_dynamic_to_dir
 
+    from bubsub.clients.experiments.folders import check_experiment_folder, finish_experiment
+
+    name = "fig6" if ndim == 2 else "fig6-3d"
     cfg = dict(FIG6_CONFIGS[(ndim, bool(quick))], **(config or {}))
-    out = Path(out)
+    out = check_experiment_folder(out, name, overwrite=overwrite, resume=resume)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     kw = {"size": 5.0, "radius_range": (0.25, 0.6)} if quick and ndim == 2 else {}
-    meta = _simulated(out / "sim", cfg, ndim, seed, photons)
+    meta = _simulated(out / "sim", cfg, ndim, seed, photons) if resume else None
     if meta is None:
         _, _, meta = simulate_dynamic_to_dir(
             out / "sim", "expanding2d" if ndim == 2 else "expanding3d", subscans=cfg["subscans"],
@@ -138,7 +149,11 @@ def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, co
     settings = DynamicSettings(iterations=cfg["iterations"], holdout="odd", progress=progress,
                                **{k: cfg[k] for k in ("warm_rtol",) if k in cfg})
     rec_dir = out / "bubsub"
-    report = reconstruct_dynamic(scan, rec_dir, settings, resume=rec_dir.exists())
+    report = reconstruct_dynamic(scan, rec_dir, settings, resume=resume and rec_dir.exists(), overwrite=not resume)
+    kept = [f for d in ("sim", "bubsub") for f in sorted((out / d).rglob("*")) if f.is_file()]
+    if report["interrupted"]:  # Ctrl-C in a fit: keep the finished subscans for a resumed run, score nothing
+        finish_experiment(out, name, kept)
+        return {"interrupted": True, "subscans": [p["subscan"] for p in report["subscans"]]}
     shape, extent = _grid(meta, cfg)
     score = evaluate_dynamic(rec_dir, out / "sim", grid=(shape, extent))
     per = {p["subscan"]: p for p in report["subscans"]}
@@ -155,7 +170,7 @@ def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, co
     rows = [r for rs, _ in scored for r in rs]
     panels = {k: imgs for k, (_, imgs) in zip(ks, scored) if k in show}
     summary = _summarise(rows, score, report, t_sim, time.perf_counter() - t0, cfg, ndim, quick, seed, photons)
-    _write(out, rows, summary, panels, extent)
+    finish_experiment(out, name, kept + _write(out, rows, summary, panels, extent))
     return summary
 
 
@@ -182,10 +197,12 @@ def _summarise(rows, score, report, t_sim, t_total, cfg, ndim, quick, seed, phot
         "cpu_seconds_warm_median": float(np.median(warm_cpu)) if warm_cpu else None,
         "warm_to_cold_cpu_time": float(np.median(warm_cpu) / np.sum(cold_cpu)) if warm_cpu and cold_cpu else None,
         "tracks_ended": report["totals"]["tracks_ended"], "seconds_simulation": t_sim, "seconds_total": t_total,
+        "interrupted": False,
     }
 
 
 def _write(out, rows, summary, panels, extent):
+    """Write fig6.csv, fig6.json, fig6.png and fig7.png; returns their paths."""
     from bubsub.core.io.meshio import write_csv
 
     columns = ["subscan", "method", "start", "iterations", "stop_reason", "ddi", "holdout_mse", "seconds",
@@ -221,3 +238,4 @@ def _write(out, rows, summary, panels, extent):
             ax.set_yticks([])
     with atomic_path(out / "fig7.png") as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
+    return [out / n for n in ("fig6.csv", "fig6.json", "fig6.png", "fig7.png")]

@@ -31,7 +31,10 @@ from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.metrics import dice_dissimilarity
 from bubsub.core.voxel.raster import bubble_mask
 
-__all__ = ["EXPERIMENTS", "run_experiment", "run_case", "run_setting"]
+from bubsub.clients.experiments.folders import check_experiment_folder, finish_experiment
+
+__all__ = ["EXPERIMENTS", "run_experiment", "run_case", "run_setting", "case_config", "simulate_case",
+           "baseline_mask"]
 
 #: TV weights tried per run; the one with the lowest DDI is kept (as the paper picks
 #: the weight that minimises the error)
@@ -71,20 +74,22 @@ EXPERIMENTS = {
 }
 
 # quick mode shrinks the problems so a whole experiment runs in about a minute
-_QUICK_2D = {"n_bubbles": 12, "det_count": 600, "image_size": 800, "grid": 256, "iterations": 40}
-_FULL_2D = {"n_bubbles": 40, "det_count": 2400, "image_size": 2000, "grid": 512, "iterations": 80}
-_QUICK_3D = {"n_bubbles": 12, "det_cols": 128, "voxel": 0.25, "iterations": 40}
-_FULL_3D = {"n_bubbles": 60, "det_cols": 512, "voxel": 0.1, "iterations": 80}
+QUICK_2D = {"n_bubbles": 12, "det_count": 600, "image_size": 800, "grid": 256, "iterations": 40}
+FULL_2D = {"n_bubbles": 40, "det_count": 2400, "image_size": 2000, "grid": 512, "iterations": 80}
+QUICK_3D = {"n_bubbles": 12, "det_cols": 128, "voxel": 0.25, "iterations": 40}
+FULL_3D = {"n_bubbles": 60, "det_cols": 512, "voxel": 0.1, "iterations": 80}
 
 
-def _config(exp, quick):
-    cfg = (_QUICK_2D if quick else _FULL_2D) if exp.ndim == 2 else (_QUICK_3D if quick else _FULL_3D)
+def case_config(exp, quick):
+    """Problem sizes of experiment ``exp`` (phantom, detector, grid, iterations), quick or full."""
+    cfg = (QUICK_2D if quick else FULL_2D) if exp.ndim == 2 else (QUICK_3D if quick else FULL_3D)
     if exp.phantom == "dense" and exp.ndim == 3 and quick:
         cfg = dict(cfg, voxel=cfg["voxel"] / 2)  # films of two voxels need a finer grid than 0.25 mm
     return cfg
 
 
-def _simulate(ndim, seed, angles, photons, cfg, quick, dense=False):
+def simulate_case(ndim, seed, angles, photons, cfg, quick, dense=False):
+    """``(phantom, scan, grid shape, grid extent)`` of one run: the seed's foam, its scan and DDI grid."""
     from bubsub.core.foam import dense as dense_foams, phantoms, simulate
 
     if ndim == 2:
@@ -116,7 +121,8 @@ def _simulate(ndim, seed, angles, photons, cfg, quick, dense=False):
     return ph, scan, shape, extent
 
 
-def _baseline_mask(method, scan, shape, extent, ndim, tv_weight=None):
+def baseline_mask(method, scan, shape, extent, ndim, tv_weight=None):
+    """The binarised voxel reconstruction (``fbp``/``fdk``, ``sirt``, ``cgls``, ``tv``) of a scan's bubble data."""
     from bubsub.core.voxel.segment import binarise
 
     data = scan.bubble_data
@@ -145,7 +151,7 @@ def _setting(exp, value, quick):
 def _simulated(name, seed, angles, photons, quick):
     # the methods of one (value, seed) run one after the other here: simulate once for all of them
     exp = EXPERIMENTS[name]
-    return _simulate(exp.ndim, seed, angles, photons, _config(exp, quick), quick, exp.phantom == "dense")
+    return simulate_case(exp.ndim, seed, angles, photons, case_config(exp, quick), quick, exp.phantom == "dense")
 
 
 def run_setting(name, value, seed, method, quick):
@@ -156,7 +162,7 @@ def run_setting(name, value, seed, method, quick):
     """
     exp = EXPERIMENTS[name]
     ph, scan, shape, extent = _simulated(name, seed, *_setting(exp, value, quick), quick)
-    kw = {"iterations": _config(exp, quick)["iterations"]}
+    kw = {"iterations": case_config(exp, quick)["iterations"]}
     if exp.variable == "radius":
         kw.update(radius=float(value) * float(np.mean(ph.radii)), estimate_radii=False)
     ddi, sec = run_case(method, scan, ph, shape, extent, **kw)
@@ -177,16 +183,20 @@ def run_case(method, scan, phantom, shape, extent, *, iterations=80, radius=None
             raise KeyboardInterrupt
         mask = bubble_mask(rec.surfaces, shape, extent)
     elif method == "tv":
-        return min(dice_dissimilarity(_baseline_mask(method, scan, shape, extent, phantom.ndim, w), truth)
+        return min(dice_dissimilarity(baseline_mask(method, scan, shape, extent, phantom.ndim, w), truth)
                    for w in TV_WEIGHTS), time.perf_counter() - t
     else:
-        mask = _baseline_mask(method, scan, shape, extent, phantom.ndim)
+        mask = baseline_mask(method, scan, shape, extent, phantom.ndim)
     return dice_dissimilarity(mask, truth), time.perf_counter() - t
 
 
-def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=None, resume=False, progress=True,
-                   client=None):
+def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=None, resume=False, overwrite=False,
+                   progress=True, client=None):
     """Run one experiment; write ``NAME.csv``, ``NAME.png`` and ``NAME.json`` (summary) into ``out``.
+
+    ``out`` follows the experiment folders' policy (:mod:`.folders`): it may
+    hold other experiments, but this experiment's earlier results only with
+    ``resume`` or ``overwrite``.
 
     Parameters
     ----------
@@ -199,6 +209,9 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
         Keep the runs already in ``out/NAME.csv`` (same mode) and run only the
         missing (value, seed, method) cases; the CSV, summary and plot then
         cover all of them. Lets a long experiment continue after Ctrl-C.
+    overwrite : bool
+        Replace this experiment's earlier results in ``out`` (or another
+        command's results there).
     client : dask.distributed.Client, optional
         Run the cases as tasks on this cluster (one task per value, seed and
         method; :func:`run_setting`); ``None`` runs them here, in order.
@@ -210,7 +223,7 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
     unknown = sorted(set(methods) - set(exp.methods))
     if unknown:
         raise ValueError(f"{name} has no method(s) {unknown}; choose from {list(exp.methods)}")
-    out = Path(out)
+    out = check_experiment_folder(out, name, overwrite=overwrite, resume=resume)
     out.mkdir(parents=True, exist_ok=True)
     # floats throughout, so resumed and new runs of one setting share a key
     values = tuple(float(v) for v in (values or (exp.quick_values if quick else exp.values)))
@@ -250,6 +263,7 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
     _write_csv(out / f"{name}.csv", rows)
     atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2))
     plot(out / f"{name}.png", summary, exp)
+    finish_experiment(out, name, [out / f"{name}{ext}" for ext in (".csv", ".json", ".png")])
     print(format_table(summary, exp.variable))
     return summary
 

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bubsub.core.contrast import contrast_sign_error, signal_masses
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.io.scanfile import create_scan_datasets, set_scan_attrs
 from bubsub.core.prep.background import (fbp_row, envelope_background, liquid_and_gas, noise_level, radial_background,
@@ -416,16 +417,12 @@ def _contrast(data_ds, bg_ds, geometry, o, steps):
     entry["bubble_contrast_per_mm"] = float(contrast)
     if bg_ds is not None:
         bd = sino - (bg_ds[()] if two_d else bg_ds[:, mid])
-        sigma = noise_level(bd)
-        pos = float(np.maximum(bd - 3 * sigma, 0).sum())
-        neg = float(np.maximum(-bd - 3 * sigma, 0).sum())
-        data_sign = -1.0 if neg > pos else 1.0
+        noise = 3 * noise_level(bd)
+        pos, neg = signal_masses(bd, noise)
         entry["sign_check"] = {"positive_mass": pos, "negative_mass": neg}
-        if np.sign(contrast) != data_sign:
-            word = "lower" if data_sign < 0 else "raise"
-            raise ValueError(f"the bubble contrast {contrast:+.4g} /mm has the wrong sign for these data: after the "
-                             f"background the bubbles {word} the line integrals; pass --contrast with the other sign, "
-                             f"or check the background")
+        problem = contrast_sign_error(contrast, bd, noise=noise)
+        if problem:
+            raise ValueError(f"{problem}; pass --contrast with the other sign, or check the background")
     else:
         entry["sign_check"] = "not possible without a background"
     steps.append(entry)

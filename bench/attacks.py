@@ -10,6 +10,8 @@ status codes the attack got. ``--before DIR`` runs every attack a second time
 against the package found in ``DIR/bubsub`` (e.g. ``git archive c212297``
 unpacked there) and prints both side by side. The attacks are scaled to run
 in about a minute each on a small machine; the issue's sizes are noted.
+One module on purpose: the attacks share the server harness and the
+measurements, and each is a short function in the one table they are run from.
 """
 
 from __future__ import annotations

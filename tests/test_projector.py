@@ -489,7 +489,7 @@ def test_item_by_item_forward_pass_is_the_projection_by_projection_one(rng, monk
         return traversal.values.copy(), traversal.count, P.objective(items, data)
 
     projection_major = run()
-    monkeypatch.setattr(raster, "_ITEM_MAJOR_FACES", 0)
+    monkeypatch.setattr(raster, "ITEM_MAJOR_FACES", 0)
     item_major = run()
     np.testing.assert_array_equal(item_major[0], projection_major[0])
     assert item_major[1] == projection_major[1] > 0

@@ -36,9 +36,9 @@ SCRIPT = textwrap.dedent("""
                 os.environ["BUBSUB_RASTER_STORE_MB"] = mb
                 P.objective(items, data)
             P.vjp(items, data)
-            default, raster._ITEM_MAJOR_FACES = raster._ITEM_MAJOR_FACES, 0  # item by item, the same scene
+            default, raster.ITEM_MAJOR_FACES = raster.ITEM_MAJOR_FACES, 0  # item by item, the same scene
             P.objective(items, data)
-            raster._ITEM_MAJOR_FACES = default
+            raster.ITEM_MAJOR_FACES = default
     P2 = MeshProjector(ScanGeometry.parallel(angles, pixel_size=0.1, cols=24), backend="raster")
     circles = [circle_surface([0.1, 0.0], 0.5, 0.4)]
     P2.objective(circles, P2.forward(circles))

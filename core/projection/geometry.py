@@ -2,6 +2,8 @@
 
 A :class:`ScanGeometry` is immutable. It stores, per projection, the ASTRA
 vector row and the detector size, and knows how to turn itself into rays.
+One module on purpose: it is one class, whose constructors, ASTRA
+conversion, rays, subsets, windows and binning all read the same vector rows.
 
 Kinds and vector rows (ASTRA's definitions):
 

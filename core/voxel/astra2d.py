@@ -24,7 +24,7 @@ from bubsub.core.voxel.fdk import FILTERS, fdk
 from bubsub.core.voxel.projector3d import VoxelProjector, as_scan_geometry
 from bubsub.core.voxel.reconstruct3d import iterate
 
-__all__ = ["AstraProjector2D", "fbp_2d", "reconstruct_2d", "astra_vol_geom", "METHODS_2D"]
+__all__ = ["AstraProjector2D", "fbp_2d", "reconstruct_2d", "astra_vol_geom", "have_astra", "METHODS_2D"]
 
 #: Methods of :func:`reconstruct_2d` and their default iteration counts.
 METHODS_2D = {"fbp": None, "sirt": 200, "cgls": 30, "lsqr": 30, "tv": 300, "bb": 30}
@@ -43,12 +43,16 @@ def _astra():
     return astra
 
 
-def _have_astra():
+def have_astra():
+    """Whether the ASTRA toolbox can be imported (the 2D voxel route falls back to numpy without it)."""
     try:
         import astra  # noqa: F401
     except ImportError:
         return False
     return True
+
+
+_have_astra = have_astra  # the name core/foam/simulate.py and clients/pipeline/voxel4d.py import; to be removed
 
 
 def astra_vol_geom(shape, extent):
@@ -376,7 +380,7 @@ def reconstruct_2d(
     if backend not in ("auto", "astra", "numpy"):
         raise ValueError(f"backend must be 'auto', 'astra' or 'numpy', got {backend!r}")
     if backend == "auto":
-        backend = "astra" if _have_astra() else "numpy"
+        backend = "astra" if have_astra() else "numpy"
     geom = as_scan_geometry(geometry)
     _check_2d(geom)
     if method == "fbp":
@@ -387,7 +391,7 @@ def reconstruct_2d(
         raise ValueError(f"sinogram must have shape {geom.shape}, got {sino.shape}")
     if not np.all(np.isfinite(sino)):
         raise ValueError("sinogram contains NaN or inf")
-    it = METHODS_2D[method] if iterations is None else solvers._iterations(iterations)
+    it = METHODS_2D[method] if iterations is None else solvers.check_iterations(iterations)
     if backend == "numpy":
         op = VoxelProjector(geom, shape, extent, pixel_size=pixel_size, centre=centre)
         return iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D)

@@ -17,7 +17,7 @@ import numbers
 
 import numpy as np
 
-__all__ = ["sirt", "cgls", "lsqr", "tv_pdhg", "pgd_bb"]
+__all__ = ["sirt", "cgls", "lsqr", "tv_pdhg", "pgd_bb", "check_iterations"]
 
 
 def _check(op, b, x0):
@@ -35,7 +35,8 @@ def _check(op, b, x0):
     return b, x
 
 
-def _iterations(n, name="iterations"):
+def check_iterations(n, name="iterations"):
+    """``n`` as an int, or a ValueError naming ``name`` unless it is a non-negative integer."""
     if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 0:
         raise ValueError(f"{name} must be a non-negative integer, got {n!r}")
     return int(n)
@@ -77,7 +78,7 @@ def sirt(op, b, iterations=100, *, x0=None, nonneg=False, callback=None):
     -------
     ndarray float32, shape ``op.shape``
     """
-    n = _iterations(iterations)
+    n = check_iterations(iterations)
     b, x = _check(op, b, x0)
     R = _safe_inverse(op.forward(np.ones(op.shape, dtype=np.float32)))
     C = _safe_inverse(op.adjoint(np.ones(op.proj_shape, dtype=np.float32)))
@@ -108,7 +109,7 @@ def cgls(op, b, iterations=20, *, x0=None, callback=None):
     -------
     ndarray float32, shape ``op.shape``
     """
-    n = _iterations(iterations)
+    n = check_iterations(iterations)
     b, x = _check(op, b, x0)
     r = b - op.forward(x) if x0 is not None else b.copy()
     s = op.adjoint(r)
@@ -157,7 +158,7 @@ def pgd_bb(op, b, iterations=30, *, x0=None, nonneg=True, callback=None):
     -------
     ndarray float32, shape ``op.shape``
     """
-    n = _iterations(iterations)
+    n = check_iterations(iterations)
     b, x = _check(op, b, x0)
     if nonneg:
         np.maximum(x, 0.0, out=x)
@@ -201,7 +202,7 @@ def lsqr(op, b, iterations=20, *, damp=0.0):
     from scipy.sparse.linalg import LinearOperator
     from scipy.sparse.linalg import lsqr as _lsqr
 
-    n = _iterations(iterations)
+    n = check_iterations(iterations)
     b, _ = _check(op, b, None)
     nx, ny = int(np.prod(op.shape)), int(np.prod(op.proj_shape))
     A = LinearOperator(
@@ -289,7 +290,7 @@ def tv_pdhg(
     -------
     ndarray float32, shape ``op.shape``
     """
-    n = _iterations(iterations)
+    n = check_iterations(iterations)
     bad = isinstance(tv_weight, bool) or not isinstance(tv_weight, numbers.Real)
     if bad or not np.isfinite(tv_weight) or tv_weight < 0:
         raise ValueError(f"tv_weight must be a non-negative number, got {tv_weight!r}")

@@ -9,7 +9,8 @@ from bubsub.core.projection.backends.base import Backend, StoredCrossings, check
 __all__ = ["Frames", "RayCaster", "EPS_REL"]
 
 EPS_REL = 1e-5  # restart offset after a hit, relative to the scene size
-_CHUNK = 1 << 17  # rays per work item
+RAY_CHUNK = 1 << 17  #: rays per work item
+_CHUNK = RAY_CHUNK  # the name service/budget.py imports; to be removed
 
 
 def _item_spheres(scene):
@@ -229,9 +230,9 @@ class RayCaster(Backend):
 
         def chunk(s):  # rays go in pixel order, so a chunk of rays is a chunk of views
             check_deadline(deadline)
-            return caster.trace_chunk(frames, sub, pix, far, radius, s, min(s + _CHUNK, n_rays))
+            return caster.trace_chunk(frames, sub, pix, far, radius, s, min(s + RAY_CHUNK, n_rays))
 
-        chunks = deadline_map(chunk, range(0, n_rays, _CHUNK), threads)
+        chunks = deadline_map(chunk, range(0, n_rays, RAY_CHUNK), threads)
         values = np.zeros(frames.n * frames.rows * frames.cols)
         for lo, part, _ in chunks:
             values[lo: lo + part.size] += part

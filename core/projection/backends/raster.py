@@ -145,8 +145,9 @@ def store_bytes():
     return int(mb * 2**20)
 
 
-# faces from which the forward pass goes item by item (raster_kernels.raster3d, _Job)
-_ITEM_MAJOR_FACES = 100_000
+#: faces from which the forward pass goes item by item (raster_kernels.raster3d, _Job)
+ITEM_MAJOR_FACES = 100_000
+_ITEM_MAJOR_FACES = ITEM_MAJOR_FACES  # the name service/budget.py imports; to be removed
 
 _POOL_LOCK = threading.Lock()
 _POOL = []  # crossing stores handed back by finished gradients, reused: fresh pages cost a fault each
@@ -256,7 +257,7 @@ class _Job:
         # +16 ms (of 86), the 76,800 faces of a 60-bubble reconstruction -1 ms (of 85), foam3d at
         # 128,000 faces (level 2) -9 ms (of 124); at 512,000 faces it saved about 20 % (the
         # item-by-item pass has no supersampling)
-        self.by_item = len(f) >= _ITEM_MAJOR_FACES and self.k == 1
+        self.by_item = len(f) >= ITEM_MAJOR_FACES and self.k == 1
         # per group, one row per chunk of views: where each item's stored crossings begin in the
         # whole store (raster3d's item-by-item pass)
         self.store_items = {}

@@ -80,8 +80,11 @@ def test_analyse_a_reconstruct_folder(rec3d, tmp_path, capsys):
     assert main(["analyse", str(rec3d), "--out", str(out), "--quiet"]) == 2
     assert "--overwrite" in capsys.readouterr().err
     assert main(["analyse", str(rec3d), "--out", str(out), "--quiet", "--overwrite", "--contact-gap", "0.005",
-                 "--grid", "2", "1", "1", "--shells", "3", "--no-pictures"]) == 0
+                 "--grid", "2", "1", "1", "--shells", "3", "--no-pictures", "--radius", "2.0"]) == 0
     assert rows(out / "contacts.csv") == [] and len(rows(out / "regions_shells.csv")) == 3
+    shells = rows(out / "regions_shells.csv")  # the narrower sample's cylinder, in three equal-width shells
+    assert [float(r["region_volume_mm3"]) for r in shells] == pytest.approx(
+        np.pi * np.diff(np.linspace(0, 2.0, 4) ** 2) * 2.4, rel=2e-3)
     assert not (out / "sizes.png").exists()  # the earlier run's pictures are not left behind
     assert len(rows(out / "regions_grid.csv")) == 2
 

@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
-from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
+from bubsub.bench.analysis import ellipsoid_gap
 from bubsub.core.analysis.contacts import Surface, find_contacts, surface_distance
 from bubsub.core.projection.mesh import Mesh
 from test_analysis_shape import subdivided_ellipsoid
@@ -20,16 +20,8 @@ def support(centre, A, n):
 
 
 def true_gap(c1, A1, c2, A2):
-    """Distance between two disjoint ellipsoids, independently of any mesh: the largest separation of parallel
-    support planes, max over |n| <= 1 of n.(c2 - c1) - h1(n) - h2(-n) (a concave maximisation)."""
-    d = c2 - c1
-
-    def minus(n):
-        return -(n @ d - np.sqrt(n @ A1 @ n + 1e-300) - np.sqrt(n @ A2 @ n + 1e-300))
-
-    res = minimize(minus, d / np.linalg.norm(d), method="SLSQP",
-                   constraints=[{"type": "ineq", "fun": lambda n: 1.0 - n @ n}], options={"ftol": 1e-13, "maxiter": 200})
-    return -res.fun
+    """Distance between two disjoint ellipsoids, independently of any mesh (support planes)."""
+    return ellipsoid_gap(c1, A1, c2, A2)[0]
 
 
 def test_gap_between_two_ellipsoids_at_a_known_distance():

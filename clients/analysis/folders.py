@@ -31,6 +31,7 @@ import numpy as np
 
 from bubsub.core.analysis.columns import describe, dynamics_columns, named_rows
 from bubsub.core.analysis.dynamics import fit_growth_law, growth_rates, size_tables, t1_events, track_events
+from bubsub.core.analysis.regions import Domain
 from bubsub.core.analysis.snapshot import SNAPSHOT_TABLES, analyse_meshes
 
 __all__ = ["Analysis", "analyse", "read_reconstruction", "reconstruction_kind", "default_contact_gap",
@@ -211,8 +212,17 @@ def default_contact_gap(report):
 
 
 def _snapshot(rec, gap, options):
+    options = dict(options)
+    radius = options.pop("radius", None)
+    domain = None
+    if radius is not None:
+        fov = rec.field_of_view
+        if fov is None:
+            raise ValueError(f"{rec.folder}: the report gives no field of view (its height) for a domain of radius "
+                             f"{radius} mm")
+        domain = Domain.field_of_view(min(float(radius), fov[0]), fov[1])
     return analyse_meshes(rec.meshes, rec.ids, contact_gap=gap, field_of_view=rec.field_of_view,
-                          truncated=rec.truncated, volume_in_fov=rec.volume_in_fov, **options)
+                          truncated=rec.truncated, volume_in_fov=rec.volume_in_fov, domain=domain, **options)
 
 
 def _check_gap(contact_gap):
@@ -224,7 +234,7 @@ def _check_gap(contact_gap):
     return gap
 
 
-def analyse(folder, *, contact_gap=None, grid=None, shells=None, spacing=None, progress=None):
+def analyse(folder, *, contact_gap=None, radius=None, grid=None, shells=None, progress=None):
     """Analyse a reconstruct or reconstruct4d output folder.
 
     Parameters
@@ -232,10 +242,12 @@ def analyse(folder, *, contact_gap=None, grid=None, shells=None, spacing=None, p
     folder : str or os.PathLike
     contact_gap : float, optional
         mm; default :func:`default_contact_gap` of the (first subscan's) report.
+    radius : float, optional
+        Radius of the analysed cylinder about the rotation axis, mm (default the field of view's):
+        the sample's radius when it is narrower, so that the liquid fraction counts no air.
     grid : (3,) int, optional
     shells : int, optional
-    spacing : float, optional
-        Regions and liquid-fraction sampling (:func:`bubsub.core.analysis.snapshot.default_regions`).
+        The regions (:func:`bubsub.core.analysis.snapshot.default_regions`).
     progress : callable, optional
         Called with a line of text per analysed subscan.
 
@@ -247,7 +259,9 @@ def analyse(folder, *, contact_gap=None, grid=None, shells=None, spacing=None, p
     problem = _problem(folder)
     if problem:
         raise ValueError(problem)
-    options = {"grid": grid, "shells": shells, "spacing": spacing}
+    if radius is not None and not (float(radius) > 0 and np.isfinite(float(radius))):
+        raise ValueError(f"the domain radius must be positive and finite, got {radius!r} mm")
+    options = {"grid": grid, "shells": shells, "radius": radius}
     if reconstruction_kind(folder) == "3d":
         rec = read_reconstruction(folder)
         gap = default_contact_gap(rec.report) if gap is None else gap

@@ -47,8 +47,8 @@ def cmd_analyse(args):
     reconstruction_kind(args.rec)  # a folder that is no reconstruction is refused before --out is looked at
     out = check_output_folder(args.out, overwrite=args.overwrite)
     progress = None if args.quiet else print
-    result = analyse(args.rec, contact_gap=args.contact_gap, grid=args.grid, shells=args.shells,
-                     spacing=args.spacing, progress=progress)
+    result = analyse(args.rec, contact_gap=args.contact_gap, radius=args.radius, grid=args.grid, shells=args.shells,
+                     progress=progress)
     files = result.write(out, overwrite=True, pictures=not args.no_pictures)
     s = result.summary
     if result.kind == "3d":
@@ -78,12 +78,13 @@ def register(sub):
     p.add_argument("--contact-gap", type=positive_float, metavar="MM",
                    help="bubbles whose surfaces come closer than this are in contact (default: one voxel of the "
                         "reconstruction's voxel preview, the field of view's diameter / 160; docs/analysis.md)")
+    p.add_argument("--radius", type=positive_float, metavar="MM",
+                   help="radius of the analysed cylinder about the rotation axis (default: the field of view's); "
+                        "give the sample's when it is narrower, or its air counts as liquid")
     p.add_argument("--grid", type=positive_int, nargs=3, metavar=("NX", "NY", "NZ"),
                    help="cells of the Cartesian grid (default: cells about three bubble diameters wide)")
     p.add_argument("--shells", type=positive_int, metavar="N",
                    help="cylindrical shells about the rotation axis (default: about 1.5 bubble diameters wide)")
-    p.add_argument("--spacing", type=positive_float, metavar="MM",
-                   help="spacing of the liquid fraction's sample points (default: the median equivalent radius / 8)")
     p.add_argument("--no-pictures", action="store_true", help="write the tables and summary only (the pictures "
                                                               "take a second each)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")

@@ -3,12 +3,12 @@
 Two bubbles are in contact when their surfaces come closer than a gap
 (``contact_gap``). Candidate pairs are those whose bounding spheres come that
 close (a KD-tree of the sphere centres); for each candidate the distance
-between the surfaces is found from both sides: the vertices of one mesh that
-can be within the gap of the other (a bound from a KD-tree of the other
-mesh's vertices) are projected exactly onto the other mesh's triangles that
-can hold their closest point (a KD-tree of its triangle centroids;
-``trimesh.triangles.closest_point``). Only the vertices near a contact are
-ever projected, so the cost grows with the contact area, not with the meshes.
+between the surfaces is found from both sides: the vertices of one mesh
+inside the other's bounding box and sphere grown by the gap are projected
+exactly onto the other mesh's triangles that can hold their closest point
+(a uniform grid of its triangles, :mod:`bubsub.core.analysis.kernels`).
+Only the triangles near a vertex are ever visited, so the cost grows with
+the contact area, not with the meshes.
 
 For a contact the result gives
 
@@ -31,8 +31,8 @@ from scipy.spatial import cKDTree
 __all__ = ["Surface", "surfaces", "find_contacts", "Contacts", "surface_distance", "CONTACT_COLUMN_INFO"]
 
 
-#: Face groups up to this size are tested by their bounding boxes rather than through a KD-tree.
-SMALL_GROUP = 256
+#: Most cells of a mesh's triangle grid.
+MAX_CELLS = 32768
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,58 +44,48 @@ class Surface:
     vertices : (n, 3) float
         mm.
     faces : (m, 3) int
-    tree : scipy.spatial.cKDTree
-        Of the vertices.
     vertex_area : (n,) float
         A third of the area of the vertex's triangles, mm^2.
     normals : (m, 3) float
         Unit outward face normals.
-    face_groups : list of (scipy.spatial.cKDTree or None, float, (g,) int, (g, 3) float, (g, 3) float)
-        The faces grouped by size (centroid-to-corner distance, in factors of two): a
-        KD-tree of the group's centroids (None for a group of at most :data:`SMALL_GROUP`
-        faces, tested by their bounding boxes), its largest such distance (mm), the faces,
-        and their bounding boxes' corners (mm).
+    lo, hi : (3,) float
+        Bounding box, mm.
     centre : (3,) float
         Centre of the bounding box, mm.
     radius : float
         Bounding-sphere radius about ``centre``, mm.
-    edge : float
-        Longest edge, mm.
+    grid : tuple
+        ``(origin (3,), cell size, dims (3,), indptr, cell faces)``: the triangles binned into a uniform
+        grid over the bounding box by their bounding boxes
+        (:func:`bubsub.core.analysis.kernels.build_grid`).
     """
 
     vertices: np.ndarray
     faces: np.ndarray
-    tree: cKDTree
     vertex_area: np.ndarray
     normals: np.ndarray
-    face_groups: list
+    lo: np.ndarray
+    hi: np.ndarray
     centre: np.ndarray
     radius: float
-    edge: float
+    grid: tuple
 
     @classmethod
     def of(cls, mesh):
-        v = np.asarray(mesh.vertices, dtype=float)
-        f = np.asarray(mesh.faces, dtype=np.int64)
-        tri = v[f]
-        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        twice = np.linalg.norm(cross, axis=1)
-        normals = cross / np.maximum(twice, 1e-300)[:, None]
-        area = np.bincount(f.ravel(), weights=np.repeat(twice / 6.0, 3), minlength=len(v))
-        edges = np.linalg.norm(tri - tri[:, [1, 2, 0]], axis=2)
+        from bubsub.core.analysis.kernels import build_grid, surface_arrays
+
+        v = np.ascontiguousarray(mesh.vertices, dtype=float)
+        f = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        normals, area, tri_lo, tri_hi, edge = surface_arrays(v, f)
         lo, hi = v.min(axis=0), v.max(axis=0)
         centre = 0.5 * (lo + hi)
-        mid = tri.mean(axis=1)
-        spread = np.linalg.norm(tri - mid[:, None, :], axis=2).max(axis=1)
-        base = max(float(spread.min()), 1e-3 * float(np.median(spread)))
-        level = np.floor(np.log2(np.maximum(spread / max(base, 1e-300), 1.0))).astype(int)
-        groups = []
-        for k in np.unique(level):
-            sel = np.nonzero(level == k)[0]
-            tree = cKDTree(mid[sel]) if len(sel) > SMALL_GROUP else None
-            groups.append((tree, float(spread[sel].max()), sel, tri[sel].min(axis=1), tri[sel].max(axis=1)))
-        return cls(v, f, cKDTree(v), area, normals, groups, centre, float(np.linalg.norm(v - centre, axis=1).max()),
-                   float(edges.max()))
+        size = np.maximum(hi - lo, 1e-9)
+        cell = max(float(edge), float(np.cbrt(np.prod(size) / MAX_CELLS)))
+        dims = np.maximum(1, np.ceil(size / cell)).astype(np.int64)
+        indptr, cell_faces = build_grid(tri_lo, tri_hi, lo, cell, dims)
+        d = v - centre
+        return cls(v, f, area, normals, lo, hi, centre, float(np.sqrt(np.einsum("ij,ij->i", d, d).max())),
+                   (lo, cell, dims, indptr, cell_faces))
 
 
 def surfaces(meshes):
@@ -106,13 +96,11 @@ def surfaces(meshes):
 def surface_distance(points, surface, reach):
     """Signed distance from points to a closed surface, for the points within ``reach`` of it.
 
-    Exact for any triangle mesh. A point within ``reach`` of the surface has
-    its closest point on a triangle whose centroid is within ``reach`` plus
-    the triangle's centroid-to-corner distance; the triangles are grouped by
-    that size (:attr:`Surface.face_groups`), so a query visits the small
-    triangles near the point and the few large ones (by their bounding
-    boxes), whatever the mesh's uniformity. The sign comes from the summed normals of the triangles
-    sharing the closest point (the two of an edge, the fan of a vertex).
+    Exact for any triangle mesh: the triangles binned in the grid cells
+    within ``reach`` of a point are all those that can hold its closest point
+    (:mod:`bubsub.core.analysis.kernels`); the sign comes from the
+    summed normals of the triangles sharing the closest point (the two of an
+    edge, the fan of a vertex).
 
     Parameters
     ----------
@@ -129,55 +117,13 @@ def surface_distance(points, surface, reach):
     closest : (k, 3) float
         The closest point of the surface (NaN for those points).
     """
-    from trimesh.triangles import closest_point
+    from bubsub.core.analysis.kernels import query
 
-    p = np.asarray(points, dtype=float).reshape(-1, 3)
-    dist = np.full(len(p), np.inf)
-    closest = np.full((len(p), 3), np.nan)
-    if not len(p):
-        return dist, closest
-    d_v, _ = surface.tree.query(p, k=1, distance_upper_bound=reach + surface.edge)
-    rows = np.nonzero(np.isfinite(d_v))[0]  # a nearer vertex than reach + the longest edge: maybe within reach
-    if not len(rows):
-        return dist, closest
-    pts = p[rows]
-    pair_point, pair_face = [], []
-    for tree, radius, faces, lo, hi in surface.face_groups:
-        if tree is None:  # a few (large) faces: their bounding boxes, within reach of the point
-            near = np.all((pts[:, None, :] >= lo[None] - reach) & (pts[:, None, :] <= hi[None] + reach), axis=2)
-            k, j = np.nonzero(near)
-            pair_point.append(k)
-            pair_face.append(faces[j])
-            continue
-        lists = tree.query_ball_point(pts, r=reach + radius)
-        counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(pts))
-        if counts.sum():
-            pair_point.append(np.repeat(np.arange(len(pts)), counts))
-            pair_face.append(faces[np.fromiter((f for x in lists for f in x), dtype=np.int64, count=int(counts.sum()))])
-    if pair_point:
-        pair_point, pair_face = np.concatenate(pair_point), np.concatenate(pair_face)
-    if not len(pair_point):
-        return dist, closest
-    order = np.argsort(pair_point, kind="stable")
-    pair_point, pair_face = pair_point[order], pair_face[order]
-    q = closest_point(surface.vertices[surface.faces[pair_face]], pts[pair_point])
-    dd = np.linalg.norm(pts[pair_point] - q, axis=1)
-    found, start = np.unique(pair_point, return_index=True)
-    best = np.full(len(pts), np.inf)
-    best[found] = np.minimum.reduceat(dd, start)
-    # one closest point per point; the faces sharing it (the two of an edge, the fan of a vertex) give the side
-    tol = 1e-9 * (1.0 + best[pair_point])
-    tied = np.nonzero(dd <= best[pair_point] + tol)[0]
-    first = tied[np.unique(pair_point[tied], return_index=True)[1]]
-    q_best = np.full((len(pts), 3), np.nan)
-    q_best[pair_point[first]] = q[first]
-    same = np.linalg.norm(q - q_best[pair_point], axis=1) <= tol
-    normal = np.zeros((len(pts), 3))
-    np.add.at(normal, pair_point[same], surface.normals[pair_face[same]])
-    within = best <= reach
-    inside = np.einsum("ij,ij->i", pts - q_best, normal) < 0
-    dist[rows[within]] = np.where(inside, -best, best)[within]
-    closest[rows[within]] = q_best[within]
+    p = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
+    dist = np.empty(len(p))
+    closest = np.empty((len(p), 3))
+    if len(p):
+        query(p, float(reach), surface.vertices, surface.faces, surface.normals, *surface.grid, dist, closest)
     return dist, closest
 
 
@@ -212,7 +158,9 @@ class Contacts:
 
 def _side(a, b, gap):
     """Distances of ``a``'s vertices that may lie within ``gap`` of ``b``: (indices, signed distances, closest)."""
-    near = np.linalg.norm(a.vertices - b.centre, axis=1) <= b.radius + gap + b.edge
+    v = a.vertices
+    d = v - b.centre
+    near = np.all((v >= b.lo - gap) & (v <= b.hi + gap), axis=1) & (np.einsum("ij,ij->i", d, d) <= (b.radius + gap) ** 2)
     idx = np.nonzero(near)[0]
     d, q = surface_distance(a.vertices[idx], b, gap)
     return idx, d, q

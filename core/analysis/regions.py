@@ -10,10 +10,9 @@ is not known, the bubbles' bounding box. It is divided into
   domain's radius, over the domain's whole height.
 
 Liquid fraction (FoamQuant's ``LiqFrac_CartesMesh`` on a voxel image): the
-fraction of a region not inside any bubble, measured on a regular grid of
-sample points (spacing ``spacing``) classified exactly against the meshes
-(:func:`bubsub.core.voxel.raster.bubble_mask`, slab by slab, so memory stays
-bounded).
+fraction of a region not inside any bubble. Each bubble's exact volume is
+cut into small pieces of known volume and position and shared among the
+regions it crosses (:func:`region_volumes`), with no voxels.
 
 Texture tensor (Graner et al. 2008; FoamQuant ``Texture``): the mean of
 ``l l^T`` over the contacts whose contact point lies in the region, ``l`` the
@@ -30,10 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Domain", "gas_counts", "region_tables", "GRID_COLUMN_INFO", "SHELL_COLUMN_INFO", "texture_summary"]
+__all__ = ["Domain", "region_volumes", "region_tables", "GRID_COLUMN_INFO", "SHELL_COLUMN_INFO", "texture_summary"]
 
-#: Most sample points classified at once (one slab of the sample grid).
-SLAB_SAMPLES = 4_000_000
+#: Radial slices of each (centre, face) tetrahedron when a bubble's volume is shared among regions.
+RADIAL_LAYERS = 8
+#: In-plane points per axis of the grid that measures the regions' areas.
+AREA_SAMPLES = 1000
 
 
 @dataclass(frozen=True)
@@ -95,57 +96,70 @@ def _shell_index(points, domain, shells):
     return np.clip(np.floor(r / domain.outer_radius * shells).astype(np.int64), 0, shells - 1)
 
 
-def gas_counts(meshes, domain, spacing, grid, shells):
-    """Sample points of the domain and those inside bubbles, per Cartesian cell and per shell.
+def _plane(domain, grid, shells, x, y):
+    """In-plane ``(rows, cols)`` arrays of a sample grid: inside the domain, Cartesian (x, y) cell, shell."""
+    lo, hi = np.asarray(domain.lo), np.asarray(domain.hi)
+    X, Y = np.meshgrid(x, y)
+    inside = (X >= lo[0]) & (X <= hi[0]) & (Y >= lo[1]) & (Y <= hi[1])
+    if domain.radius is not None:
+        inside &= np.hypot(X, Y) <= domain.radius
+    ix = np.clip(np.floor((X - lo[0]) / (hi[0] - lo[0]) * grid[0]).astype(np.int64), 0, grid[0] - 1)
+    iy = np.clip(np.floor((Y - lo[1]) / (hi[1] - lo[1]) * grid[1]).astype(np.int64), 0, grid[1] - 1)
+    ring = np.clip(np.floor(np.hypot(X, Y) / domain.outer_radius * shells).astype(np.int64), 0, shells - 1)
+    return inside, ix * grid[1] + iy, ring
+
+
+def region_volumes(meshes, centroids, domain, grid, shells):
+    """Volume of each region and the bubbles' gas volume in it.
+
+    The gas: every face and the bubble's centroid span a signed tetrahedron;
+    the tetrahedra sum to the enclosed volume exactly, whatever the bubble's
+    shape. Each is cut into :data:`RADIAL_LAYERS` slices parallel to its face,
+    whose volumes and centroids are exact, and a slice's volume goes to the
+    region (and the domain) holding its centroid
+    (:func:`bubsub.core.analysis.kernels.share_volumes`); the slices are a
+    fraction of the radius deep and a face across, so only the slices a
+    region's border cuts are misplaced, by less than their size. The regions'
+    own volumes come from a fine in-plane grid (:data:`AREA_SAMPLES` points per
+    axis over the domain's box) times their exact heights.
 
     Parameters
     ----------
     meshes : sequence of Mesh
+    centroids : (n, 3) float
+        mm.
     domain : Domain
-    spacing : float
-        Sample spacing, mm.
     grid : (3,) int
         Cells along x, y, z.
     shells : int
 
     Returns
     -------
-    cells : (nx * ny * nz, 2) int
-        ``(samples in the domain, of them inside a bubble)``, cells in ``(i, j, k)`` order (``k`` fastest).
-    rings : (shells, 2) int
-        The same per shell.
-    sample_volume : float
-        Volume of one sample's cell, mm^3 (the spacing rounded to divide the domain's box).
+    cell_volume, cell_gas : (nx * ny * nz,) float
+        mm^3; cells in ``(i, j, k)`` order (``k`` fastest).
+    shell_volume, shell_gas : (shells,) float
+        mm^3.
     """
-    from bubsub.core.voxel.raster import bubble_mask, pixel_centres
-
     lo, hi = np.asarray(domain.lo, dtype=float), np.asarray(domain.hi, dtype=float)
-    counts = np.maximum(1, np.ceil((hi - lo) / spacing).astype(int))
-    nx, ny, nz = (int(c) for c in counts)
-    step = (hi - lo) / counts
-    cells = np.zeros((int(np.prod(grid)), 2), dtype=np.int64)
-    rings = np.zeros((shells, 2), dtype=np.int64)
-    zlo = np.array([np.asarray(m.vertices)[:, 2].min() for m in meshes])
-    zhi = np.array([np.asarray(m.vertices)[:, 2].max() for m in meshes])
-    per_slab = max(1, SLAB_SAMPLES // (nx * ny))
-    for k0 in range(0, nz, per_slab):
-        k1 = min(nz, k0 + per_slab)
-        z0, z1 = lo[2] + k0 * step[2], lo[2] + k1 * step[2]
-        shape, extent = (k1 - k0, ny, nx), (lo[0], hi[0], lo[1], hi[1], z0, z1)
-        items = [m for m, a, b in zip(meshes, zlo, zhi) if b >= z0 and a <= z1]
-        gas = bubble_mask(items, shape, extent) if items else np.zeros(shape, bool)
-        z, y, x = pixel_centres(shape, extent)
-        pts = np.stack(np.meshgrid(x, y, z, indexing="ij"), axis=-1)  # (x, y, z, 3)
-        pts = pts.transpose(2, 1, 0, 3).reshape(-1, 3)  # the mask's (z, y, x) order
-        inside = domain.contains(pts)
-        pts, g = pts[inside], gas.ravel()[inside]
-        c = _cell_index(pts, domain, grid)
-        cells[:, 0] += np.bincount(c, minlength=len(cells))
-        cells[:, 1] += np.bincount(c, weights=g, minlength=len(cells)).astype(np.int64)
-        s = _shell_index(pts, domain, shells)
-        rings[:, 0] += np.bincount(s, minlength=shells)
-        rings[:, 1] += np.bincount(s, weights=g, minlength=shells).astype(np.int64)
-    return cells, rings, float(np.prod(step))
+    size = hi - lo
+    gz, n_cells = int(grid[2]), int(np.prod(grid))
+    n = AREA_SAMPLES
+    x = lo[0] + (np.arange(n) + 0.5) * size[0] / n
+    y = lo[1] + (np.arange(n) + 0.5) * size[1] / n
+    inside, cell_xy, ring = _plane(domain, grid, shells, x, y)
+    da = size[0] * size[1] / n ** 2
+    cell_volume = np.repeat(np.bincount(cell_xy[inside], minlength=n_cells // gz) * da, gz) * (size[2] / gz)
+    shell_volume = np.bincount(ring[inside], minlength=shells) * da * size[2]
+    from bubsub.core.analysis.kernels import pack, share_volumes
+
+    cell_gas, shell_gas = np.zeros(n_cells), np.zeros(shells)
+    meshes = list(meshes)
+    if meshes:
+        vertices, faces, v0, f0 = pack([m.vertices for m in meshes], [m.faces for m in meshes])
+        share_volumes(vertices, faces, v0, f0, np.ascontiguousarray(centroids, dtype=float), RADIAL_LAYERS, lo, hi,
+                      -1.0 if domain.radius is None else float(domain.radius), np.asarray(grid, dtype=np.int64),
+                      int(shells), float(domain.outer_radius), cell_gas, shell_gas)
+    return cell_volume, cell_gas, shell_volume, shell_gas
 
 
 def _cylindrical(points, vectors):
@@ -208,7 +222,7 @@ def _region_stats(row, member_b, coordination, truncated, member_c):
     row["contacts"] = int(member_c.sum())
 
 
-def region_tables(meshes, centroids, coordination, truncated, contacts, branches, domain, *, spacing, grid, shells):
+def region_tables(meshes, centroids, coordination, truncated, contacts, branches, domain, *, grid, shells):
     """Rows of the Cartesian-grid and cylindrical-shell tables.
 
     Parameters
@@ -223,8 +237,6 @@ def region_tables(meshes, centroids, coordination, truncated, contacts, branches
     branches : (k, 3) float
         The contacts' branch vectors, mm.
     domain : Domain
-    spacing : float
-        Sample spacing of the liquid fraction, mm.
     grid : (3,) int
     shells : int
 
@@ -237,8 +249,8 @@ def region_tables(meshes, centroids, coordination, truncated, contacts, branches
     if len(grid) != 3 or min(grid) < 1 or int(shells) < 1:
         raise ValueError(f"the grid needs three positive cell counts and at least one shell, got {grid}, {shells}")
     shells = int(shells)
-    cells, rings, dv = gas_counts(meshes, domain, spacing, grid, shells)
     centroids = np.asarray(centroids, dtype=float).reshape(-1, 3)
+    cell_volume, cell_gas, shell_volume, shell_gas = region_volumes(meshes, centroids, domain, grid, shells)
     points = np.asarray(contacts.point, dtype=float).reshape(-1, 3)
     branches = np.asarray(branches, dtype=float).reshape(-1, 3)
     coordination, truncated = np.asarray(coordination), np.asarray(truncated)
@@ -252,15 +264,15 @@ def region_tables(meshes, centroids, coordination, truncated, contacts, branches
         for j in range(grid[1]):
             for k in range(grid[2]):
                 c = (i * grid[1] + j) * grid[2] + k
-                total, gas = cells[c]
+                total, gas = cell_volume[c], cell_gas[c]
                 row = {"cell_x": i, "cell_y": j, "cell_z": k}
                 for a, idx in zip("xyz", (i, j, k)):
                     ax = "xyz".index(a)
                     row[f"{a}_lo_mm"] = float(lo[ax] + idx * size[ax])
                     row[f"{a}_hi_mm"] = float(lo[ax] + (idx + 1) * size[ax])
-                row["region_volume_mm3"] = float(total * dv)
-                row["gas_volume_mm3"] = float(gas * dv)
-                row["liquid_fraction"] = float(1.0 - gas / total) if total else float("nan")
+                row["region_volume_mm3"] = float(total)
+                row["gas_volume_mm3"] = float(gas)
+                row["liquid_fraction"] = float(1.0 - gas / total) if total > 0 else float("nan")
                 _region_stats(row, cell_b == c, coordination, truncated, cell_c == c)
                 _texture_columns(row, branches[cell_c == c], "xyz")
                 grid_rows.append(row)
@@ -270,11 +282,11 @@ def region_tables(meshes, centroids, coordination, truncated, contacts, branches
     local = _cylindrical(points, branches) if len(points) else branches
     shell_rows = []
     for s in range(shells):
-        total, gas = rings[s]
+        total, gas = shell_volume[s], shell_gas[s]
         row = {"shell": s, "r_lo_mm": r_out * s / shells, "r_hi_mm": r_out * (s + 1) / shells,
                "z_lo_mm": float(lo[2]), "z_hi_mm": float(hi[2]),
-               "region_volume_mm3": float(total * dv), "gas_volume_mm3": float(gas * dv),
-               "liquid_fraction": float(1.0 - gas / total) if total else float("nan")}
+               "region_volume_mm3": float(total), "gas_volume_mm3": float(gas),
+               "liquid_fraction": float(1.0 - gas / total) if total > 0 else float("nan")}
         _region_stats(row, shell_b == s, coordination, truncated, shell_c == s)
         _texture_columns(row, local[shell_c == s], ("r", "phi", "z"))
         shell_rows.append(row)
@@ -297,8 +309,9 @@ def _texture_info(names, frame):
 
 
 _COMMON_INFO = {
-    "region_volume_mm3": ("mm^3", "volume of the region inside the analysed domain (sample points x spacing^3)"),
-    "gas_volume_mm3": ("mm^3", "volume of the region inside bubbles (sample points x spacing^3)"),
+    "region_volume_mm3": ("mm^3", "volume of the region inside the analysed domain"),
+    "gas_volume_mm3": ("mm^3", "volume of bubbles in the region (each bubble's volume cut into small pieces shared "
+                               "among the regions holding them)"),
     "liquid_fraction": ("1", "fraction of the region outside every bubble (1 - gas / region)"),
     "bubbles": ("1", "bubbles whose centroid lies in the region"),
     "mean_coordination": ("1", "mean coordination of those bubbles, those cut by the field of view left out"),

@@ -24,7 +24,31 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["solid_moments", "bubble_shape", "strain_from_axes", "SHAPE_COLUMN_INFO", "SHAPE_COLUMNS"]
+__all__ = ["solid_moments", "bubble_shape", "bubble_shapes", "strain_from_axes", "SHAPE_COLUMN_INFO", "SHAPE_COLUMNS"]
+
+
+def _moments(vertex_arrays, face_arrays):
+    """Volume, area, centroid and shape tensor of many closed meshes in one pass
+    (:func:`bubsub.core.analysis.kernels.moments`, tetrahedra about each mesh's vertex mean).
+
+    Returns
+    -------
+    volume, area : (n,) float
+    centroid : (n, 3) float
+    tensor : (n, 3, 3) float
+        ``(1/V) integral (x - c)(x - c)^T dV``.
+    """
+    from bubsub.core.analysis.kernels import moments, pack
+
+    vertices, faces, v0, f0 = pack(vertex_arrays, face_arrays)
+    n = len(vertex_arrays)
+    origin = np.add.reduceat(vertices, v0[:-1], axis=0) / np.diff(v0)[:, None]
+    volume, area, first, second = np.empty(n), np.empty(n), np.empty((n, 3)), np.empty((n, 3, 3))
+    moments(vertices, faces, v0, f0, origin, volume, area, first, second)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        centre = first / volume[:, None]
+        tensor = second / volume[:, None, None] - centre[:, :, None] * centre[:, None, :]
+    return volume, area, centre + origin, tensor
 
 
 def solid_moments(vertices, faces):
@@ -46,22 +70,8 @@ def solid_moments(vertices, faces):
     moment : (3, 3) float
         ``integral (x - c)(x - c)^T dV``, mm^5 (divide by the volume for the shape tensor).
     """
-    v = np.asarray(vertices, dtype=float)
-    origin = v.mean(axis=0)  # tetrahedra from a point near the solid: no cancellation of large terms
-    p = v - origin
-    f = np.asarray(faces)
-    a, b, c = p[f[:, 0]], p[f[:, 1]], p[f[:, 2]]
-    det = np.einsum("ij,ij->i", a, np.cross(b, c))  # 6 x signed volume of (origin, a, b, c)
-    volume = det.sum() / 6.0
-    s = a + b + c
-    first = (det[:, None] * s).sum(axis=0) / 24.0  # integral of x: volume_t x (a + b + c) / 4 per tetrahedron
-    # integral of x x^T over a tetrahedron with a vertex at 0: volume_t / 20 (a a^T + b b^T + c c^T + s s^T)
-    second = np.einsum("i,ij,ik->jk", det, a, a) + np.einsum("i,ij,ik->jk", det, b, b) \
-        + np.einsum("i,ij,ik->jk", det, c, c) + np.einsum("i,ij,ik->jk", det, s, s)
-    second /= 120.0
-    centre = first / volume
-    moment = second - volume * np.outer(centre, centre)
-    return float(volume), centre + origin, 0.5 * (moment + moment.T)
+    volume, _, centroid, tensor = _moments([vertices], [faces])
+    return float(volume[0]), centroid[0], tensor[0] * volume[0]
 
 
 def strain_from_axes(semi_axes):
@@ -96,51 +106,68 @@ def _axis_sign(vectors):
     return vectors * np.where(sign == 0, 1.0, sign)
 
 
-def bubble_shape(mesh):
-    """The shape quantities of one bubble (see the module docstring).
+def bubble_shapes(meshes):
+    """The shape quantities of many bubbles at once (see the module docstring).
+
+    All meshes' tetrahedra are summed in one pass (:func:`_moments`), so a
+    foam of hundreds of bubbles costs a few array operations rather than
+    hundreds.
 
     Parameters
     ----------
-    mesh : Mesh
-        Closed, outward (the refined bubble surface).
+    meshes : sequence of Mesh
+        Closed, outward (the refined bubble surfaces).
 
     Returns
     -------
-    dict
+    list of dict
         Keys of :data:`SHAPE_COLUMNS`; ``axis_i_x|y|z`` are the unit eigenvectors of the
         shape tensor, ``i = 1`` the longest.
+
+    Raises
+    ------
+    ValueError
+        If a mesh encloses a non-positive volume.
     """
-    faces = np.asarray(mesh.faces)
-    volume, centroid, moment = solid_moments(mesh.vertices, faces)
-    if not volume > 0:
-        raise ValueError(f"a bubble mesh encloses a non-positive volume ({volume:.3g} mm^3)")
-    tri = mesh.vertices[faces]
-    area = float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
-    lam, vec = np.linalg.eigh(moment / volume)
-    lam, vec = lam[::-1], _axis_sign(vec[:, ::-1])
+    meshes = list(meshes)
+    if not meshes:
+        return []
+    volume, area, centroid, moment = _moments([m.vertices for m in meshes], [m.faces for m in meshes])
+    if np.any(~(volume > 0)):
+        k = int(np.argmin(volume))
+        raise ValueError(f"bubble {k} encloses a non-positive volume ({volume[k]:.3g} mm^3)")
+    lam, vec = np.linalg.eigh(moment)
+    lam, vec = lam[:, ::-1], vec[:, :, ::-1]
     semi = np.sqrt(5.0 * np.maximum(lam, 0.0))
-    row = {
-        "centroid_x_mm": centroid[0], "centroid_y_mm": centroid[1], "centroid_z_mm": centroid[2],
-        "volume_mm3": volume, "surface_area_mm2": area,
-        "equivalent_radius_mm": np.cbrt(3.0 * volume / (4.0 * np.pi)),
-        "sphericity": np.pi ** (1 / 3) * (6.0 * volume) ** (2 / 3) / area,
-    }
-    for i in range(3):
-        row[f"shape_eigenvalue_{i + 1}_mm2"] = lam[i]
-    for i in range(3):
-        row[f"semi_axis_{i + 1}_mm"] = semi[i]
-    for i in range(3):
-        for k, name in enumerate("xyz"):
-            row[f"axis_{i + 1}_{name}"] = vec[k, i]
-    if np.all(semi > 0):
-        u, vm, kind = strain_from_axes(semi)
-    else:  # a flat (degenerate) bubble has no finite strain
-        u, vm, kind = np.full(3, np.nan), np.nan, 0
-    for i in range(3):
-        row[f"strain_{i + 1}"] = u[i]
-    row["strain_von_mises"] = vm
-    row["shape_type"] = int(kind)
-    return {k: (float(v) if k != "shape_type" else v) for k, v in row.items()}
+    rows = []
+    for k in range(len(meshes)):
+        axes = _axis_sign(vec[k])
+        row = {"centroid_x_mm": centroid[k, 0], "centroid_y_mm": centroid[k, 1], "centroid_z_mm": centroid[k, 2],
+               "volume_mm3": volume[k], "surface_area_mm2": area[k],
+               "equivalent_radius_mm": np.cbrt(3.0 * volume[k] / (4.0 * np.pi)),
+               "sphericity": np.pi ** (1 / 3) * (6.0 * volume[k]) ** (2 / 3) / area[k]}
+        for i in range(3):
+            row[f"shape_eigenvalue_{i + 1}_mm2"] = lam[k, i]
+        for i in range(3):
+            row[f"semi_axis_{i + 1}_mm"] = semi[k, i]
+        for i in range(3):
+            for j, name in enumerate("xyz"):
+                row[f"axis_{i + 1}_{name}"] = axes[j, i]
+        if np.all(semi[k] > 0):
+            u, vm, kind = strain_from_axes(semi[k])
+        else:  # a flat (degenerate) bubble has no finite strain
+            u, vm, kind = np.full(3, np.nan), np.nan, 0
+        for i in range(3):
+            row[f"strain_{i + 1}"] = u[i]
+        row["strain_von_mises"] = vm
+        rows.append({key: (float(val) if key != "shape_type" else val) for key, val in row.items()})
+        rows[-1]["shape_type"] = int(kind)
+    return rows
+
+
+def bubble_shape(mesh):
+    """:func:`bubble_shapes` of one mesh (a dict)."""
+    return bubble_shapes([mesh])[0]
 
 
 #: ``column: (unit, meaning)`` of the shape columns of ``bubbles.csv``.

@@ -21,7 +21,7 @@ import numpy as np
 from bubsub.core.analysis.contacts import CONTACT_COLUMN_INFO, Surface, find_contacts
 from bubsub.core.analysis.dynamics import Step
 from bubsub.core.analysis.regions import GRID_COLUMN_INFO, SHELL_COLUMN_INFO, Domain, region_tables
-from bubsub.core.analysis.shape import SHAPE_COLUMN_INFO, bubble_shape
+from bubsub.core.analysis.shape import SHAPE_COLUMN_INFO, bubble_shapes
 
 __all__ = ["Snapshot", "analyse_meshes", "BUBBLE_COLUMN_INFO", "SNAPSHOT_TABLES", "default_regions"]
 
@@ -79,21 +79,17 @@ def default_regions(radius, domain):
     """Default cells and shells for bubbles of median equivalent radius ``radius`` (mm).
 
     Cartesian cells about three bubble diameters wide, shells about one and a
-    half diameters wide, liquid-fraction samples an eighth of the radius apart
-    (coarser if the domain would need more than 64 million samples).
+    half diameters wide.
 
     Returns
     -------
     grid : (3,) int
     shells : int
-    spacing : float, mm
     """
     size = np.asarray(domain.hi) - np.asarray(domain.lo)
     grid = tuple(int(max(1, round(s / (6.0 * radius)))) for s in size)
     shells = int(max(1, round(domain.outer_radius / (3.0 * radius))))
-    spacing = radius / 8.0
-    spacing = max(spacing, float(np.cbrt(np.prod(size) / 64e6)))
-    return grid, shells, spacing
+    return grid, shells
 
 
 def _checked_flags(values, n, what):
@@ -106,7 +102,7 @@ def _checked_flags(values, n, what):
 
 
 def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncated=None, volume_in_fov=None,
-                   grid=None, shells=None, spacing=None):
+                   domain=None, grid=None, shells=None):
     """Bubble, contact and region tables of one foam.
 
     Parameters
@@ -118,16 +114,18 @@ def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncat
     contact_gap : float
         mm; bubbles whose surfaces come closer are in contact.
     field_of_view : (radius, half_height), optional
-        mm, about the z axis; the regions' domain (default: the bubbles' bounding box).
+        mm, about the z axis; the regions' domain unless ``domain`` is given (default: the bubbles'
+        bounding box).
     truncated : (n,) int, optional
         1 for bubbles cut by the field of view (their whole size is not measured).
     volume_in_fov : (n,) float, optional
         Their volume inside the field of view, mm^3.
+    domain : Domain, optional
+        The regions' domain, e.g. the sample's cylinder when it is narrower than the field of
+        view (liquid fractions count everything outside the bubbles as liquid).
     grid : (3,) int, optional
     shells : int, optional
-    spacing : float, optional
-        Regions' cells and shells, liquid-fraction sample spacing (mm); defaults of
-        :func:`default_regions`.
+        Regions' cells and shells; defaults of :func:`default_regions`.
 
     Returns
     -------
@@ -147,7 +145,7 @@ def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncat
     inside = _checked_flags(volume_in_fov, n, "volume_in_fov")
     seconds = {}
     t = time.perf_counter()
-    shapes = [bubble_shape(m) for m in meshes]
+    shapes = bubble_shapes(meshes)
     seconds["shape"] = time.perf_counter() - t
     t = time.perf_counter()
     contacts = find_contacts([Surface.of(m) for m in meshes], gap)
@@ -187,18 +185,16 @@ def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncat
     contact_rows.sort(key=lambda r: (r["id_a"], r["id_b"]))
 
     t = time.perf_counter()
-    domain = Domain.field_of_view(*field_of_view) if field_of_view is not None else Domain.around(meshes)
+    if domain is None:
+        domain = Domain.field_of_view(*field_of_view) if field_of_view is not None else Domain.around(meshes)
     whole = cut == 0
     radius = float(np.median([s["equivalent_radius_mm"] for s, w in zip(shapes, whole) if w] or
                              [s["equivalent_radius_mm"] for s in shapes]))
-    g0, s0, h0 = default_regions(radius, domain)
+    g0, s0 = default_regions(radius, domain)
     grid = g0 if grid is None else tuple(int(g) for g in grid)
     shells = s0 if shells is None else int(shells)
-    spacing = h0 if spacing is None else float(spacing)
-    if not spacing > 0:
-        raise ValueError(f"the sample spacing must be positive, got {spacing!r} mm")
     grid_rows, shell_rows = region_tables(meshes, centroids, coordination, cut, contacts, branches, domain,
-                                          spacing=spacing, grid=grid, shells=shells)
+                                          grid=grid, shells=shells)
     seconds["regions"] = time.perf_counter() - t
     total = sum(r["region_volume_mm3"] for r in grid_rows)
     gas = sum(r["gas_volume_mm3"] for r in grid_rows)
@@ -213,7 +209,7 @@ def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncat
         "domain": {"kind": "field of view" if domain.radius is not None else "bounding box of the bubbles",
                    "lo_mm": list(map(float, domain.lo)), "hi_mm": list(map(float, domain.hi)),
                    "radius_mm": domain.radius},
-        "grid": list(grid), "shells": shells, "sample_spacing_mm": spacing,
+        "grid": list(grid), "shells": shells,
         "seconds": seconds,
     }
     return Snapshot(ids, rows, contact_rows, grid_rows, shell_rows, summary)

@@ -32,7 +32,8 @@ __all__ = [
 
 # Data side: phantoms, simulation, scan files, mesh files, metrics.
 from .io.atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text
-from .io.meshio import bubble_table, read_ply, read_polygons_json, write_csv, write_ply, write_polygons_json
+from .io.meshio import read_ply, read_polygons_json, write_ply, write_polygons_json
+from .io.tables import bubble_table, write_csv
 from .metrics import dice_dissimilarity, projection_mse, shapes_dice_dissimilarity
 from .foam.containers import liquid_box, liquid_square, sphere_mesh
 from .foam.phantoms import BENCHMARK_SEED, FoamPhantom, foam2d, foam3d, foam3d_benchmark

@@ -1,4 +1,4 @@
-"""Mesh/polygon/table outputs: round trips, third-party readers, bad input, atomicity."""
+"""Mesh/polygon/table outputs: round trips, third-party readers (trimesh, plyfile), bad input, atomicity."""
 
 import csv
 import json
@@ -9,16 +9,11 @@ import pytest
 import trimesh
 
 from bubsub.core.projection.mesh import Polygon
-from bubsub.core.io.meshio import (
-    BUBBLE_COLUMNS_2D,
-    BUBBLE_COLUMNS_3D,
-    bubble_table,
-    read_ply,
-    read_polygons_json,
-    write_csv,
-    write_ply,
-    write_polygons_json,
-)
+from plyfile import PlyData, PlyElement
+
+from bubsub.core.io import meshio, tables
+from bubsub.core.io.meshio import read_ply, read_polygons_json, write_ply, write_polygons_json
+from bubsub.core.io.tables import BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D, bubble_table, write_csv
 from bubsub.core.foam.containers import sphere_mesh
 from bubsub.core.foam.phantoms import foam2d
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
@@ -52,6 +47,44 @@ def test_ply_is_readable_by_trimesh_with_bubble_ids(tmp_path, bubbles3d):
     assert tm.volume == pytest.approx(sum(m.volume for m in bubbles3d))
     face = tm.metadata["_ply_raw"]["face"]["data"]
     assert np.array_equal(np.unique(face["bubble_id"]), [0, 1, 2, 3])
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["binary", "ascii"])
+def test_ply_per_face_bubble_ids_read_back_by_plyfile_row_by_row(tmp_path, bubbles3d, binary):
+    # plyfile's generic reader (no fixed list length: every face parsed on its own) as the independent reader
+    path = write_ply(tmp_path / "b.ply", bubbles3d, ids=[7, 3, 11, 5], binary=binary)
+    ply = PlyData.read(path)
+    face, vertex = ply["face"].data, ply["vertex"].data
+    assert [p.name for p in ply["face"].properties] == ["vertex_indices", "bubble_id", "attenuation"]
+    assert np.array_equal(face["bubble_id"], np.repeat([7, 3, 11, 5], [len(m.faces) for m in bubbles3d]))
+    assert np.array_equal(face["attenuation"], np.repeat([m.attenuation for m in bubbles3d], 320))
+    offsets = np.cumsum([0] + [len(m.vertices) for m in bubbles3d[:-1]])
+    want = np.concatenate([np.asarray(m.faces) + o for m, o in zip(bubbles3d, offsets)])
+    assert np.array_equal(np.stack(face["vertex_indices"]), want)
+    assert np.array_equal(np.c_[vertex["x"], vertex["y"], vertex["z"]], np.concatenate([m.vertices for m in bubbles3d]))
+
+
+def test_ply_written_by_another_tool_big_endian_float_with_extra_elements(tmp_path, bubbles3d):
+    m = bubbles3d[0]
+    vertex = np.zeros(len(m.vertices), [("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("quality", ">f4")])
+    vertex["x"], vertex["y"], vertex["z"] = m.vertices.T
+    # (plyfile writes the scalars of a big-endian element with lists in native order: no bubble_id here)
+    face = np.zeros(len(m.faces), [("vertex_indices", ">u4", (3,))])
+    face["vertex_indices"] = m.faces
+    camera = np.zeros(1, [("view_px", ">f4")])
+    path = tmp_path / "other.ply"
+    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face"),
+             PlyElement.describe(camera, "camera")], byte_order=">").write(path)
+    (back,), ids = read_ply(path, attenuation=-0.1, with_ids=True)
+    assert ids == [0]  # one connected component
+    assert np.array_equal(back.vertices, m.vertices.astype(np.float32).astype(np.float64))
+    assert np.array_equal(np.asarray(back.faces), np.asarray(m.faces))
+
+
+def test_tables_are_re_exported_from_meshio_for_the_old_imports():
+    for name in ("bubble_table", "write_csv", "csv_metadata_path", "unit_column", "BUBBLE_COLUMN_INFO",
+                 "BUBBLE_COLUMNS_2D", "BUBBLE_COLUMNS_3D"):
+        assert getattr(meshio, name) is getattr(tables, name)
 
 
 def test_ply_without_bubble_ids_is_split_into_components(tmp_path, bubbles3d):
@@ -90,6 +123,12 @@ def test_ply_bad_input(tmp_path, bubbles3d):
     )
     with pytest.raises(ValueError, match="only triangle faces"):
         read_ply(quad, attenuation=1.0)
+    quad_bin = tmp_path / "quad_bin.ply"  # the binary reader expects lists of three
+    vertex = np.zeros(4, [("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    PlyData([PlyElement.describe(vertex, "vertex"),
+             PlyElement.describe(np.array([([0, 1, 2, 3],)], [("vertex_indices", "<i4", (4,))]), "face")]).write(quad_bin)
+    with pytest.raises(ValueError, match="only triangle faces"):
+        read_ply(quad_bin, attenuation=1.0)
     # an open bubble (one face removed) is reported with its id
     m = bubbles3d[0]
     tm = trimesh.Trimesh(m.vertices, np.asarray(m.faces)[1:], process=False)
@@ -221,7 +260,7 @@ def test_csv_bad_rows_and_failed_write(tmp_path):
 
 
 def test_column_names_carry_their_units_and_the_sidecar_describes_them(tmp_path, bubbles3d):
-    from bubsub.core.io.meshio import BUBBLE_COLUMN_INFO, csv_metadata_path, unit_column
+    from bubsub.core.io.tables import BUBBLE_COLUMN_INFO, csv_metadata_path, unit_column
 
     assert unit_column("volume", "mm^3") == "volume_mm3" and unit_column("id", "") == "id"
     assert unit_column("attenuation", "1/mm") == "attenuation_per_mm"

@@ -203,7 +203,7 @@ def _summarise(rows, score, report, t_sim, t_total, cfg, ndim, quick, seed, phot
 
 def _write(out, rows, summary, panels, extent):
     """Write fig6.csv, fig6.json, fig6.png and fig7.png; returns their paths."""
-    from bubsub.core.io.meshio import write_csv
+    from bubsub.core.io.tables import write_csv
 
     columns = ["subscan", "method", "start", "iterations", "stop_reason", "ddi", "holdout_mse", "seconds",
                "cpu_seconds"]

@@ -1,8 +1,4 @@
-"""Reconstruction outputs: bubble meshes (PLY), bubble polygons (JSON), bubble tables (CSV).
-
-One module of about 630 lines on purpose: the three writers share the id and
-attenuation bookkeeping (``_resolve``, ``_ids``) and their readers must round-trip
-exactly what the writers emit, which the tests check pairwise.
+"""Bubble meshes (PLY, through plyfile) and bubble polygons (JSON).
 
 Formats
 -------
@@ -10,134 +6,58 @@ PLY (3D)
     All bubbles in one file (binary little-endian by default, or ASCII):
     ``vertex`` with ``double x, y, z`` (mm), ``face`` with
     ``list uchar int vertex_indices``, ``int bubble_id`` and
-    ``double attenuation`` (1/mm). MeshLab, trimesh and other PLY readers
-    open it; extra face properties are ignored by readers that do not
-    know them. :func:`read_ply` groups the faces by ``bubble_id`` (or, in
-    files without it, by connected component).
+    ``double attenuation`` (1/mm). MeshLab, ParaView, trimesh and other PLY
+    readers open it; extra face properties are ignored by readers that do
+    not know them. :func:`read_ply` groups the faces by ``bubble_id`` (or,
+    in files without it, by connected component). Files are read and their
+    headers written by plyfile; the binary face records, whose layout that
+    header fixes, are written as one numpy array (plyfile writes list
+    properties row by row, some 16 us a face: a minute for a 3-million-face
+    truth file).
 JSON (2D)
     ``{"units": "mm", "bubbles": [{"id": int, "attenuation": float,
     "vertices": [[x, y], ...]}, ...]}``, vertices counter-clockwise, the
     first vertex not repeated at the end.
-CSV
-    One row per bubble: ``id, centroid_x_mm, centroid_y_mm[, centroid_z_mm],
-    area_mm2 | volume_mm3, perimeter_mm | surface_area_mm2,
-    equivalent_diameter_mm``; see :func:`bubble_table`. Every column name
-    ends with its unit (:func:`unit_column`), and :func:`write_csv` can write
-    a sidecar ``NAME.csv-metadata.json`` (W3C CSV on the Web metadata)
-    describing each column, its unit and type.
 
+The bubble tables (CSV) are in :mod:`bubsub.core.io.tables`; their names are
+re-exported here for the modules that still import them from this one.
 All writers are atomic (:mod:`bubsub.core.io.atomic`).
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import json
-import numbers
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData, PlyElement, PlyElementParseError, PlyHeaderParseError
 
 from bubsub.core.io.atomic import atomic_open
+from bubsub.core.projection.items import bubble_ids, resolve_items
 from bubsub.core.projection.mesh import Mesh, Polygon
 
-__all__ = [
-    "write_ply",
-    "read_ply",
-    "write_polygons_json",
-    "read_polygons_json",
-    "bubble_table",
-    "write_csv",
-    "csv_metadata_path",
-    "unit_column",
-    "BUBBLE_COLUMNS_2D",
-    "BUBBLE_COLUMNS_3D",
-    "BUBBLE_COLUMN_INFO",
-]
+# re-exported for the modules that import the table names from here (to be switched to bubsub.core.io.tables)
+from bubsub.core.io.tables import (  # noqa: F401
+    BUBBLE_COLUMN_INFO,
+    BUBBLE_COLUMNS_2D,
+    BUBBLE_COLUMNS_3D,
+    UNIT_SUFFIXES,
+    bubble_table,
+    csv_metadata_path,
+    unit_column,
+    write_csv,
+)
 
-#: How a unit is written at the end of a column name (``volume`` in mm^3 is ``volume_mm3``).
-UNIT_SUFFIXES = {"": "", "mm": "mm", "mm^2": "mm2", "mm^3": "mm3", "1/mm": "per_mm", "s": "s", "deg": "deg",
-                 "subscan": "subscan", "1": ""}
+__all__ = ["write_ply", "read_ply", "write_polygons_json", "read_polygons_json"]
 
-
-def unit_column(quantity, unit):
-    """A column name that carries its unit: ``unit_column("volume", "mm^3") == "volume_mm3"``.
-
-    Parameters
-    ----------
-    quantity : str
-        E.g. ``"centroid_x"``.
-    unit : str
-        One of :data:`UNIT_SUFFIXES` (``""`` or ``"1"`` for counts, ids and
-        other dimensionless columns, which keep their bare name).
-
-    Returns
-    -------
-    str
-    """
-    if unit not in UNIT_SUFFIXES:
-        raise ValueError(f"unknown unit {unit!r}; known: {sorted(UNIT_SUFFIXES)}")
-    suffix = UNIT_SUFFIXES[unit]
-    return f"{quantity}_{suffix}" if suffix else quantity
-
-
-#: ``column name: (unit, meaning)`` of every column :func:`bubble_table` writes.
-BUBBLE_COLUMN_INFO = {
-    "id": ("", "bubble id (the bubble_id of the PLY faces / the id of the JSON polygon)"),
-    **{unit_column(f"centroid_{a}", "mm"): ("mm", f"{a} coordinate of the centroid of the refined surface")
-       for a in "xyz"},
-    unit_column("area", "mm^2"): ("mm^2", "area enclosed by the refined 2D outline"),
-    unit_column("perimeter", "mm"): ("mm", "length of the refined 2D outline"),
-    unit_column("volume", "mm^3"): ("mm^3", "volume enclosed by the refined 3D surface"),
-    unit_column("surface_area", "mm^2"): ("mm^2", "area of the refined 3D surface"),
-    unit_column("equivalent_diameter", "mm"): (
-        "mm", "diameter of the disc (2D) or ball (3D) of the same area (volume)"),
-}
-
-#: Columns of :func:`bubble_table` for 2D bubbles.
-BUBBLE_COLUMNS_2D = ("id", "centroid_x_mm", "centroid_y_mm", "area_mm2", "perimeter_mm", "equivalent_diameter_mm")
-#: Columns of :func:`bubble_table` for 3D bubbles.
-BUBBLE_COLUMNS_3D = ("id", "centroid_x_mm", "centroid_y_mm", "centroid_z_mm", "volume_mm3", "surface_area_mm2",
-                     "equivalent_diameter_mm")
-
-
-# -- common --------------------------------------------------------------------------
-def _resolve(items, want, what):
-    """Items as a list of ``want`` (Mesh or Polygon); SubdivisionSurfaces are refined."""
-    if isinstance(items, (Mesh, Polygon)) or hasattr(items, "fine"):
-        items = [items]
-    try:
-        items = list(items)
-    except TypeError:
-        raise ValueError(f"{what} must be a sequence of {want.__name__}, got {type(items).__name__}") from None
-    out = []
-    for i, it in enumerate(items):
-        if not isinstance(it, (Mesh, Polygon)) and hasattr(it, "fine"):
-            it = it.fine()
-        if not isinstance(it, want):
-            raise ValueError(f"{what}[{i}] is a {type(it).__name__}, expected a {want.__name__}")
-        out.append(it)
-    return out
-
-
-def _ids(ids, n):
-    if ids is None:
-        return list(range(n))
-    try:
-        ids = list(ids)
-    except TypeError:
-        raise ValueError(f"ids must be a sequence of integers, got {type(ids).__name__}") from None
-    if len(ids) != n:
-        raise ValueError(f"ids has {len(ids)} entries but there are {n} bubbles")
-    out = []
-    for i in ids:
-        if isinstance(i, bool) or not isinstance(i, numbers.Integral):
-            raise ValueError(f"ids must be integers, got {i!r}")
-        out.append(int(i))
-    if len(set(out)) != len(out):
-        raise ValueError("ids must be unique")
-    return out
+#: The face records of :func:`write_ply`: three vertex indices (a PLY list of length 3), id, attenuation.
+FACE_DTYPE = np.dtype([("vertex_indices", "<i4", (3,)), ("bubble_id", "<i4"), ("attenuation", "<f8")])
+#: The same records as stored in a binary file: the list's length byte before its indices.
+_FACE_DTYPE_BINARY = np.dtype([("n", "u1"), ("vertex_indices", "<i4", (3,)), ("bubble_id", "<i4"),
+                               ("attenuation", "<f8")])
+_VERTEX_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+#: Names other tools give the face index list.
+_INDEX_NAMES = ("vertex_indices", "vertex_index")
 
 
 # -- PLY ---------------------------------------------------------------------------------
@@ -151,165 +71,81 @@ def write_ply(path, meshes, ids=None, *, binary=True):
     ids : sequence of int, optional
         Bubble ids (default ``0..n-1``); must fit in int32.
     binary : bool
-        Binary little-endian (default) or ASCII.
+        Binary little-endian (default) or ASCII (every double written with
+        18 significant digits, so both read back exactly).
 
     Returns
     -------
     pathlib.Path
     """
-    ms = _resolve(meshes, Mesh, "meshes")
-    bid = _ids(ids, len(ms))
+    ms = resolve_items(meshes, Mesh, "meshes")
+    bid = bubble_ids(ids, len(ms))
     if any(not -(2**31) <= i < 2**31 for i in bid):
         raise ValueError("ids must fit in a 32-bit signed integer")
-    n_v = sum(len(m.vertices) for m in ms)
-    n_f = sum(len(m.faces) for m in ms)
-    if n_v >= 2**31:
+    counts = [len(m.vertices) for m in ms]
+    if sum(counts) >= 2**31:
         raise ValueError("too many vertices for a PLY file with int indices")
-    verts = np.concatenate([m.vertices for m in ms]) if ms else np.zeros((0, 3))
-    offsets = np.cumsum([0] + [len(m.vertices) for m in ms])
-    faces = np.concatenate([np.asarray(m.faces) + o for m, o in zip(ms, offsets[:-1])]) if ms else np.zeros((0, 3), int)
-    face_id = np.repeat(np.array(bid, dtype=np.int64), [len(m.faces) for m in ms]) if ms else np.zeros(0, int)
-    face_mu = np.repeat(np.array([m.attenuation for m in ms]), [len(m.faces) for m in ms]) if ms else np.zeros(0)
-    header = (
-        "ply\n"
-        f"format {'binary_little_endian' if binary else 'ascii'} 1.0\n"
-        "comment bubsub bubble meshes; units mm, attenuation 1/mm\n"
-        f"element vertex {n_v}\n"
-        "property double x\nproperty double y\nproperty double z\n"
-        f"element face {n_f}\n"
-        "property list uchar int vertex_indices\n"
-        "property int bubble_id\n"
-        "property double attenuation\n"
-        "end_header\n"
-    )
+    vertex = np.zeros(sum(counts), _VERTEX_DTYPE)
+    if ms:
+        xyz = np.concatenate([m.vertices for m in ms])
+        vertex["x"], vertex["y"], vertex["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    n_faces = [len(m.faces) for m in ms]
+    face = np.zeros(sum(n_faces), FACE_DTYPE)
+    if ms:
+        offsets = np.cumsum([0] + counts[:-1])
+        face["vertex_indices"] = np.concatenate([np.asarray(m.faces) + o for m, o in zip(ms, offsets)])
+        face["bubble_id"] = np.repeat(np.array(bid, dtype=np.int64), n_faces)
+        face["attenuation"] = np.repeat(np.array([m.attenuation for m in ms], dtype=np.float64), n_faces)
+    ply = PlyData([PlyElement.describe(vertex, "vertex"),
+                   PlyElement.describe(face, "face", len_types={"vertex_indices": "u1"})],
+                  text=not binary, byte_order="<", comments=["bubsub bubble meshes; units mm, attenuation 1/mm"])
     with atomic_open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        if binary:
-            fh.write(np.ascontiguousarray(verts, dtype="<f8").tobytes())
-            rec = np.zeros(n_f, dtype=[("n", "u1"), ("v", "<i4", (3,)), ("id", "<i4"), ("mu", "<f8")])
-            rec["n"] = 3
-            rec["v"] = faces
-            rec["id"] = face_id
-            rec["mu"] = face_mu
-            fh.write(rec.tobytes())
+        if not binary:
+            ply.write(fh)
         else:
-            buf = io.StringIO()
-            for x, y, z in verts.tolist():
-                buf.write(f"{x!r} {y!r} {z!r}\n")
-            for (a, b, c), i, mu in zip(faces.tolist(), face_id.tolist(), face_mu.tolist()):
-                buf.write(f"3 {a} {b} {c} {i} {mu!r}\n")
-            fh.write(buf.getvalue().encode("ascii"))
+            fh.write((ply.header + "\n").encode("ascii"))
+            fh.write(vertex.tobytes())
+            records = np.zeros(len(face), _FACE_DTYPE_BINARY)
+            records["n"] = 3
+            for name in FACE_DTYPE.names:
+                records[name] = face[name]
+            fh.write(records.tobytes())
     return Path(path)
 
 
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-def _parse_header(raw, name):
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise ValueError(f"{name} is not a PLY file (no 'ply' magic or no 'end_header')")
-    nl = raw.find(b"\n", end)
-    if nl < 0:
-        raise ValueError(f"{name}: truncated PLY header")
-    lines = raw[:nl].decode("ascii", errors="replace").replace("\r", "").split("\n")
-    fmt, elements = None, []
-    for line in lines[1:]:
-        tok = line.split()
-        if not tok or tok[0] in ("comment", "obj_info", "end_header"):
-            continue
-        if tok[0] == "format":
-            if len(tok) < 2 or tok[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                raise ValueError(f"{name}: unsupported PLY format line {line!r}")
-            fmt = tok[1]
-        elif tok[0] == "element":
-            if len(tok) != 3 or not tok[2].isdigit():
-                raise ValueError(f"{name}: bad PLY element line {line!r}")
-            elements.append({"name": tok[1], "count": int(tok[2]), "props": []})
-        elif tok[0] == "property":
-            if not elements:
-                raise ValueError(f"{name}: PLY property before any element")
-            if len(tok) == 5 and tok[1] == "list":
-                if tok[2] not in _PLY_TYPES or tok[3] not in _PLY_TYPES:
-                    raise ValueError(f"{name}: unknown PLY type in {line!r}")
-                elements[-1]["props"].append((tok[4], "list", tok[2], tok[3]))
-            elif len(tok) == 3 and tok[1] in _PLY_TYPES:
-                elements[-1]["props"].append((tok[2], "scalar", tok[1], None))
-            else:
-                raise ValueError(f"{name}: bad PLY property line {line!r}")
-        else:
-            raise ValueError(f"{name}: unexpected PLY header line {line!r}")
-    if fmt is None:
-        raise ValueError(f"{name}: PLY header has no format line")
-    return fmt, elements, nl + 1
-
-
-def _read_elements(raw, fmt, elements, start, name):
-    """Parse vertex and face elements: {element name: {property: array}}."""
-    out = {}
-    if fmt == "ascii":
-        text = raw[start:].decode("ascii", errors="replace").split("\n")
-        lines = [ln for ln in (t.strip() for t in text) if ln]
-        pos = 0
-        for el in elements:
-            rows = lines[pos: pos + el["count"]]
-            if len(rows) < el["count"]:
-                raise ValueError(f"{name}: PLY element '{el['name']}' has {len(rows)} of {el['count']} lines")
-            pos += el["count"]
-            out[el["name"]] = _ascii_element(rows, el, name)
-        return out
-    order = "<" if fmt == "binary_little_endian" else ">"
-    offset = start
-    for el in elements:
-        fields = []
-        for pname, kind, t1, t2 in el["props"]:
-            if kind == "scalar":
-                fields.append((pname, order + _PLY_TYPES[t1]))
-            else:  # lists are read as triangles, then checked
-                fields.append((pname + "__n", order + _PLY_TYPES[t1]))
-                fields.append((pname, order + _PLY_TYPES[t2], (3,)))
-        dt = np.dtype(fields)
-        nbytes = dt.itemsize * el["count"]
-        if offset + nbytes > len(raw):
-            raise ValueError(f"{name}: PLY file is truncated in element '{el['name']}'")
-        rec = np.frombuffer(raw, dtype=dt, count=el["count"], offset=offset)
-        for pname, kind, _, _ in el["props"]:
-            if kind == "list" and el["count"] and np.any(rec[pname + "__n"] != 3):
-                if el["name"] == "face":
-                    raise ValueError(f"{name}: only triangle faces are supported")
-                return out  # an unknown element with lists: stop, vertex/face are read already
-        out[el["name"]] = {p[0]: np.array(rec[p[0]]) for p in el["props"]}
-        offset += nbytes
-    return out
-
-
-def _ascii_element(rows, el, name):
-    props = el["props"]
-    lists = [p for p in props if p[1] == "list"]
+def _read_ply_arrays(p):
+    """``(vertices (n, 3) float64, faces (m, 3) int64, face properties {name: (m,) array})`` of a triangle PLY."""
     try:
-        tok = np.array([r.split() for r in rows], dtype=float) if rows else np.zeros((0, 0))
-    except ValueError:
-        if lists and el["name"] == "face":
-            raise ValueError(f"{name}: only triangle faces are supported") from None
-        raise ValueError(f"{name}: malformed ASCII PLY element '{el['name']}'") from None
-    res, col = {}, 0
-    for pname, kind, _, _ in props:
-        if kind == "scalar":
-            res[pname] = tok[:, col] if len(rows) else np.zeros(0)
-            col += 1
-        else:
-            if len(rows) and np.any(tok[:, col] != 3):
-                raise ValueError(f"{name}: only triangle faces are supported")
-            res[pname] = tok[:, col + 1: col + 4].astype(np.int64) if len(rows) else np.zeros((0, 3), int)
-            col += 4
-    if len(rows) and tok.shape[1] != col:
-        raise ValueError(f"{name}: ASCII PLY element '{el['name']}' has {tok.shape[1]} values per line, expected {col}")
-    return res
+        with open(p, "rb") as fh:
+            ply = PlyData.read(fh, known_list_len={"face": {name: 3 for name in _INDEX_NAMES}})
+            names = [e.name for e in ply.elements]
+            for need in ("vertex", "face"):
+                if need not in names:
+                    raise ValueError(f"{p.name}: PLY file has no '{need}' element")
+            vx, fc = ply["vertex"].data, ply["face"].data
+            if not all(k in vx.dtype.names for k in "xyz"):
+                raise ValueError(f"{p.name}: PLY vertices need properties x, y and z")
+            verts = np.stack([vx["x"], vx["y"], vx["z"]], axis=1).astype(np.float64)
+            key = next((k for k in _INDEX_NAMES if k in fc.dtype.names), None)
+            if key is None:
+                raise ValueError(f"{p.name}: PLY faces need a list property 'vertex_indices'")
+            lists = fc[key]
+            if lists.dtype == object:  # ASCII (or an unknown list layout): one array per face
+                if any(len(f) != 3 for f in lists):
+                    raise ValueError(f"{p.name}: only triangle faces are supported")
+                faces = np.array([np.asarray(f) for f in lists], dtype=np.int64).reshape(-1, 3)
+            else:
+                faces = np.array(lists, dtype=np.int64).reshape(-1, 3)
+            props = {k: np.array(fc[k]) for k in fc.dtype.names if k != key}
+    except PlyHeaderParseError as exc:
+        raise ValueError(f"{p.name} is not a PLY file ({exc})") from None
+    except PlyElementParseError as exc:
+        if "list length" in str(exc):
+            raise ValueError(f"{p.name}: only triangle faces are supported") from None
+        if "end-of-file" in str(exc):
+            raise ValueError(f"{p.name}: PLY file is truncated ({exc})") from None
+        raise ValueError(f"{p.name}: malformed PLY data ({exc})") from None
+    return verts, faces, props
 
 
 def read_ply(path, attenuation=None, *, with_ids=False):
@@ -336,29 +172,13 @@ def read_ply(path, attenuation=None, *, with_ids=False):
     Raises
     ------
     ValueError
-        If the file is not a (triangle) PLY, lacks vertex/face elements,
-        indices are out of range, a bubble is not a closed outward mesh, a
-        bubble's faces disagree on attenuation, or no attenuation is known.
+        If the file is not a (triangle) PLY, is truncated, lacks vertex/face
+        elements, indices are out of range, a bubble is not a closed outward
+        mesh, a bubble's faces disagree on attenuation, or no attenuation is
+        known.
     """
     p = Path(path)
-    raw = p.read_bytes()
-    fmt, elements, start = _parse_header(raw, p.name)
-    names = [e["name"] for e in elements]
-    for need in ("vertex", "face"):
-        if need not in names:
-            raise ValueError(f"{p.name}: PLY file has no '{need}' element")
-    data = _read_elements(raw, fmt, elements, start, p.name)
-    if "vertex" not in data or "face" not in data:
-        raise ValueError(f"{p.name}: could not read the vertex and face elements")
-    vx = data["vertex"]
-    if not all(k in vx for k in "xyz"):
-        raise ValueError(f"{p.name}: PLY vertices need properties x, y and z")
-    verts = np.stack([vx["x"], vx["y"], vx["z"]], axis=1).astype(np.float64)
-    fc = data["face"]
-    key = "vertex_indices" if "vertex_indices" in fc else ("vertex_index" if "vertex_index" in fc else None)
-    if key is None:
-        raise ValueError(f"{p.name}: PLY faces need a list property 'vertex_indices'")
-    faces = np.asarray(fc[key], dtype=np.int64).reshape(-1, 3)
+    verts, faces, fc = _read_ply_arrays(p)
     if len(faces) and (faces.min() < 0 or faces.max() >= len(verts)):
         raise ValueError(f"{p.name}: face indices out of range [0, {len(verts)})")
     if "bubble_id" in fc:
@@ -421,8 +241,8 @@ def write_polygons_json(path, polygons, ids=None):
     -------
     pathlib.Path
     """
-    ps = _resolve(polygons, Polygon, "polygons")
-    bid = _ids(ids, len(ps))
+    ps = resolve_items(polygons, Polygon, "polygons")
+    bid = bubble_ids(ids, len(ps))
     doc = {
         "units": "mm",
         "bubbles": [
@@ -505,119 +325,3 @@ def read_polygons_json(path, attenuation=None, *, with_ids=False):
             raise ValueError(f"{where}: {exc}") from None
         ids.append(i)
     return (polys, ids) if with_ids else polys
-
-
-# -- tables --------------------------------------------------------------------------------
-def bubble_table(items, ids=None):
-    """Per-bubble measurements.
-
-    Parameters
-    ----------
-    items : sequence of Mesh or of Polygon (or SubdivisionSurface, measured refined)
-    ids : sequence of int, optional
-        Default ``0..n-1``.
-
-    Returns
-    -------
-    list of dict
-        2D rows have :data:`BUBBLE_COLUMNS_2D` (``equivalent_diameter_mm =
-        2 sqrt(area / pi)``); 3D rows have :data:`BUBBLE_COLUMNS_3D`
-        (``equivalent_diameter_mm = (6 volume / pi)^(1/3)``); units and
-        meanings in :data:`BUBBLE_COLUMN_INFO`.
-    """
-    if isinstance(items, (Mesh, Polygon)) or hasattr(items, "fine"):
-        items = [items]
-    items = list(items)
-    resolved = [it.fine() if not isinstance(it, (Mesh, Polygon)) and hasattr(it, "fine") else it for it in items]
-    if not resolved:
-        return []
-    if all(isinstance(it, Polygon) for it in resolved):
-        want = Polygon
-    elif all(isinstance(it, Mesh) for it in resolved):
-        want = Mesh
-    else:
-        kinds = sorted({type(it).__name__ for it in resolved})
-        raise ValueError(f"items must be all Mesh or all Polygon, got {kinds}")
-    resolved = _resolve(resolved, want, "items")
-    bid = _ids(ids, len(resolved))
-    rows = []
-    for i, it in zip(bid, resolved):
-        c = np.asarray(it.centroid, dtype=float)
-        if want is Polygon:
-            a = float(it.area)
-            values = (i, c[0], c[1], a, it.perimeter, 2.0 * np.sqrt(max(a, 0.0) / np.pi))
-            rows.append(dict(zip(BUBBLE_COLUMNS_2D, (i, *map(float, values[1:])))))
-        else:
-            v = float(it.volume)
-            values = (c[0], c[1], c[2], v, it.area, np.cbrt(6.0 * max(v, 0.0) / np.pi))
-            rows.append(dict(zip(BUBBLE_COLUMNS_3D, (i, *map(float, values)))))
-    return rows
-
-
-def csv_metadata_path(path):
-    """The sidecar of a CSV file: ``bubbles.csv`` -> ``bubbles.csv-metadata.json`` (the CSVW convention)."""
-    p = Path(path)
-    return p.with_name(p.name + "-metadata.json")
-
-
-def _csv_metadata(path, columns, info, title):
-    cols = []
-    for c in columns:
-        if c not in info:
-            raise ValueError(f"column {c!r} has no (unit, meaning) in the column descriptions")
-        unit, meaning = info[c]
-        entry = {"name": c, "titles": c, "dc:description": meaning}
-        if unit:
-            entry["unit"] = unit
-        cols.append(entry)
-    doc = {"@context": "http://www.w3.org/ns/csvw", "url": Path(path).name, "dc:title": title,
-           "dialect": {"header": True}, "tableSchema": {"columns": cols}}
-    return json.dumps(doc, indent=2) + "\n"
-
-
-def write_csv(path, rows, columns=None, *, describe=None, title=None):
-    """Write rows (dicts) as CSV with a header line, atomically, and optionally its column sidecar.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-    rows : sequence of dict
-        All with the same keys.
-    columns : sequence of str, optional
-        Column order; defaults to the keys of the first row. With no rows
-        and no columns, an empty file is written.
-    describe : dict, optional
-        ``{column: (unit, meaning)}`` for every column (e.g.
-        :data:`BUBBLE_COLUMN_INFO`); then the sidecar
-        :func:`csv_metadata_path` is written too (W3C CSV on the Web
-        metadata: name, unit, description of each column).
-    title : str, optional
-        Title of the table in the sidecar.
-
-    Returns
-    -------
-    pathlib.Path
-    """
-    rows = list(rows)
-    if columns is None:
-        columns = list(rows[0].keys()) if rows else []
-    columns = [str(c) for c in columns]
-    for k, r in enumerate(rows):
-        if not isinstance(r, dict):
-            raise ValueError(f"rows[{k}] is not a dict")
-        if set(r) != set(columns):
-            missing = sorted(set(columns) - set(r))
-            extra = sorted(set(r) - set(columns))
-            raise ValueError(f"rows[{k}] keys differ from the columns (missing {missing}, extra {extra})")
-    # described before anything is written, so an undescribed column writes neither file
-    meta = None if describe is None else _csv_metadata(path, columns, describe, title or Path(path).stem)
-    with atomic_open(path, "w", newline="") as fh:
-        if columns:
-            w = csv.DictWriter(fh, fieldnames=columns, lineterminator="\n")
-            w.writeheader()
-            for r in rows:
-                w.writerow({k: (repr(float(v)) if isinstance(v, (float, np.floating)) else v) for k, v in r.items()})
-    if meta is not None:
-        with atomic_open(csv_metadata_path(path), "w") as fh:
-            fh.write(meta)
-    return Path(path)

@@ -35,6 +35,7 @@ import numbers
 import numpy as np
 
 from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.projection.items import resolve_items
 
 __all__ = ["check_grid", "pixel_centres", "rasterize", "label_image", "bubble_mask", "coverage"]
 
@@ -126,24 +127,9 @@ def _y_centres(n, lo, hi, start=0, stop=None):
 # -- items ---------------------------------------------------------------------
 def _as_items(items, ndim):
     """A list of Polygon (ndim 2) or Mesh (ndim 3); SubdivisionSurfaces are refined."""
-    if isinstance(items, (Mesh, Polygon)) or hasattr(items, "fine"):
-        items = [items]
-    try:
-        items = list(items)
-    except TypeError:
-        raise ValueError(f"items must be a Mesh/Polygon or a sequence of them, got {type(items).__name__}") from None
-    out = []
     want = Polygon if ndim == 2 else Mesh
-    for i, it in enumerate(items):
-        if not isinstance(it, (Mesh, Polygon)) and hasattr(it, "fine"):
-            it = it.fine()
-        if not isinstance(it, want):
-            raise ValueError(
-                f"item {i} is a {type(it).__name__}; a {ndim}D grid takes {want.__name__} items "
-                f"(or SubdivisionSurfaces of them)"
-            )
-        out.append(it)
-    return out
+    return resolve_items(items, want, "items", hint=f" (a {ndim}D grid takes {want.__name__} items, or "
+                                                    f"SubdivisionSurfaces of them)")
 
 
 def _supersample(supersample):

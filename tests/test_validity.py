@@ -169,3 +169,15 @@ def test_merged_validity_keeps_both_checks_and_the_second_ones_remainder():
     assert [a["action"] for a in out["actions"]] == ["separated", "unfolded"]
     assert "stage" not in out["actions"][0] and out["actions"][1]["stage"] == "after refinement"
     assert [v["kind"] for v in out["violations_found"]] == ["overlap", "self_intersection"]
+
+
+def test_check_of_a_few_bubbles_finds_what_the_whole_check_finds_of_them():
+    from bubsub.core import sphere_surface
+
+    items = [sphere_surface(c, 0.5, -0.1) for c in ((0, 0, 0), (0.8, 0, 0), (3, 0, 0), (4.1, 0, 0), (6, 0, 0))]
+    whole = check_bubbles(items)
+    assert sorted(v.bubbles for v in whole) == [(0, 1)]  # 3 and 4 come within 0.1 mm but do not meet
+    items[3] = sphere_surface((3.8, 0, 0), 0.5, -0.1)
+    assert sorted(v.bubbles for v in check_bubbles(items, only=[3])) == [(2, 3)]
+    assert sorted(v.bubbles for v in check_bubbles(items, only=[4])) == []
+    assert sorted(v.bubbles for v in check_bubbles(items)) == [(0, 1), (2, 3)]

@@ -282,8 +282,10 @@ def repair_bubbles(surfaces, refit=None, *, gap=0.0, rounds=2):
         last = r == rounds
         before = list(surfaces)
         surfaces, drop = _repair_once(surfaces, violations, gap, actions, r)
-        violations = check_bubbles(surfaces)
-        bad = {b for v in violations for b in v.bubbles} if last else set()
+        # every violating bubble was repaired (changed) or dropped: only the changed can still be invalid
+        violations = check_bubbles(surfaces, only=[k for k, s in enumerate(surfaces) if s is not before[k]]) \
+            if last else []
+        bad = {b for v in violations for b in v.bubbles}
         if last and bad:
             # still invalid after repairing without a refit: drop the offenders (the smaller of a pair)
             for v in violations:
@@ -299,8 +301,11 @@ def repair_bubbles(surfaces, refit=None, *, gap=0.0, rounds=2):
             changed = [keep.index(k) for k in changed]
             surfaces = [surfaces[k] for k in keep]
         if not last and refit is not None and surfaces:
+            kept = list(surfaces)
             surfaces = list(refit(surfaces, changed, gone))
-        violations = check_bubbles(surfaces)
+            changed = sorted(set(changed) | {k for k, s in enumerate(surfaces) if s is not kept[k]})
+        # only what changed can have become invalid (a dropped bubble leaves its neighbours as valid as they were)
+        violations = check_bubbles(surfaces, only=changed)
     return surfaces, {
         "violations_found": [v.as_dict() for v in found],
         "actions": actions,

@@ -239,11 +239,7 @@ def crossings_between(a, b):
         va, vb = a.vertices, b.vertices
         return int(np.count_nonzero(segment_crossings(va, np.roll(va, -1, axis=0), vb, np.roll(vb, -1, axis=0))))
     if isinstance(a, Mesh) and isinstance(b, Mesh):
-        n = 0
-        for x, y in ((a, b), (b, a)):
-            e = _edges(np.asarray(x.faces))
-            n += len(_edge_hits(_trimesh(y.vertices, y.faces), x.vertices[e[:, 0]], x.vertices[e[:, 1]]))
-        return n
+        return _mesh_crossings(_RayMesh(a), _RayMesh(b))
     raise TypeError(f"expected two Polygons or two Meshes, got {type(a).__name__} and {type(b).__name__}")
 
 
@@ -273,6 +269,21 @@ def overlap_measure(a, b, samples=None):
     return float(np.count_nonzero(both) * np.prod((hi - lo) / n))
 
 
+class _RayMesh:
+    """A mesh with its edges and its ray-casting scene, built once for all the pairs it is tested in."""
+
+    def __init__(self, mesh):
+        self.vertices = np.asarray(mesh.vertices, dtype=float)
+        self.edges = _edges(np.asarray(mesh.faces))
+        self.mesh = _trimesh(self.vertices, mesh.faces)
+
+
+def _mesh_crossings(a, b):
+    """Edges of either :class:`_RayMesh` crossing a triangle of the other."""
+    return sum(len(_edge_hits(y.mesh, x.vertices[x.edges[:, 0]], x.vertices[x.edges[:, 1]]))
+               for x, y in ((a, b), (b, a)))
+
+
 def _candidate_pairs(fines):
     """Pairs of items whose bounding spheres meet."""
     if len(fines) < 2:
@@ -284,7 +295,7 @@ def _candidate_pairs(fines):
     return sorted((i, j) for i, j in pairs if np.linalg.norm(centres[i] - centres[j]) <= radii[i] + radii[j])
 
 
-def check_bubbles(items, *, surfaces=("control", "fine"), overlaps=True):
+def check_bubbles(items, *, surfaces=("control", "fine"), overlaps=True, only=None):
     """All validity violations of a set of bubbles.
 
     Parameters
@@ -297,6 +308,9 @@ def check_bubbles(items, *, surfaces=("control", "fine"), overlaps=True):
     overlaps : bool
         Also check pairs of fine surfaces for interpenetration (boundary
         crossings, or one inside the other).
+    only : iterable of int, optional
+        Check only these bubbles, and the pairs they are in (the others are
+        known to be valid: a repair that changed a few bubbles checks those).
 
     Returns
     -------
@@ -304,10 +318,14 @@ def check_bubbles(items, *, surfaces=("control", "fine"), overlaps=True):
         Empty when every bubble is simple and no two share gas.
     """
     items = list(items)
+    only = None if only is None else set(int(k) for k in only)
     out = []
     fines = []
     for i, it in enumerate(items):
         parts = _surfaces_of(it)
+        if only is not None and i not in only:
+            fines.append(parts[-1][1])
+            continue
         for name, s in parts:
             if name in surfaces:
                 k = self_crossings(s)
@@ -319,8 +337,20 @@ def check_bubbles(items, *, surfaces=("control", "fine"), overlaps=True):
             out.append(Violation("inverted", (i,), "fine", 0, float(size)))
         fines.append(fine)
     if overlaps:
+        rays = {}
+
+        def ray_mesh(i):
+            if i not in rays:
+                rays[i] = _RayMesh(fines[i])
+            return rays[i]
+
         for i, j in _candidate_pairs(fines):
-            k = crossings_between(fines[i], fines[j])
+            if only is not None and i not in only and j not in only:
+                continue
+            if isinstance(fines[i], Mesh):
+                k = _mesh_crossings(ray_mesh(i), ray_mesh(j))
+            else:
+                k = crossings_between(fines[i], fines[j])
             area = overlap_measure(fines[i], fines[j])
             if k or area > 0:
                 out.append(Violation("overlap", (i, j), "fine", k, area))

@@ -1,6 +1,6 @@
 """HDF5 scan files in the Data Exchange layout.
 
-One module of about 620 lines on purpose: the :class:`Scan` object's
+One module on purpose: the :class:`Scan` object's
 validation, the writer and the reader (static, dynamic and raw-count files)
 must agree on every dataset, shape and attribute listed below; keeping them
 together keeps that list in one place.
@@ -30,7 +30,9 @@ fields (``(n_flats, *detector)`` or ``detector`` shaped) and the optional
 ``/exchange/data_dark`` as dark fields (default 0); both are averaged over
 their first axis, and the line integrals are
 ``-log((data - dark) / (white - dark))``, with the transmission clamped to
-at least ``1e-6`` (so a zero count gives about 13.8, not inf).
+at least ``1e-6`` (so a zero count gives about 13.8, not inf): the ``mean``
+flat-field correction of ``bubsub prepare`` (:mod:`bubsub.core.prep.flats`),
+which is its one home.
 ``/exchange/background`` is always line integrals.
 
 Writes are atomic (temporary file in the same directory, then rename), so a
@@ -49,7 +51,7 @@ from bubsub.core.io.atomic import atomic_path
 from bubsub.core.projection.geometry import KINDS, ScanGeometry
 
 __all__ = ["Scan", "read_scan", "read_geometry", "write_scan", "create_scan_datasets", "set_scan_attrs", "theta_from_geometry",
-           "MIN_TRANSMISSION"]
+           "check_finite", "MIN_TRANSMISSION"]
 
 #: Smallest transmission accepted when converting raw counts (larger line integrals are clamped).
 MIN_TRANSMISSION = 1e-6
@@ -226,7 +228,7 @@ def _projection_array(a, name, geometry):
         raise ValueError(f"{name} has shape {arr.shape} but the geometry needs {_shape_words(geometry)}"
                          f"{_dynamic_hint(arr.shape, geometry)}")
     arr = np.ascontiguousarray(arr, dtype=np.float32)
-    _check_finite(arr, name)
+    check_finite(arr, name)
     return arr
 
 
@@ -236,7 +238,8 @@ def _shape_words(geometry):
     return f"(n_angles, det_count) = {geometry.shape}"
 
 
-def _check_finite(arr, name):
+def check_finite(arr, name):
+    """Raise a ValueError naming ``name`` and counting the NaN and inf values if ``arr`` holds any."""
     bad = ~np.isfinite(arr)
     if bad.any():
         n_nan = int(np.isnan(arr).sum())
@@ -252,7 +255,7 @@ def _theta_array(t, name, n_angles):
         raise ValueError(f"{name} must be a numeric array") from None
     if arr.ndim != 1 or arr.shape[0] != n_angles:
         raise ValueError(f"{name} has shape {np.shape(t)} but the geometry has {n_angles} projections")
-    _check_finite(arr, name)
+    check_finite(arr, name)
     return arr
 
 
@@ -626,13 +629,8 @@ def _read_dataset(f, name, geometry, p, rows=None):
 
 
 def _check_finite_named(arr, name, p):
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        n_nan = int(np.isnan(arr).sum())
-        raise ValueError(
-            f"{p.name}: '{name}' contains {int(bad.sum())} non-finite values "
-            f"({n_nan} NaN, {int(bad.sum()) - n_nan} inf)"
-        )
+    """:func:`check_finite` of dataset ``name`` of file ``p``."""
+    check_finite(arr, f"{p.name}: '{name}'")
 
 
 def _read_field(f, name, det_shape, p, rows=None):
@@ -679,6 +677,7 @@ def _counts_to_line_integrals(f, counts, geometry, p, rows=None):
             f"{p.name}: '/exchange/data_white' must exceed '/exchange/data_dark' at every detector pixel "
             f"({int((span <= 0).sum())} pixels do not)"
         )
-    trans = (counts - dark) / span
-    np.maximum(trans, MIN_TRANSMISSION, out=trans)
-    return (-np.log(trans)).astype(np.float32)
+    from bubsub.core.prep.flats import mean_flat_model, minus_log  # the one flat-field correction (bubsub prepare's)
+
+    trans, _ = mean_flat_model(white, dark).transmission(counts, None)
+    return minus_log(trans, MIN_TRANSMISSION).astype(np.float32, copy=False)

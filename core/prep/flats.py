@@ -27,7 +27,7 @@ import dataclasses
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["FlatModel", "flat_model", "find_bad_pixels", "repair_pixels"]
+__all__ = ["FlatModel", "flat_model", "mean_flat_model", "find_bad_pixels", "repair_pixels", "minus_log"]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -108,6 +108,32 @@ class FlatModel:
             chosen.append(g)
             out[i] = img / (span[g] * scale[g])
         return out, chosen
+
+
+def mean_flat_model(flat, dark):
+    """The ``mean`` model of one averaged flat and dark (any detector shape), with no bad pixels.
+
+    What a scan file holding raw counts (``/exchange/data_white``) is corrected with when read.
+    """
+    flat = np.asarray(flat)
+    return FlatModel("mean", np.asarray(dark), flat[None], np.zeros(1), np.zeros(flat.shape, bool))
+
+
+def minus_log(transmission, min_transmission):
+    """Line integrals ``-log(max(t, min_transmission))``; ``transmission`` is clamped in place.
+
+    Parameters
+    ----------
+    transmission : float array
+    min_transmission : float
+        Lowest transmission kept (in (0, 1)): opaque or noisy pixels would give ``inf`` or huge values.
+
+    Returns
+    -------
+    float array of the same shape and dtype
+    """
+    np.maximum(transmission, min_transmission, out=transmission)
+    return -np.log(transmission)
 
 
 def _stream_mean(source, which, start, stop, rows, cols, chunk=8):

@@ -36,7 +36,7 @@ from bubsub.core.io.scanfile import create_scan_datasets, set_scan_attrs
 from bubsub.core.prep.background import (fbp_row, envelope_background, liquid_and_gas, noise_level, radial_background,
                                          reproject_background)
 from bubsub.core.prep.centre import center_pair, center_vo, closest_pair
-from bubsub.core.prep.flats import flat_model, repair_pixels
+from bubsub.core.prep.flats import flat_model, minus_log, repair_pixels
 from bubsub.core.prep.options import check_against_raw, prepare_options
 from bubsub.core.prep.phase import paganin_filter
 from bubsub.core.prep.readers import open_raw
@@ -264,8 +264,7 @@ def _line_integrals(counts, idx, fm, o, pixel, phase):
     if phase:
         t = paganin_filter(t, pixel_size=pixel, energy=phase["energy_kev"], distance=phase["distance_mm"],
                            delta_beta=phase["delta_beta"])
-    np.maximum(t, o.min_transmission, out=t)
-    return -np.log(t)
+    return minus_log(t, o.min_transmission)
 
 
 def _bin(p, k):

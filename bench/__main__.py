@@ -12,7 +12,9 @@ BENCHMARKS = {
     "fov": ("fov", "bubbles cut by the field of view: DDI inside it with and without modelling its boundary"),
     "cluster": ("cluster", "4D and experiment runs in-process versus on a Dask LocalCluster"),
     "attacks": ("attacks", "bounded attacks on a projector server: status codes, memory rise, health latency"),
+    "admission": ("admission", "the server's compute memory estimate against its measured peak, per job shape"),
     "scale": ("scale", "bubsub reconstruct on foam columns of ~150/600/2400 bubbles: phases, peak RSS, DDI, growth"),
+    "analysis": ("analysis", "bubsub analyse against FoamQuant's voxel route on a simulated column, and its cost"),
     "bubbles": ("bubbles", "BubSub on one experiment case, bubble by bubble: missed, merged, spurious, boundary error"),
 }
 

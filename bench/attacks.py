@@ -571,16 +571,22 @@ def format_table(rows):
     return "\n".join(lines)
 
 
+def selected(parser, only, known):
+    """The names of a comma-separated ``--only`` (all of ``known`` when None); a parser error for unknown ones."""
+    names = only.split(",") if only else list(known)
+    unknown = sorted(set(names) - set(known))
+    if unknown:
+        parser.error(f"unknown names {unknown}; choose from {', '.join(known)}")
+    return names
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m bubsub.bench attacks", description=__doc__.split("\n\n")[0])
     parser.add_argument("--before", help="directory with the old 'bubsub' package to compare against")
     parser.add_argument("--only", help="comma-separated attacks (default: all): " + ", ".join(ATTACKS))
     parser.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args(argv)
-    names = args.only.split(",") if args.only else list(ATTACKS)
-    unknown = sorted(set(names) - set(ATTACKS))
-    if unknown:
-        parser.error(f"unknown attacks {unknown}")
+    names = selected(parser, args.only, ATTACKS)
     rows = []
     with tempfile.TemporaryDirectory() as scan_dir:
         os.symlink("loop", Path(scan_dir, "loop"))  # a symlink loop for the malformed-path attack

@@ -2,6 +2,7 @@
 
 Issue 13: a job of a few kB with a 1 x 14000 x 14000 detector raised the server's
 peak memory by 2.2 GB on one forward call; 20,000 2D surfaces at level 6 by 3.1 GB.
+Issue 30: the estimate was about 4.6 times the measured peak and refused jobs that would fit.
 """
 
 import json
@@ -10,7 +11,7 @@ import httpx
 import numpy as np
 import pytest
 
-from bubsub.bench.attacks import ServerProcess, npy, sphere_job
+from bubsub.bench.attacks import ServerProcess, sphere_job
 from bubsub.core import ScanGeometry
 from bubsub.service.budget import OVERHEAD_BYTES, ComputeBudget
 from bubsub.service.errors import APIError
@@ -57,28 +58,6 @@ def test_server_wide_budget_507_when_never_fits_503_while_others_run():
     assert budget.reserved == 400
 
 
-def test_peak_memory_of_a_request_stays_within_the_job_cap():
-    """The server's real peak RSS (a separate process) while it computes and while it refuses."""
-    cap = 160 * MiB
-    with ServerProcess(BUBSUB_JOB_MAX_BYTES=cap, BUBSUB_WORKERS=1) as srv, httpx.Client(timeout=120) as h:
-        spec, x = sphere_job(1400, 1400)  # fits: about 2 M pixels, the sphere covers most of them
-        spec["geometry"]["vectors"] = [[0, 1, 0, 0, 0, 0, 1.4 / 1400, 0, 0, 0, 0, 1.4 / 1400]]
-        job = h.post(f"{srv.url}/v1/jobs", json=spec)
-        assert job.status_code == 201, job.text
-        base = srv.reset_peak()
-        r = h.post(f"{srv.url}/v1/jobs/{job.json()['id']}/forward", content=npy(x),
-                   headers={"content-type": "application/x-npy"})
-        assert r.status_code == 200, r.text
-        used = srv.peak() - base
-        assert 10 * MiB < used <= cap + OVERHEAD_BYTES, used
-
-        big, _ = sphere_job(4000, 4000)  # 16 M pixels: refused, and allocates nothing
-        base = srv.reset_peak()
-        r = h.post(f"{srv.url}/v1/jobs", json=big)
-        assert r.status_code == 413 and r.json()["code"] == "compute_too_large"
-        assert srv.peak() - base < 20 * MiB
-
-
 def test_job_json_is_bounded_and_parsed_lists_are_limited():
     with ServerThread(max_json_bytes=64 << 10) as s:
         spec, _ = sphere_job(8, 8)
@@ -91,3 +70,29 @@ def test_job_json_is_bounded_and_parsed_lists_are_limited():
         spec["geometry"]["vectors"][0] = spec["geometry"]["vectors"][0] * 100  # one row of 1200 numbers
         r = httpx.post(f"{s.url}/v1/jobs", json=spec, timeout=60)
         assert r.status_code == 422 and "at most 12" in r.json()["detail"], r.text
+
+
+@pytest.mark.parametrize("backend", ["raster", "native"])
+def test_estimate_within_one_and_a_half_times_the_measured_peak(backend):
+    """The server's real peak RSS for job shapes of these tests (forward, 3D objective keeping crossings,
+    2D objective with many fine vertices) against the estimate the server admits them with."""
+    from bubsub.bench.admission import ENV, measure_on
+    from bubsub.core.projection.backends import available_backends
+
+    if backend not in available_backends():
+        pytest.skip(f"{backend} backend not available here")
+    cap = 160 * MiB
+    env = {**ENV, "BUBSUB_BACKEND": backend, "BUBSUB_JOB_COMPUTE_MAX_BYTES": str(cap)}
+    shapes = ["detector_1400", "heavy_limits", "many_2d_objective"]
+    with ServerProcess(**env) as srv, httpx.Client(timeout=120) as h:
+        for name in shapes:
+            need, peak = measure_on(srv, h, name, env)
+            assert need.backend == backend and need.total <= cap
+            assert peak / 1.5 <= need.total <= 1.5 * peak, (name, need.total, peak, need.describe())
+            assert 1 * MiB < peak <= need.total + OVERHEAD_BYTES
+
+        big, _ = sphere_job(4000, 4000)  # 16 M pixels: refused at creation, and allocates nothing
+        base = srv.reset_peak()
+        r = h.post(f"{srv.url}/v1/jobs", json=big)
+        assert r.status_code == 413 and r.json()["code"] == "compute_too_large"
+        assert srv.peak() - base < 20 * MiB

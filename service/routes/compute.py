@@ -50,7 +50,7 @@ def _decode(job, op, settings, body, ctype, params, allowed, required):
     """Arrays of the request with the vertices checked, and the memory estimate (413 over the job's cap)."""
     arrays = decode_compute_body(body, ctype, params, settings.max_body_bytes, allowed, required)
     arrays["vertices"] = job.check_vertices(arrays["vertices"])
-    need = estimate(job, op, settings.crossings_per_ray, arrays["vertices"])
+    need = estimate(job, op, settings.crossings_per_ray, arrays["vertices"], arrays, len(body))
     check_job(need, settings.compute_cap)
     return arrays, need
 

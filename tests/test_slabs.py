@@ -181,6 +181,9 @@ def test_a_bubble_across_the_seam_comes_out_once_as_in_the_whole_scan(seam_scan,
     b = bubble_mask([s.fine() for s in whole], shape, extent)
     assert dice_dissimilarity(a, b) < 0.02
     assert sorted(p.name for p in (tmp_path / "slabs").iterdir()) == ["slab_000.npz", "slab_001.npz"]
+    # the overlay's preview: the slabs' core slices stacked over the detector's height (40 rows of 0.05 mm)
+    assert rec.preview.ndim == 3 and np.isclose(rec.preview_extent[4], -1.0, atol=0.06) \
+        and np.isclose(rec.preview_extent[5], 1.0, atol=0.06)
 
 
 def test_resume_reuses_finished_slabs_and_computes_the_rest(seam_scan, tmp_path, monkeypatch):

@@ -51,7 +51,8 @@ from bubsub.core.projection.mesh import Mesh
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
-           "auto_slabs", "slab_count", "estimate_halo", "run_slab", "stitch", "reconstruct_slabs", "SLAB_PIXELS"]
+           "auto_slabs", "slab_count", "estimate_halo", "run_slab", "stitch", "stitch_previews", "reconstruct_slabs",
+           "SLAB_PIXELS"]
 
 #: Detector pixels (projections x rows x columns) read by one slab when the number of slabs is chosen
 #: automatically: a slab of this size reconstructs in well under a gigabyte.
@@ -108,11 +109,17 @@ class SlabResult:
         Every bubble the slab reconstructed (not only those it owns).
     report : dict
         :func:`~bubsub.clients.pipeline.reconstruct.reconstruct`'s report, plus ``origin_mm``.
+    preview : ndarray float32 ``(slices, rows, cols)``, optional
+        The slices of the slab's voxel preview that lie in its core (for the overlay picture).
+    preview_extent : tuple, optional
+        Their extent in world coordinates, mm.
     """
 
     slab: Slab
     surfaces: list
     report: dict
+    preview: np.ndarray | None = None
+    preview_extent: tuple | None = None
 
 
 def check_slab_geometry(geometry):
@@ -284,7 +291,39 @@ def run_slab(scan_path, slab, settings, bubble_contrast=None, server=None, token
                     pass
             client.close()
     report = dict(rec.report, origin_mm=origin.tolist(), core_rows=list(slab.core), read_rows=list(slab.read))
-    return SlabResult(slab, [_moved(s, origin) for s in rec.surfaces], report)
+    part, extent = _core_preview(rec, scan.geometry, slab, origin)
+    return SlabResult(slab, [_moved(s, origin) for s in rec.surfaces], report, part, extent)
+
+
+def _core_preview(rec, geometry, slab, origin):
+    """The slices of a slab's preview (local coordinates) whose centres lie in its core, in world coordinates."""
+    if rec.preview is None or rec.preview.ndim != 3:
+        return None, None
+    image, (x0, x1, y0, y1, z0, z1) = rec.preview, rec.preview_extent
+    dz = (z1 - z0) / image.shape[0]
+    z = z0 + (np.arange(image.shape[0]) + 0.5) * dz + float(origin[2])
+    lo = -np.inf if slab.first else _row_height(geometry, slab, slab.core[0])
+    hi = np.inf if slab.last else _row_height(geometry, slab, slab.core[1])
+    keep = np.nonzero((z >= lo) & (z < hi))[0]
+    if len(keep) == 0:
+        return None, None
+    return (np.ascontiguousarray(image[keep[0]:keep[-1] + 1], dtype=np.float32),
+            (x0, x1, y0, y1, float(z[keep[0]] - 0.5 * dz), float(z[keep[-1]] + 0.5 * dz)))
+
+
+def stitch_previews(results):
+    """One preview from the slabs' core slices (for the overlay picture), or ``(None, None)``.
+
+    Slabs share the preview's voxel size (it follows the field of view's radius), so their
+    slices stack; the extent runs from the first part's bottom over all slices stacked.
+    """
+    parts = [(r.preview, r.preview_extent) for r in results if r.preview is not None]
+    if not parts or len({p.shape[1:] for p, _ in parts}) != 1:
+        return None, None
+    image = np.concatenate([p for p, _ in parts])
+    e0 = parts[0][1]
+    dz = (e0[5] - e0[4]) / parts[0][0].shape[0]
+    return image, (*e0[:4], e0[4], e0[4] + dz * image.shape[0])
 
 
 #: Halo over the largest bubble radius the strip preview of :func:`estimate_halo` finds: its distance-transform
@@ -425,6 +464,8 @@ def write_slab(path, result, key):
         "vertices": np.concatenate([s.vertices for s in surfaces]) if surfaces else np.zeros((0, 3)),
         "faces": np.concatenate([s.control_faces for s in surfaces]) if surfaces else np.zeros((0, 3), np.int64),
     }
+    if result.preview is not None:
+        arrays["preview"], arrays["preview_extent"] = result.preview, np.asarray(result.preview_extent, dtype=float)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
@@ -446,9 +487,11 @@ def read_slab(path, key=None):
                 v = z["vertices"][v_end[k] - z["n_vertices"][k]:v_end[k]]
                 f = z["faces"][f_end[k] - z["n_faces"][k]:f_end[k]]
                 surfaces.append(SubdivisionSurface(Mesh(v, f, float(z["attenuation"][k])), int(z["levels"][k])))
+            preview = np.array(z["preview"]) if "preview" in z else None
+            extent = tuple(float(x) for x in z["preview_extent"]) if "preview_extent" in z else None
     except (OSError, ValueError, KeyError):
         return None
-    return SlabResult(Slab(idx, (c0, c1), (r0, r1), n_rows), surfaces, report)
+    return SlabResult(Slab(idx, (c0, c1), (r0, r1), n_rows), surfaces, report, preview, extent)
 
 
 # -- the whole scan ---------------------------------------------------------------------------------------
@@ -522,8 +565,9 @@ def reconstruct_slabs(scan_path, settings=None, *, slabs=None, halo=None, client
         run_tasks(client, run_slab, [(str(scan_path), plan[k], task_settings, bubble_contrast, server, token)
                                      for k in todo], on_result=done)
     surfaces, summary = stitch(results, geometry)
+    preview, extent = stitch_previews(results)
     return Reconstruction(surfaces, _report(results, surfaces, summary, geometry, s, halo, len(todo),
-                                            time.perf_counter() - t0, fov_report(geometry)))
+                                            time.perf_counter() - t0, fov_report(geometry)), preview, extent)
 
 
 _SUMMED = ("iterations", "evaluations", "final_objective", "initial_objective", "bubbles_initial", "bubbles_dropped")

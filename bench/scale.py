@@ -106,8 +106,11 @@ def run_tree(cmd, poll=POLL_SECONDS, timeout=None):
     return wall, usage.ru_utime + usage.ru_stime, peak / 2**20
 
 
-def simulate_case(folder, n, *, seed=0, det_count=768, angles=40):
-    """The column simulation folder of case ``n`` in ``folder`` (made unless it holds one with these settings).
+def simulate_case(folder, n, *, seed=0, det_count=None, angles=None):
+    """The column simulation folder of case ``n`` in ``folder``, made unless it holds one.
+
+    An existing column simulation is reused when its seed, and the detector columns and projections given
+    (None: any), match; another one is refused.
 
     Returns
     -------
@@ -119,14 +122,15 @@ def simulate_case(folder, n, *, seed=0, det_count=768, angles=40):
     if meta_path.is_file():
         meta = json.loads(meta_path.read_text())
         c = meta.get("column", {})
-        if (meta.get("phantom"), meta.get("seed"), meta.get("angles"), c.get("cols")) == ("column", seed, angles,
-                                                                                          det_count):
+        if meta.get("phantom") == "column" and meta.get("seed") == seed and angles in (None, meta.get("angles")) \
+                and det_count in (None, c.get("cols")):
             return folder, None
-        raise ValueError(f"{folder} holds another simulation (seed {meta.get('seed')}, {meta.get('angles')} angles, "
-                         f"{c.get('cols')} columns); choose another --data")
+        raise ValueError(f"{folder} holds another simulation ({meta.get('phantom')}, seed {meta.get('seed')}, "
+                         f"{meta.get('angles')} angles, {c.get('cols')} columns); choose another folder")
     t0 = time.perf_counter()
-    subprocess.run(_cli("simulate", "--phantom", "column", "--bubbles", n, "--seed", seed, "--det-count", det_count,
-                        "--angles", angles, "--out", folder), check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(_cli("simulate", "--phantom", "column", "--bubbles", n, "--seed", seed, "--det-count",
+                        det_count or 768, "--angles", angles or 40, "--out", folder), check=True,
+                   stdout=subprocess.DEVNULL)
     return folder, time.perf_counter() - t0
 
 

@@ -77,3 +77,32 @@ def test_projection_from_slabs_and_from_a_whole_run():
     assert whole["slabs"] == math.ceil(1800 / 256) and whole["bubbles"] == pytest.approx(600 * 1800 * 2016**2
                                                                                           / (256 * 768**2))
     assert whole["seconds"]["pixels"][1] == pytest.approx(8 * 400 / (40 * 256 * 768) * 300 * 256 * 2016)
+
+
+def test_watershed_splits_two_touching_balls():
+    from bubsub.bench.fov import watershed_bubbles
+
+    z, y, x = np.indices((30, 30, 50))
+    mask = ((x - 15) ** 2 + (y - 15) ** 2 + (z - 15) ** 2 <= 100) | ((x - 32) ** 2 + (y - 15) ** 2 + (z - 15) ** 2 <= 100)
+    labels = watershed_bubbles(mask)
+    assert labels.max() == 2 and np.array_equal(labels > 0, mask)
+    assert labels[15, 15, 15] != labels[15, 15, 32]
+
+
+def test_fov_column_case_scores_the_truth_as_found(tmp_path, capsys):
+    from bubsub.bench.fov import main as fov_main
+    from bubsub.clients.cli.main import main
+
+    sim, rec = tmp_path / "sim", tmp_path / "rec"
+    assert main(["simulate", "--phantom", "column", "--bubbles", "25", "--det-count", "96", "--angles", "12",
+                 "--out", str(sim)]) == 0
+    rec.mkdir()
+    (rec / "bubbles.ply").write_bytes((sim / "truth.ply").read_bytes())
+    capsys.readouterr()
+    assert fov_main(["--column", "25", "--column-data", str(sim), "--rec", str(rec), "--sirt-iterations", "10",
+                     "--out", str(tmp_path / "out")]) == 0
+    lines = [line.split("|")[1:-1] for line in capsys.readouterr().out.splitlines() if line.startswith("| ")]
+    header, bubsub, voxel = lines
+    row = dict(zip([h.strip() for h in header], [c.strip() for c in bubsub]))
+    assert row["found"] == row["truth"] and row["merged"] == row["spurious"] == "0" and float(row["DDI in FOV"]) < 0.01
+    assert "SIRT 10" in voxel[0]

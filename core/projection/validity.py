@@ -270,12 +270,21 @@ def overlap_measure(a, b, samples=None):
 
 
 class _RayMesh:
-    """A mesh with its edges and its ray-casting scene, built once for all the pairs it is tested in."""
+    """A mesh with its edges and its ray-casting scene, built once for all the pairs it is tested in.
+
+    The intersector is held here, not through ``Trimesh.ray`` (which makes a
+    reference cycle, freed only by the garbage collector): a check of hundreds
+    of bubbles must free each scene as soon as its last pair is done, or the
+    ray-casting library runs out of scenes.
+    """
 
     def __init__(self, mesh):
+        from trimesh.ray import ray_pyembree
+
         self.vertices = np.asarray(mesh.vertices, dtype=float)
         self.edges = _edges(np.asarray(mesh.faces))
-        self.mesh = _trimesh(self.vertices, mesh.faces)
+        self.mesh = self
+        self.ray = ray_pyembree.RayMeshIntersector(_trimesh(self.vertices, mesh.faces))
 
 
 def _mesh_crossings(a, b):
@@ -337,6 +346,11 @@ def check_bubbles(items, *, surfaces=("control", "fine"), overlaps=True, only=No
             out.append(Violation("inverted", (i,), "fine", 0, float(size)))
         fines.append(fine)
     if overlaps:
+        pairs = [(i, j) for i, j in _candidate_pairs(fines) if only is None or i in only or j in only]
+        last = {}
+        for p, pair in enumerate(pairs):
+            for b in pair:
+                last[b] = p
         rays = {}
 
         def ray_mesh(i):
@@ -344,11 +358,12 @@ def check_bubbles(items, *, surfaces=("control", "fine"), overlaps=True, only=No
                 rays[i] = _RayMesh(fines[i])
             return rays[i]
 
-        for i, j in _candidate_pairs(fines):
-            if only is not None and i not in only and j not in only:
-                continue
+        for p, (i, j) in enumerate(pairs):
             if isinstance(fines[i], Mesh):
                 k = _mesh_crossings(ray_mesh(i), ray_mesh(j))
+                for b in (i, j):
+                    if last[b] == p:
+                        rays.pop(b, None)  # its last pair: free its scene now
             else:
                 k = crossings_between(fines[i], fines[j])
             area = overlap_measure(fines[i], fines[j])

@@ -166,8 +166,16 @@ def _mesh_self_hits(vertices, faces):
     """``(edges, faces, hits)``: the mesh's edges and its (edge, triangle) self-crossings."""
     faces = np.asarray(faces)
     edges = _edges(faces)
-    tm = _trimesh(vertices, faces)
+    tm = _RayMesh.__new__(_RayMesh)  # its scene freed on return (no Trimesh.ray reference cycle)
+    tm.vertices = np.asarray(vertices, dtype=float)
+    tm.ray = _intersector(tm.vertices, faces)
     return edges, faces, _edge_hits(tm, vertices[edges[:, 0]], vertices[edges[:, 1]], exclude_shared=(edges, faces))
+
+
+def _intersector(vertices, faces):
+    from trimesh.ray import ray_pyembree
+
+    return ray_pyembree.RayMeshIntersector(_trimesh(vertices, faces))
 
 
 def _mesh_self_crossings(vertices, faces):
@@ -279,12 +287,10 @@ class _RayMesh:
     """
 
     def __init__(self, mesh):
-        from trimesh.ray import ray_pyembree
-
         self.vertices = np.asarray(mesh.vertices, dtype=float)
         self.edges = _edges(np.asarray(mesh.faces))
         self.mesh = self
-        self.ray = ray_pyembree.RayMeshIntersector(_trimesh(self.vertices, mesh.faces))
+        self.ray = _intersector(self.vertices, mesh.faces)
 
 
 def _mesh_crossings(a, b):

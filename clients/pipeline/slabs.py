@@ -31,6 +31,11 @@ slab is written to ``OUT/slabs/`` at once, so ``resume=True`` continues
 after a crash or Ctrl-C from the slabs already done. Memory is one slab's,
 whatever the number of slabs.
 
+One module of about 620 lines on purpose: the plan, the slab task, the
+stitching rules and the checkpoints must agree on one slab layout (core,
+read rows, origin, ownership heights); keeping them together keeps it in
+one place.
+
 Cone beam: the rows of a cone-beam detector are not slices of the sample
 (the rays diverge), so :func:`check_slab_geometry` refuses it; such a scan
 is reconstructed whole.

@@ -1,7 +1,8 @@
 """Benchmark "analysis": ``bubsub analyse`` against FoamQuant's voxel route, both against the truth; its cost.
 
-``python -m bubsub.bench analysis [--bubbles 150] [--seed 0] [--reconstruction DIR] [--keep DIR]
-[--contact-gap MM] [--voxel-method cgls] [--cost-bubbles 150 600] [--repeats 3] [--no-foamquant] [--cost-only]``
+``python -m bubsub.bench analysis [--bubbles 150] [--seed 0] [--simulation DIR] [--reconstruction DIR]
+[--keep DIR] [--contact-gap MM] [--voxel-method cgls] [--cost-bubbles 150 600] [--repeats 3] [--no-foamquant]
+[--cost-only]``
 
 The foam is a simulated synchrotron column (:mod:`bubsub.core.foam.column`:
 rotated polydisperse ellipsoids in a liquid cylinder, gas fraction 0.4,
@@ -52,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ellipsoid_area", "ellipsoid_gap", "column_truth", "score", "foamquant_route", "label_contacts", "main"]
+__all__ = ["ellipsoid_area", "ellipsoid_gap", "load_column", "column_truth", "score", "foamquant_route", "label_contacts", "main"]
 
 
 def ellipsoid_area(axes):
@@ -99,32 +100,62 @@ def ellipsoid_gap(c1, S1, c2, S2):
     return float(-res.fun), 0.5 * (p1 + p2)
 
 
-def column_truth(phantom, gap):
-    """Analytic truth of the bubbles of a column that reach into the detector's rows.
+def load_column(folder):
+    """The analytic truth of a column simulation folder (:func:`bubsub.core.foam.column.write_column`).
 
     Returns
     -------
     dict
-        Arrays over the visible bubbles: ``centre``, ``axes`` (descending), ``volume``, ``radius``,
-        ``sphericity``, ``strain_vm``, ``cut`` (bool), ``volume_in_fov``; ``contacts``: ``{(i, j): point}``
-        of the pairs closer than ``gap`` whose contact point lies in the rows; ``gaps``: the distance of
-        every pair examined; ``liquid_fraction`` of the liquid cylinder within the rows.
+        ``centres`` (n, 3), ``axes`` (n, 3, in the rotation's column order), ``rotations`` (n, 3, 3), ``cut``
+        (n,) bool (crossing the detector's top or bottom), ``volume_in_fov`` (n,), ``radius`` (the liquid
+        cylinder's), ``fov_radius``, ``half_height``, ``grid_shape``, ``grid_extent``, ``contrast``.
+    """
+    import csv
+    import json
+
+    folder = Path(folder)
+    meta = json.loads((folder / "phantom.json").read_text())
+    if meta.get("phantom") != "column":
+        raise ValueError(f"{folder} is not a column simulation (phantom.json says {meta.get('phantom')!r})")
+    with open(folder / "truth.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    col = meta["column"]
+
+    def get(names):
+        return np.array([[float(r[n]) for n in names] for r in rows])
+
+    return {"centres": get([f"centre_{a}_mm" for a in "xyz"]), "axes": get([f"semi_axis_{k}_mm" for k in (1, 2, 3)]),
+            "rotations": get([f"rotation_{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]).reshape(-1, 3, 3),
+            "cut": (get(["cut_top"])[:, 0] + get(["cut_bottom"])[:, 0]) > 0,
+            "volume_in_fov": get(["volume_in_fov_mm3"])[:, 0], "radius": float(col["radius_mm"]),
+            "fov_radius": float(col["fov_radius_mm"]), "half_height": float(col["fov_half_height_mm"]),
+            "grid_shape": tuple(meta["grid_shape"]), "grid_extent": tuple(meta["grid_extent"]),
+            "contrast": float(meta["bubble_contrast"])}
+
+
+def column_truth(col, gap):
+    """Analytic truth of a column's bubbles (:func:`load_column`) for a contact gap.
+
+    Returns
+    -------
+    dict
+        Arrays over the bubbles: ``centre``, ``axes`` (descending), ``volume``, ``radius``, ``sphericity``,
+        ``strain_vm``, ``cut`` (bool), ``volume_in_fov``; ``contacts``: ``{(i, j): point}`` of the pairs
+        closer than ``gap`` whose contact point lies in the rows; ``gaps``: the distance of every pair
+        examined; ``liquid_fraction`` of the liquid cylinder within the rows.
     """
     from scipy.spatial import cKDTree
 
     from bubsub.core.analysis.shape import strain_from_axes
+    from bubsub.core.foam.ellipsoids import shape_matrices
 
-    vis = np.flatnonzero(phantom.visible)
-    centre, axes = phantom.centres[vis], phantom.axes[vis]
-    shapes = phantom.shapes[vis]
-    order = np.argsort(-axes, axis=1)
-    axes_sorted = np.take_along_axis(axes, order, axis=1)
+    centre, axes = col["centres"], col["axes"]
+    shapes = shape_matrices(axes, col["rotations"])
+    axes_sorted = -np.sort(-axes, axis=1)
     volume = 4 / 3 * np.pi * axes.prod(axis=1)
     area = np.array([ellipsoid_area(a) for a in axes])
     _, vm, _ = strain_from_axes(axes_sorted)
-    top, bottom = phantom.cut()
-    frac = phantom.fraction_in_fov()[vis]
-    h = phantom.fov_half_height
+    h = col["half_height"]
     contacts, gaps = {}, {}
     reach = axes.max(axis=1)
     for i, j in sorted(map(tuple, cKDTree(centre).query_pairs(2 * reach.max() + gap, output_type="ndarray"))):
@@ -134,11 +165,11 @@ def column_truth(phantom, gap):
         gaps[(i, j)] = g
         if g < gap and abs(point[2]) <= h:
             contacts[(i, j)] = point
-    gas = float((volume * frac).sum())
+    gas = float(col["volume_in_fov"].sum())
     return {"centre": centre, "axes": axes_sorted, "volume": volume, "radius": np.cbrt(3 * volume / (4 * np.pi)),
-            "sphericity": np.pi ** (1 / 3) * (6 * volume) ** (2 / 3) / area, "strain_vm": vm,
-            "cut": (top | bottom)[vis], "volume_in_fov": volume * frac, "contacts": contacts, "gaps": gaps,
-            "liquid_fraction": 1 - gas / (np.pi * phantom.radius ** 2 * 2 * h)}
+            "sphericity": np.pi ** (1 / 3) * (6 * volume) ** (2 / 3) / area, "strain_vm": vm, "cut": col["cut"],
+            "volume_in_fov": col["volume_in_fov"], "contacts": contacts, "gaps": gaps,
+            "liquid_fraction": 1 - gas / (np.pi * col["radius"] ** 2 * 2 * h)}
 
 
 def _match(centroids, truth):
@@ -314,16 +345,27 @@ def _print_table(results):
         print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
 
 
-def _reconstruction(args, scan):
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, write_outputs
+def _folders(a):
+    """The column's simulation folder and a reconstruct folder of its scan (made when not given)."""
+    import tempfile
 
-    if args.reconstruction:
-        return Path(args.reconstruction), None
-    folder = Path(args.keep) if args.keep else Path(__import__("tempfile").mkdtemp(prefix="bubsub-bench-analysis-"))
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, write_outputs
+    from bubsub.core.foam.column import column_phantom, simulate_column, write_column
+    from bubsub.core.io.scanfile import read_scan
+
+    if a.simulation and a.reconstruction:
+        return Path(a.simulation), Path(a.reconstruction), None
+    work = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="bubsub-bench-analysis-"))
+    sim = Path(a.simulation) if a.simulation else work / "simulation"
+    if not a.simulation:
+        ph = column_phantom(a.bubbles, seed=a.seed)
+        write_column(sim, ph, simulate_column(ph))
+    if a.reconstruction:
+        return sim, Path(a.reconstruction), None
     t = time.perf_counter()
-    rec = reconstruct(scan, ReconstructionSettings(progress=False))
-    write_outputs(folder, rec)
-    return folder, time.perf_counter() - t
+    rec = reconstruct(read_scan(sim / "scan.h5"), ReconstructionSettings(progress=False))
+    write_outputs(work / "reconstruction", rec)
+    return sim, work / "reconstruction", time.perf_counter() - t
 
 
 def cost_table(sizes, repeats, seed):
@@ -353,9 +395,12 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m bubsub.bench analysis", description=__doc__.split("\n\n")[0])
     p.add_argument("--bubbles", type=int, default=150, help="bubbles in the column's rows (default 150)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--reconstruction", metavar="DIR", help="a bubsub reconstruct folder of this column's scan "
-                                                            "(skips the reconstruction)")
-    p.add_argument("--keep", metavar="DIR", help="write the reconstruction here (for --reconstruction later)")
+    p.add_argument("--simulation", metavar="DIR", help="a column simulation folder (bubsub simulate --phantom column; "
+                                                        "default: simulate --bubbles)")
+    p.add_argument("--reconstruction", metavar="DIR", help="a bubsub reconstruct folder of that scan (skips the "
+                                                            "reconstruction)")
+    p.add_argument("--keep", metavar="DIR", help="write the simulation and reconstruction here (for --simulation "
+                                                  "and --reconstruction later; default a temporary folder)")
     p.add_argument("--contact-gap", type=float, help="mm (default: bubsub's default, one preview voxel)")
     p.add_argument("--voxel-method", default="cgls", help="voxel reconstruction of the voxel route (default cgls)")
     p.add_argument("--cost-bubbles", type=int, nargs="*", default=[150, 600])
@@ -374,70 +419,68 @@ def compare(a):
     from bubsub.clients.analysis import analyse, default_contact_gap, read_reconstruction
     from bubsub.core.analysis.regions import Domain
     from bubsub.core.analysis.snapshot import analyse_meshes
-    from bubsub.core.foam.column import column_phantom, simulate_column
+    from bubsub.core.foam.ellipsoids import ellipsoid_mesh
 
-    ph = column_phantom(a.bubbles, seed=a.seed)
-    scan = simulate_column(ph)
-    folder, rec_seconds = _reconstruction(a, scan)
+    sim, folder, rec_seconds = _folders(a)
+    col = load_column(sim)
     rec = read_reconstruction(folder)
     gap = a.contact_gap or default_contact_gap(rec.report)
     t = time.perf_counter()
-    truth = column_truth(ph, gap)
-    print(f"column: {ph!r}; contact gap {gap:.4f} mm; {len(truth['contacts'])} true contacts among "
-          f"{len(truth['gaps'])} close pairs (truth {time.perf_counter() - t:.0f} s); bubsub reconstruction: "
-          + (f"{rec_seconds:.0f} s, kept in {folder}" if rec_seconds is not None else f"read from {folder}"),
-          flush=True)
+    truth = column_truth(col, gap)
+    h = col["half_height"]
+    print(f"column {sim}: {len(col['centres'])} bubbles in the rows ({int(col['cut'].sum())} cut), liquid fraction "
+          f"{truth['liquid_fraction']:.4f}; contact gap {gap:.4f} mm: {len(truth['contacts'])} true contacts among "
+          f"{len(truth['gaps'])} close pairs (truth {time.perf_counter() - t:.0f} s); bubsub reconstruction "
+          + (f"{rec_seconds:.0f} s, in {folder}" if rec_seconds is not None else f"read from {folder}"), flush=True)
     results = {}
     t = time.perf_counter()
-    ours = analyse(folder, contact_gap=gap, radius=ph.radius)
+    ours = analyse(folder, contact_gap=gap, radius=col["radius"])
     results["bubsub (meshes of the scan)"] = score(
         _from_snapshot({**ours.tables, "liquid_fraction": ours.summary["liquid_fraction"]}, time.perf_counter() - t),
-        truth, ph.fov_half_height)
+        truth, h)
     if not a.no_foamquant:
         try:
             import foamquant  # noqa: F401
         except ImportError:
             print("FoamQuant is not installed (pip install 'bubsub[foamquant]'): its columns are left out")
         else:
-            results.update(_foamquant_columns(a, ph, scan, truth, gap))
-    meshes = ph.truth_meshes(3)
-    top, bottom = ph.cut()
-    vis = np.flatnonzero(ph.visible)
+            results.update(_foamquant_columns(a, sim, col, truth, gap))
+    first = ellipsoid_mesh(col["centres"][0], col["axes"][0], col["rotations"][0], col["contrast"], 3)
+    meshes = [first] + [ellipsoid_mesh(c, x, r, col["contrast"], 3, template=first)
+                        for c, x, r in zip(col["centres"][1:], col["axes"][1:], col["rotations"][1:])]
     t = time.perf_counter()
-    snap = analyse_meshes(meshes, contact_gap=gap, field_of_view=(ph.fov_radius, ph.fov_half_height),
-                          truncated=(top | bottom)[vis].astype(int), domain=Domain.field_of_view(ph.radius,
-                                                                                                  ph.fov_half_height))
+    snap = analyse_meshes(meshes, contact_gap=gap, field_of_view=(col["fov_radius"], h), truncated=col["cut"].astype(int),
+                          domain=Domain.field_of_view(col["radius"], h))
     results["bubsub (truth meshes)"] = score(
         _from_snapshot({"bubbles": snap.bubbles, "contacts": snap.contacts,
-                        "liquid_fraction": snap.summary["liquid_fraction"]}, time.perf_counter() - t),
-        truth, ph.fov_half_height)
+                        "liquid_fraction": snap.summary["liquid_fraction"]}, time.perf_counter() - t), truth, h)
     _print_table(results)
 
 
-def _foamquant_columns(a, ph, scan, truth, gap):
-    from bubsub.core.foam.column import truth_grid
+def _foamquant_columns(a, sim, col, truth, gap):
+    from foamquant.Process import PhaseSegmentation
+
     from bubsub.core.foam.ellipsoids import ellipsoid_labels
+    from bubsub.core.io.scanfile import read_scan
     from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 
-    shape, extent = truth_grid(ph)
+    shape, extent = col["grid_shape"], col["grid_extent"]
     voxel = (extent[1] - extent[0]) / shape[2]
-    mask = _cylinder_mask(shape, extent, ph.radius)
+    mask = _cylinder_mask(shape, extent, col["radius"])
     seeds = max(1, int(round(0.5 * float(np.median(truth["radius"])) / voxel)))
+    scan = read_scan(sim / "scan.h5")
     out = {}
     t = time.perf_counter()
     image = reconstruct_3d(a.voxel_method, np.sign(scan.bubble_contrast) * scan.bubble_data, scan.geometry, shape,
                            extent)
-    t_rec = time.perf_counter() - t
-    from foamquant.Process import PhaseSegmentation
-
+    print(f"voxel route: {a.voxel_method} on {shape} voxels of {voxel * 1000:.0f} um, {time.perf_counter() - t:.0f} s",
+          flush=True)
     t = time.perf_counter()
     binary = np.asarray(PhaseSegmentation(-image, method="ostu_global"), dtype=np.uint8) * mask
     m = foamquant_route(binary, extent, voxel, seeds, gap, mask)
     m["seconds"] = time.perf_counter() - t  # with the phase segmentation
-    print(f"voxel route: {a.voxel_method} on {shape} voxels of {voxel * 1000:.0f} um, {t_rec:.0f} s", flush=True)
-    out[f"FoamQuant ({a.voxel_method.upper()} voxels of the scan)"] = score(m, truth, ph.fov_half_height)
-    vis = np.flatnonzero(ph.visible)
-    ideal = (ellipsoid_labels(ph.centres[vis], ph.axes[vis], ph.rotations[vis], shape, extent) > 0).astype(np.uint8)
+    out[f"FoamQuant ({a.voxel_method.upper()} voxels of the scan)"] = score(m, truth, col["half_height"])
+    ideal = (ellipsoid_labels(col["centres"], col["axes"], col["rotations"], shape, extent) > 0).astype(np.uint8)
     out["FoamQuant (truth voxelised)"] = score(foamquant_route(ideal, extent, voxel, seeds, gap, mask), truth,
-                                               ph.fov_half_height)
+                                               col["half_height"])
     return out

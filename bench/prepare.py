@@ -108,8 +108,8 @@ def run_table(out, *, cols=1200, angles=120, bubbles=8, iterations=40, seed=5, o
     return rows
 
 
-#: ``--background auto-full``: the radial background as it was before it was sped up (an FBP of 512 x 512
-#: pixels from every projection), for comparison with ``auto``
+#: ``--background auto-full``: the radial background from an FBP of 512 x 512 pixels of every projection,
+#: the reference that ``auto`` (a smaller FBP of fewer projections) is compared with
 FULL_RADIAL = {"grid": 512, "max_angles": 10 ** 9}
 
 
@@ -173,7 +173,7 @@ def run_memory(out, *, sizes=(1, 4), slab_mb=32.0, backgrounds=("auto",)):
 
 
 def run_background(out, *, angles=360, cols=1024, seed=5):
-    """Error and CPU seconds per row of the ring-profile background, before (``auto-full``) and now (``auto``).
+    """Error and CPU seconds per row of the ring-profile background: the full reference (``auto-full``) and ``auto``.
 
     One ``bubsub simulate --raw`` scan prepared with one ROI row and no
     background, so every variant sees the same sinogram.
@@ -208,10 +208,10 @@ def main(argv=None):
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 4], help="raw sizes, units of 47 MB (--memory)")
     ap.add_argument("--slab-mb", type=float, default=32.0)
     ap.add_argument("--background", nargs="+", default=["auto"],
-                    help="background methods of the memory runs (default auto; auto-full: the radial background "
-                         "before its speed-up, 512 x 512 pixels from every projection)")
+                    help="background methods of the memory runs (default auto; auto-full: the radial background's "
+                         "full reference, 512 x 512 pixels from every projection)")
     ap.add_argument("--background-rows", action="store_true",
-                    help="compare the ring-profile background before and after its speed-up (error, CPU s per row)")
+                    help="compare the ring-profile background auto with its full reference auto-full (error, CPU s per row)")
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--only", nargs="+", choices=list(VARIANTS), metavar="ROW",
                     help="run only these rows of the table (names as printed, e.g. 'all steps')")

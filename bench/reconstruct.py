@@ -8,8 +8,8 @@ phase (``report.json``'s ``seconds_parts`` and ``cpu_seconds_parts``), the
 child's whole wall time, CPU time and peak RSS (what ``/usr/bin/time -v``
 reports), and the DDI against the truth (``bubsub evaluate``).
 
-The issue's targets: under 30 s on 2 cores for 25 x 256 x 512 with DDI no
-worse than before (about 0.005); under 600 MB peak for 25 x 128 x 256.
+Targets: under 30 s on 2 cores for 25 x 256 x 512 with a DDI of about
+0.005; under 600 MB peak for 25 x 128 x 256.
 """
 
 from __future__ import annotations

@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.bench.reconstruct import PHASES, _cli
+from bubsub.core.foam.column import COLUMN_PRESETS
 
 __all__ = ["main", "run_tree", "simulate_case", "score_case", "project", "table", "TOMO_00080"]
 
@@ -246,7 +247,8 @@ def _case_rows(runs, phases):
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="bubsub bench scale", description=__doc__.split("\n\n")[0],
                                  epilog="Unknown options go to bubsub reconstruct (e.g. --workers 2).")
-    ap.add_argument("--cases", default="150,600,2400", help="bubble counts, comma separated (default 150,600,2400)")
+    default = ",".join(map(str, COLUMN_PRESETS))
+    ap.add_argument("--cases", default=default, help=f"bubble counts, comma separated (default {default})")
     ap.add_argument("--repeats", type=int, default=1, help="reconstructions per case (default 1; medians printed)")
     ap.add_argument("--data", default=None, help="folder of the simulations, reused when present (default OUT/sims)")
     ap.add_argument("--out", default="bench-scale", help="folder of the reconstructions and scale.json")

@@ -2,8 +2,8 @@
 
 The projectors split each call into a few pieces (projection groups, voxel
 slabs) that compiled code runs without the GIL. Starting a fresh pool per
-call made every objective evaluation wait for new threads to start: under
-load, 2 ms per thread, about 3 s of a 47 s reconstruction. The pools here
+call would make every objective evaluation wait for new threads to start
+(under load 2 ms per thread, about 3 s of a 47 s reconstruction). The pools here
 live for the process (a forked child starts its own); a piece that itself
 asks for threads runs them in its own thread, so nested calls cannot
 deadlock the pool.

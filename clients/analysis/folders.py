@@ -298,6 +298,7 @@ def _time_unit(folder):
 
 
 def _analyse_4d(folder, gap, options, progress):
+    default_gap = gap is None
     unit = _time_unit(folder)
     spec = dynamics_columns(unit)
     t_col, t_info = spec["rates"]["time"][0], spec["rates"]["time"][1:]
@@ -330,7 +331,7 @@ def _analyse_4d(folder, gap, options, progress):
         columns[name] = describe(spec[name])
     kinds = [r["kind"] for r in dyn["events"]]
     summary = {"kind": "4d", "reconstruction": str(folder), "time_unit": unit, "contact_gap_mm": gap,
-               "subscans": len(steps),
+               "contact_gap_default": default_gap, "subscans": len(steps),
                "growth_law": {"model": f"d(V^(2/3))/dt = k (Z - Z0), k in mm^2/{unit}", **law},
                "t1_events": len(dyn["t1"]), "coalescences": kinds.count("coalescence"),
                "disappearances": kinds.count("disappearance"), "appearances": kinds.count("appearance"),

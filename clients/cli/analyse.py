@@ -52,9 +52,9 @@ def cmd_analyse(args):
     files = result.write(out, overwrite=True, pictures=not args.no_pictures)
     s = result.summary
     if result.kind == "3d":
-        coord = s["mean_coordination"]
-        print(f"{s['bubbles']} bubbles ({s['bubbles_truncated'] or 0} cut by the field of view), {s['contacts']} "
-              f"contacts at a {s['contact_gap_mm']:.4g} mm gap"
+        coord, cut = s["mean_coordination"], s["bubbles_truncated"]
+        cut = "field of view unknown" if cut is None else f"{cut} cut by the field of view"
+        print(f"{s['bubbles']} bubbles ({cut}), {s['contacts']} contacts at a {s['contact_gap_mm']:.4g} mm gap"
               + (f", mean coordination {coord:.2f}" if coord is not None else "")
               + (f", liquid fraction {s['liquid_fraction']:.3f}" if s["liquid_fraction"] is not None else ""))
     else:

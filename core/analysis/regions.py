@@ -97,16 +97,10 @@ def _shell_index(points, domain, shells):
 
 
 def _plane(domain, grid, shells, x, y):
-    """In-plane ``(rows, cols)`` arrays of a sample grid: inside the domain, Cartesian (x, y) cell, shell."""
-    lo, hi = np.asarray(domain.lo), np.asarray(domain.hi)
+    """Points of an in-plane grid (at the domain's bottom): inside the domain, Cartesian (x, y) cell, shell."""
     X, Y = np.meshgrid(x, y)
-    inside = (X >= lo[0]) & (X <= hi[0]) & (Y >= lo[1]) & (Y <= hi[1])
-    if domain.radius is not None:
-        inside &= np.hypot(X, Y) <= domain.radius
-    ix = np.clip(np.floor((X - lo[0]) / (hi[0] - lo[0]) * grid[0]).astype(np.int64), 0, grid[0] - 1)
-    iy = np.clip(np.floor((Y - lo[1]) / (hi[1] - lo[1]) * grid[1]).astype(np.int64), 0, grid[1] - 1)
-    ring = np.clip(np.floor(np.hypot(X, Y) / domain.outer_radius * shells).astype(np.int64), 0, shells - 1)
-    return inside, ix * grid[1] + iy, ring
+    pts = np.stack([X.ravel(), Y.ravel(), np.full(X.size, float(domain.lo[2]))], axis=1)
+    return domain.contains(pts), _cell_index(pts, domain, grid) // int(grid[2]), _shell_index(pts, domain, shells)
 
 
 def region_volumes(meshes, centroids, domain, grid, shells):

@@ -52,8 +52,8 @@ def default_threads():
 
 def _threaded_residual(kernel, values, k2, data, out, threads):
     """``kernel`` (:func:`~bubsub.core.projection.backends.common_kernels.residual`) over contiguous chunks,
-    one per thread, and the sum of their ``f``: serial, it was 3 ms of every evaluation on a
-    25 x 256 x 512 scan. Small scans take one chunk."""
+    one per thread, and the sum of their ``f`` (serial, it would be 3 ms of every evaluation on a
+    25 x 256 x 512 scan). Small scans take one chunk."""
     n = values.shape[0]
     parts = max(1, min(int(threads), n // (1 << 18)))
     edges = np.linspace(0, n, parts + 1).round().astype(int)

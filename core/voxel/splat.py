@@ -6,9 +6,9 @@ voxel's value times its weight is spread bilinearly over the four nearest
 (virtual) detector pixels of a detector padded by 1 (low) / 2 (high) pixels,
 so positions off the detector land in the margin. The gather does exactly the
 transposed arithmetic. Both loop over voxels in compiled code (numba, no
-temporaries per slab), which is about 10x faster and far lighter on memory
-than the numpy version this replaced (per slab and projection: seven float32
-arrays and four ``bincount`` passes).
+temporaries per slab), about 10x faster and far lighter on memory than the
+same arithmetic in numpy (per slab and projection: seven float32 arrays and
+four ``bincount`` passes).
 """
 
 from __future__ import annotations

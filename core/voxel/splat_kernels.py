@@ -3,7 +3,7 @@
 Kept apart from :mod:`.splat` so that numba is imported only when the voxel
 projector runs. Defined at module level rather than in a factory: numba's
 cache key hashes a closure's captured variables, and captured dispatchers
-serialise differently in every process, so the closures were compiled again
+serialise differently in every process, so closures would be compiled again
 in each one.
 """
 

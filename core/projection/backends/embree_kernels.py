@@ -1,12 +1,12 @@
 """The compiled backend's numba code, at module level so that numba's disk cache hits.
 
 Kept apart from :mod:`.embree_native` so that numba is imported only when the
-backend is used. Defined in a factory, these missed the cache in every
-process (a closure's captured values enter numba's cache key, and the ctypes
-function of ``rtcIntersect1`` differed from process to process): 5 s of
-compilation per process, and a new cache file each time. ``rtcIntersect1``
-is now called through its address, an integer argument (:func:`call3`), so
-nothing process-specific enters a compiled function's type.
+backend is used. Nothing process-specific may enter a compiled function's
+type or numba's cache key (a closure's captured values do, and a ctypes
+function of ``rtcIntersect1`` differs from process to process): it would be
+compiled again in every process (5 s) with a new cache file each time. So
+the functions live at module level and ``rtcIntersect1`` is called through
+its address, an integer argument (:func:`call3`).
 See :mod:`bubsub.core.projection.backends.embree_native` for the method.
 """
 

@@ -120,7 +120,7 @@ class RasterBackend(Backend):
         if not _load():
             raise RuntimeError(f"the raster backend is unavailable: {unavailable_reason()}")
         job = _Job(scene, frames, sub, threads, store=gradient, deadline=deadline)
-        # each group zeroes its own projections (job.run): 26 MB of zeros were a serial millisecond per call
+        # each group zeroes its own projections (job.run): 26 MB of zeros here would be a serial millisecond per call
         values = np.empty(frames.n * frames.rows * frames.cols)
         try:
             counts = deadline_map(lambda g: job.run(g, values, None, None), job.groups, job.threads)
@@ -157,7 +157,7 @@ def _take_store(m):
     """``(face (m,) int32, pixel (m,) int32, coefficients (m, 3) float)``, reused when one is free.
 
     A full store is 128 MB on the foam3d benchmark; writing it into fresh
-    pages took 19 ms of page faults per objective against 5 ms into pages
+    pages costs 19 ms of page faults per objective against 5 ms into pages
     already mapped. At most two stores are kept (one per concurrent fit is
     the common case; a server's further threads allocate their own).
     """
@@ -201,7 +201,7 @@ class _RasterTraversal(Traversal):
             return acc
 
         sums = deadline_map(group, job.groups, job.threads)
-        for other in sums[1:]:  # in place: a fresh sum was two more passes over (faces, 3) per call
+        for other in sums[1:]:  # in place: a fresh sum would be two more passes over (faces, 3) per call
             sums[0] += other
         return sums[0]
 
@@ -255,7 +255,7 @@ class _Job:
         # item by item only for scenes whose per-projection data (about 100 bytes a face) outgrows
         # the caches. Objective on 2 threads, paired medians of 15: foam3d at 32,000 faces (level 1)
         # +16 ms (of 86), the 76,800 faces of a 60-bubble reconstruction -1 ms (of 85), foam3d at
-        # 128,000 faces (level 2) -9 ms (of 124); at 512,000 faces it saved about 20 % (the
+        # 128,000 faces (level 2) -9 ms (of 124); at 512,000 faces it saves about 20 % (the
         # item-by-item pass has no supersampling)
         self.by_item = len(f) >= ITEM_MAJOR_FACES and self.k == 1
         # per group, one row per chunk of views: where each item's stored crossings begin in the
@@ -329,7 +329,7 @@ class _Job:
 
 def _pixel_ray_lengths(frames):
     """``(lengths, True)``: every pixel's source-to-detector ray length, computed once per
-    :class:`Frames` (a square root per crossing cost 10 % of an objective)."""
+    :class:`Frames` (a square root per crossing would cost 10 % of an objective)."""
     cached = frames.derived.get("raster pixel ray lengths")
     if cached is None:
         S, D, U, V = (np.ascontiguousarray(a, dtype=np.float64) for a in (frames.s, frames.d, frames.u, frames.v))

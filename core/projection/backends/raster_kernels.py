@@ -3,8 +3,8 @@
 Kept apart from :mod:`.raster` so that numba is imported only when the
 backend is used. Defined at module level rather than in a factory: numba's
 cache key hashes a closure's captured variables, and captured dispatchers
-serialise differently in every process, so closures were compiled again in
-each one (about 2.5 s per process).
+serialise differently in every process, so closures would be compiled again
+in each one (about 2.5 s per process).
 
 One module on purpose: numba's cache checks only the source file of the
 function it compiled, not of the compiled functions it calls, so a kernel
@@ -181,7 +181,12 @@ CHUNK = 256
 # x0 x1 x2 y0 y1 y2 (rows 0-5) and the clipped box c0 c1 r0 r1 (rows 6-9) of each face of the
 # chunk, then SMALL_ROWS rows of its small candidates (gather_small, small_terms; some unused). Constant
 # offsets into one array let LLVM vectorise loops over it without run-time checks that the
-# rows do not overlap (with a 2D array's strides it gave up: "too many memory checks").
+# rows do not overlap (with a 2D array's strides it gives up: "too many memory checks").
+# The small candidates' rows, SMALL + r, one lane per small candidate q:
+#   in (gather_small):  r 0-5 x0 x1 x2 y0 y1 y2 | r 10 vertex order code | r 13-15 normal | r 16 plane
+#                       offset | r 17-19 inverse depths of the three vertices
+#   out (small_terms):  point k (0-3) in r 10 k + 0..5: value, coefficients a b c, lattice index, crossing
+#                       flag (point 0 overwrites rows 0-5 and point 1 rows 10-15 once they are read)
 BOX, SMALL, SMALL_ROWS = 6, 10, 36
 
 
@@ -304,8 +309,8 @@ def gather_small(faces, s, sidx, n, nrm, offset, iW, w):
     for q in range(n):
         j = sidx[q]
         f = s + j
-        # written out: LLVM did not unroll a loop over the rows (copying ten rows so took 37 ms instead
-        # of 34 at level 3, one thread)
+        # written out rather than as a loop over the rows, which LLVM does not unroll (the loop
+        # copies ten rows about 10 % slower at level 3)
         a0, a1, a2, a3, a4 = w[j], w[CHUNK + j], w[2 * CHUNK + j], w[3 * CHUNK + j], w[4 * CHUNK + j]
         a5 = w[5 * CHUNK + j]
         w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q] = a0, a1, a2
@@ -351,8 +356,8 @@ def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, C, F0, F1, R0, R1, quad, c
     here rather than per crossing in the scalar loop that adds them (level 3
     forward, one thread: about 9 ms less, paired). ``quad`` must be a literal
     (True or False at the call): numba then compiles one function for each,
-    with the other's branch removed. With a run-time flag LLVM kept the branch
-    and vectorised nothing (3x slower), and so it did with the set-up in a
+    with the other's branch removed. With a run-time flag LLVM keeps the branch
+    and vectorises nothing (3x slower), and so it does with the set-up in a
     helper taking ``w``: helpers here take scalars only.
     """
     numba.literally(quad)
@@ -428,8 +433,8 @@ def mark_stored(st_face, st_pix, n, npix, hit):
 
 # lattice points of a triangle's box up to which the forward pass evaluates every one without
 # branches (faces_pass); larger boxes skip the points outside. foam3d, one thread, against the
-# scanning loop alone: 96 was 17 % faster at level 1 and 4 % on a 4x detector; 24 was slower on
-# both, and evaluating every box so was 30 % slower at level 1
+# scanning loop alone: 96 is 17 % faster at level 1 and 4 % on a 4x detector; 24 is slower on
+# both, and evaluating every box so is 30 % slower at level 1
 BOX_POINTS = 96
 
 

@@ -349,7 +349,8 @@ def _folders(a):
     """The column's simulation folder and a reconstruct folder of its scan (made when not given)."""
     import tempfile
 
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, write_outputs
+    from bubsub.clients.pipeline.outputs import write_outputs
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
     from bubsub.core.foam.column import column_phantom, simulate_column, write_column
     from bubsub.core.io.scanfile import read_scan
 

@@ -68,7 +68,8 @@ def _value(text, current):
 def main(argv=None):
     from bubsub.clients.experiments.runner import EXPERIMENTS, case_config, simulate_case
     from bubsub.clients.pipeline.initial import initial_centres
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, voxel_preview
+    from bubsub.clients.pipeline.preview import voxel_preview
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
     from bubsub.core.metrics import dice_dissimilarity
     from bubsub.core.voxel.raster import label_image
 

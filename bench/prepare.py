@@ -58,7 +58,8 @@ def _background_error(scan, meta):
 
 def run_table(out, *, cols=1200, angles=120, bubbles=8, iterations=40, seed=5, only=None):
     from bubsub.clients.pipeline.evaluate import evaluate_dir
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, write_outputs
+    from bubsub.clients.pipeline.outputs import write_outputs
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
     from bubsub.clients.pipeline.simulation import simulate_raw_to_dir
     from bubsub.core.io.scanfile import read_scan
     from bubsub.core.prep import prepare, prepare_options

@@ -10,7 +10,8 @@ from trimesh.triangles import closest_point
 from bubsub.clients.cli.main import main
 from bubsub.clients.pipeline import dynamic_outputs
 from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
-from bubsub.clients.pipeline.reconstruct import Reconstruction, write_outputs
+from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.reconstruct import Reconstruction
 from bubsub.core.io.atomic import atomic_write_text
 from bubsub.core.io.meshio import read_ply
 from bubsub.core.projection.subdivision import sphere_surface

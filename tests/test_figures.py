@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from bubsub.clients.pipeline.figures import mesh_section, write_mesh_view, write_overlay, write_size_histogram
-from bubsub.clients.pipeline.reconstruct import Reconstruction, write_outputs
+from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.reconstruct import Reconstruction
 from bubsub.core import sphere_surface
 from bubsub.core import sphere_mesh
 

@@ -14,7 +14,10 @@ from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Polygon
 from bubsub.clients.optimise.fit import fit
 from bubsub.clients.pipeline.fov import (field_of_view, fov_mask, seen_by, size_inside_fov, unobserved_control)
-from bubsub.clients.pipeline.reconstruct import Reconstruction, initial_surfaces, voxel_preview, write_outputs
+from bubsub.clients.pipeline.initial import initial_surfaces
+from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.preview import voxel_preview
+from bubsub.clients.pipeline.reconstruct import Reconstruction
 
 C = -0.1
 

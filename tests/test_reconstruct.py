@@ -160,7 +160,7 @@ def test_ctrl_c_in_the_topology_rounds_stops_them_and_writes_the_first_fit(sim, 
 def test_resample_image_reproduces_a_linear_field_between_grids():
     """Trilinear resampling (the coarse-to-fine 3D preview) is exact for a linear field inside the old grid;
     axes follow the grid convention (x columns, y rows downwards, z slices)."""
-    from bubsub.clients.pipeline.reconstruct import resample_image
+    from bubsub.clients.pipeline.preview import resample_image
     from bubsub.core.voxel.grid import index_to_world
 
     def field(shape, extent):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bubsub.clients.pipeline.blobs import log_blobs
-from bubsub.clients.pipeline.reconstruct import voxel_preview
+from bubsub.clients.pipeline.preview import voxel_preview
 from bubsub.clients.pipeline.topology import adapt_topology
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface
 from bubsub.core.foam.dense import dense_foam2d, dense_foam3d

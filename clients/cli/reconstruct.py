@@ -23,8 +23,8 @@ def cmd_reconstruct(args):
 
     from bubsub.clients.cluster.engine import open_client, spec_from_args
     from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
-    from bubsub.clients.pipeline.outputs import check_output_folder
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, load_initial, reconstruct, write_outputs
+    from bubsub.clients.pipeline.outputs import check_output_folder, write_outputs
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, load_initial, reconstruct
     from bubsub.clients.pipeline.slabs import slab_count
 
     # --resume continues the slabs of an earlier run in --out, so the folder may hold its results
@@ -98,7 +98,7 @@ def cmd_reconstruct(args):
 
 def _finish(args, out, rec):
     """Write the outputs and print the summary; the exit status (130 when interrupted)."""
-    from bubsub.clients.pipeline.reconstruct import write_outputs
+    from bubsub.clients.pipeline.outputs import write_outputs
 
     files = write_outputs(out, rec, scan_path=args.scan, progress=not args.quiet)
     r = rec.report

@@ -19,7 +19,8 @@ def demo(out="demo-output", progress=True):
     from bubsub.core.io.scanfile import read_scan
 
     from bubsub.clients.pipeline.simulation import simulate_to_dir
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, write_outputs
+    from bubsub.clients.pipeline.outputs import write_outputs
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 
     out = Path(out)
     sim = out / "simulation"

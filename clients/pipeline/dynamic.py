@@ -191,7 +191,7 @@ def _static_settings(settings):
 
 
 def _split(scan, holdout):
-    from bubsub.clients.pipeline.reconstruct import _split as split
+    from bubsub.clients.pipeline.reconstruct import split_holdout as split
 
     return split(scan.geometry, scan.bubble_data, holdout)
 
@@ -222,7 +222,7 @@ def _equivalent_radius(surface):
 
 def _warm(scan, previous, settings):
     from bubsub.clients.optimise.levels import bin_factors, fit_levels
-    from bubsub.clients.pipeline.reconstruct import preview_voxel_size
+    from bubsub.clients.pipeline.preview import preview_voxel_size
 
     g_fit, d_fit, _, _ = _split(scan, settings.holdout)
     min_radius = settings.min_radius or preview_voxel_size(g_fit)

@@ -60,7 +60,8 @@ def write_subscan(out, result, ndim, scan_path=None):
     pathlib.Path
         The subscan's folder.
     """
-    from bubsub.clients.pipeline.reconstruct import Reconstruction, write_outputs
+    from bubsub.clients.pipeline.outputs import write_outputs
+    from bubsub.clients.pipeline.reconstruct import Reconstruction
 
     final = subscan_dir(out, result.index)
     partial = Path(out) / f".{final.name}.partial"

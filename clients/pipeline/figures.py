@@ -4,6 +4,7 @@
   orthogonal slices (xy, xz, yz through the middle) with the meshes' cross-sections.
 - :func:`write_mesh_view`: a shaded 3D rendering of the bubble meshes, coloured by id.
 - :func:`write_size_histogram`: the distribution of equivalent diameters.
+- :func:`write_figures`: the three of them for ``bubsub reconstruct``'s output folder.
 
 Every image has axes in mm and a colour bar saying what its colours mean;
 bubbles keep one colour (by id) across the pictures.
@@ -11,11 +12,15 @@ bubbles keep one colour (by id) across the pictures.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from bubsub.core.io.atomic import atomic_path
 
-__all__ = ["mesh_section", "subplots", "write_overlay", "write_mesh_view", "write_size_histogram"]
+from bubsub.clients.progress import phase
+
+__all__ = ["mesh_section", "subplots", "write_overlay", "write_mesh_view", "write_size_histogram", "write_figures"]
 
 _AXES = "xyz"
 #: Preview values are |bubble_contrast| inside bubbles, 0 in the liquid.
@@ -125,7 +130,7 @@ def write_overlay(path, image, extent, fine_items, ids=None, title="BubSub recon
     ----------
     path : str or os.PathLike
     image : ndarray, ``(rows, cols)`` or ``(slices, rows, cols)``
-        :func:`bubsub.clients.pipeline.reconstruct.voxel_preview`.
+        :func:`bubsub.clients.pipeline.preview.voxel_preview`.
     extent : tuple
         ``(xmin, xmax, ymin, ymax[, zmin, zmax])``, mm.
     fine_items : list of Polygon or Mesh
@@ -243,3 +248,47 @@ def write_size_histogram(path, diameters, ndim, title="Bubble size distribution"
     spread = f", mean {d.mean():.3g} mm, s.d. {d.std():.2g} mm" if d.size else ""
     ax.set_title(f"{title}: {d.size} bubbles{spread}", fontsize=10)
     _save(fig, path)
+
+
+def write_figures(out, rec, fine, rows, *, progress=False):
+    """Write ``overlay.png`` (preview slices with outlines), ``sizes.png`` and, in 3D, ``meshes.png``.
+
+    Parameters
+    ----------
+    out : str or os.PathLike
+        An existing folder.
+    rec : bubsub.clients.pipeline.reconstruct.Reconstruction
+        Its ``preview`` (None: no overlay), ``preview_extent``, ``surfaces`` and ``report["dimension"]``.
+    fine : list of Mesh or Polygon
+        The subdivided surfaces of ``rec.surfaces``.
+    rows : list of dict
+        :func:`bubsub.core.io.tables.bubble_table` of ``fine`` (ids and equivalent diameters).
+    progress : bool
+        Show the pictures as a phase.
+
+    Returns
+    -------
+    dict of str to pathlib.Path
+        ``{"overlay", "sizes", ["meshes"]}``.
+    """
+    out = Path(out)
+    ids = [r["id"] for r in rows]
+    files = {}
+    three_d = rec.report["dimension"] == 3
+    total = 1 + (rec.preview is not None) + three_d
+    with phase("pictures", total, unit="picture", enabled=progress) as bar:
+        if rec.preview is not None:
+            files["overlay"] = out / "overlay.png"
+            write_overlay(files["overlay"], rec.preview, rec.preview_extent, fine, ids)
+            bar.update()
+        files["sizes"] = out / "sizes.png"
+        write_size_histogram(files["sizes"], [r["equivalent_diameter_mm"] for r in rows
+                                              if r["equivalent_diameter_mm"] != ""], rec.report["dimension"])
+        bar.update()
+        if three_d:
+            # mplot3d draws every face: very many bubbles are shown by their control meshes
+            shown = fine if sum(len(m.faces) for m in fine) <= 60000 else [s.control for s in rec.surfaces]
+            files["meshes"] = out / "meshes.png"
+            write_mesh_view(files["meshes"], shown, ids)
+            bar.update()
+    return files

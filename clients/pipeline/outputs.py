@@ -1,4 +1,5 @@
-"""Output folders: the one policy every bubsub command that writes results follows.
+"""Output folders: the one policy every bubsub command that writes results follows, and the files of
+``bubsub reconstruct`` (:func:`write_outputs`).
 
 A folder *holds bubsub results* when it has the manifest :data:`MANIFEST`
 (written last by :func:`finish_outputs`, listing the files of that run) or,
@@ -30,10 +31,18 @@ import json
 import os
 from pathlib import Path
 
-from bubsub.core.io.atomic import atomic_write_text
+import numpy as np
 
-__all__ = ["json_default", "MANIFEST", "RESULT_NAMES", "OutputFolderError", "folder_problem", "earlier_outputs",
-           "check_output_folder", "finish_outputs"]
+from bubsub.core.io.atomic import atomic_path, atomic_write_text
+from bubsub.core.io.meshio import write_ply, write_polygons_json
+from bubsub.core.io.tables import (BUBBLE_COLUMN_INFO, BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D, bubble_table,
+                                   csv_metadata_path, write_csv)
+
+from bubsub.clients.pipeline.figures import write_figures
+from bubsub.clients.pipeline.fov import FOV_COLUMN_INFO, fov_columns
+
+__all__ = ["write_outputs", "json_default", "MANIFEST", "RESULT_NAMES", "OutputFolderError", "folder_problem",
+           "earlier_outputs", "check_output_folder", "finish_outputs"]
 
 #: Name of the manifest: ``{"bubsub": version, "command": str, "files": [relative paths]}``.
 MANIFEST = "bubsub-outputs.json"
@@ -182,8 +191,6 @@ def finish_outputs(path, files, command, **info):
 def json_default(o):
     """``json.dumps(..., default=json_default)``: numpy scalars and arrays as numbers and lists, anything
     else as its ``str``."""
-    import numpy as np
-
     if isinstance(o, np.integer):
         return int(o)
     if isinstance(o, np.floating):
@@ -191,3 +198,66 @@ def json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     return str(o)
+
+
+def write_outputs(out_dir, rec, scan_path=None, *, progress=False):
+    """Write ``bubbles.ply|json``, ``control.ply|json``, ``bubbles.csv`` and its column sidecar,
+    ``report.json`` and the pictures of :func:`write_figures`.
+
+    Every file goes to a temporary name first and is renamed when complete;
+    then the files of an earlier run in ``out_dir`` that were not replaced are
+    removed (:func:`finish_outputs`). Callers that must not replace earlier
+    results check the folder first (:func:`check_output_folder`).
+
+    Parameters
+    ----------
+    out_dir : str or os.PathLike
+        Created if missing.
+    rec : bubsub.clients.pipeline.reconstruct.Reconstruction
+        Its ``files`` is set to the returned mapping.
+    scan_path : str or os.PathLike, optional
+        Recorded in ``report.json``.
+    progress : bool
+        Show the pictures as a phase (seconds for 3D meshes).
+
+    Returns
+    -------
+    dict of str to pathlib.Path
+        ``{"mesh", "control", "table", "table_columns", "overlay", "sizes", ["meshes",] "report"}``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    fine = [s.fine() for s in rec.surfaces]
+    files = {}
+    if rec.report["dimension"] == 3:
+        files["mesh"] = out / "bubbles.ply"
+        write_ply(files["mesh"], [s.fine() for s in rec.surfaces], rec.ids)
+        files["control"] = out / "control.ply"
+        write_ply(files["control"], [s.control for s in rec.surfaces], rec.ids)
+    else:
+        files["mesh"] = out / "bubbles.json"
+        write_polygons_json(files["mesh"], fine, rec.ids)
+        files["control"] = out / "control.json"
+        write_polygons_json(files["control"], [s.control for s in rec.surfaces], rec.ids)
+    files["table"] = out / "bubbles.csv"
+    rows = bubble_table(fine, rec.ids)
+    columns = BUBBLE_COLUMNS_3D if rec.report["dimension"] == 3 else BUBBLE_COLUMNS_2D
+    info = BUBBLE_COLUMN_INFO
+    if rec.report.get("field_of_view_mm") is not None and fine:
+        # bubbles cut by the edge of the field of view are flagged, not dropped; their whole size is left empty
+        columns = (*columns, *fov_columns(rows, fine, rec.report))
+        info = {**info, **FOV_COLUMN_INFO}
+    write_csv(files["table"], rows, columns,
+              describe=info, title="bubbles reconstructed by bubsub reconstruct")
+    files["table_columns"] = csv_metadata_path(files["table"])
+    report = dict(rec.report)
+    if scan_path is not None:
+        report["scan"] = str(scan_path)
+    files.update(write_figures(out, rec, fine, rows, progress=progress))
+    report["files"] = {k: v.name for k, v in files.items()}
+    files["report"] = out / "report.json"
+    with atomic_path(files["report"]) as tmp:
+        Path(tmp).write_text(json.dumps(report, indent=2, default=json_default))
+    rec.files = files
+    finish_outputs(out, files.values(), command="reconstruct")
+    return files

@@ -1,6 +1,7 @@
 """The BubSub reconstruction pipeline: scan file in, one mesh per bubble out.
 
-1. Low-resolution voxel reconstruction of the bubble data (FBP in 2D, FDK in 3D).
+1. Low-resolution voxel reconstruction of the bubble data, the preview
+   (:mod:`.preview`; box-constrained projected gradient by default).
 2. Bubble centres: Laplacian-of-Gaussian blobs or distance-transform maxima of the
    Otsu mask, in 2D whichever explains the data better (:mod:`.initial`).
 3. One spherical control mesh per bubble with a constant radius, optionally
@@ -16,12 +17,12 @@
 5. Outputs, each written atomically: ``bubbles.ply`` (3D) or ``bubbles.json``
    (2D), ``bubbles.csv`` (+ ``bubbles.csv-metadata.json``), ``report.json``,
    ``overlay.png``, ``sizes.png`` and (3D) ``meshes.png``
-   (:mod:`bubsub.clients.pipeline.figures`).
+   (:func:`bubsub.clients.pipeline.outputs.write_outputs`, pictures by
+   :mod:`bubsub.clients.pipeline.figures`).
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,27 +30,21 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.core import MeshProjector, ScanGeometry
-from bubsub.core.io.atomic import atomic_path
-from bubsub.core.io.meshio import (BUBBLE_COLUMN_INFO, BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D, bubble_table,
-                                   csv_metadata_path, read_ply, read_polygons_json, write_csv, write_ply,
-                                   write_polygons_json)
+from bubsub.core.io.meshio import read_ply, read_polygons_json
 from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 from bubsub.clients.optimise.fit import estimate_radii
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
-from bubsub.clients.pipeline.fov import (FOV_COLUMN_INFO, field_of_view, fov_columns, fov_report, preview_extension,
-                                         truncated_flags, unobserved_control)
-from bubsub.clients.pipeline.initial import choose_initial, default_detector, initial_centres, initial_surfaces
-from bubsub.clients.pipeline.outputs import finish_outputs, json_default
+from bubsub.clients.pipeline.fov import fov_report, preview_extension, unobserved_control
+from bubsub.clients.pipeline.initial import choose_initial, default_detector
+from bubsub.clients.pipeline.preview import voxel_preview
 from bubsub.clients.pipeline.refine import can_refine, refine_and_check
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
-from bubsub.clients.progress import phase
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
-__all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "field_of_view", "truncated_flags",
-           "initial_centres", "initial_surfaces", "voxel_preview", "preview_grid", "resample_image"]
+__all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "load_initial", "split_holdout", "prune"]
 
 
 @dataclass
@@ -97,132 +92,6 @@ class Reconstruction:
     ids: list | None = None  # bubble ids written to the outputs (default 0..n-1); track ids in 4D
 
 
-def preview_voxel_size(geometry):
-    """Default voxel size of the preview (mm): the field of view over 256 (2D) or 160 (3D) voxels."""
-    return 2 * field_of_view(geometry)[0] / (160 if geometry.ndim == 3 else 256)
-
-
-def preview_grid(geometry, voxel_size=None, extend=1.0):
-    """Shape and extent (mm) of the voxel preview's grid: the field of view at ``voxel_size`` (default
-    :func:`preview_voxel_size`), its radius times ``extend`` (:func:`bubsub.clients.pipeline.fov.preview_extension`)."""
-    r_xy, half_z = field_of_view(geometry)
-    if voxel_size is None:
-        voxel_size = preview_voxel_size(geometry)
-    n = max(8, int(np.ceil(2 * extend * r_xy / voxel_size)))
-    half = n * voxel_size / 2
-    if geometry.ndim == 2:
-        return (n, n), (-half, half, -half, half)
-    nz = max(4, int(np.ceil(2 * half_z / voxel_size)))
-    hz = nz * voxel_size / 2
-    return (nz, n, n), (-half, half, -half, half, -hz, hz)
-
-
-PREVIEW_FINE_ITERATIONS_3D = 5  # of the 3D preview's iterations, those on the requested grid (the rest on a 2x coarser one)
-
-
-def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *, progress=False, method="box",
-                  coarse_3d=True, extend=1.0):
-    """Low-resolution voxel reconstruction of the bubbles, for the initialisation.
-
-    The bubble data ``sign(contrast) * data`` is the projection of an image
-    that is ``|contrast|`` inside bubbles and 0 elsewhere. ``method="box"``
-    (default) uses both bounds: projected gradient descent with
-    Barzilai-Borwein steps (:func:`bubsub.core.voxel.solvers.pgd_bb`) onto
-    ``0 <= x <= |contrast|`` (50 iterations in 2D, 30 in 3D); at few views it
-    separates touching bubbles that SIRT blurs together (README example, 13
-    views: 37 of 40 bubbles found instead of 28; docs/robustness.md).
-    ``method="sirt"``: SIRT with ``x >= 0`` only (100 iterations in 2D, 15 in 3D).
-    ``extend`` widens the grid beyond the field of view's radius by that
-    factor (:func:`bubsub.clients.pipeline.fov.preview_extension`), so that
-    bubbles partly outside the reconstructable cylinder, which some
-    projections see, have voxels to go to.
-
-    Returns
-    -------
-    image : ndarray float32, ``(rows, cols)`` or ``(slices, rows, cols)``
-        Bubble "density" (``|contrast|`` inside bubbles, 0 elsewhere).
-    extent : tuple
-        ``(xmin, xmax, ymin, ymax[, zmin, zmax])`` in mm.
-    """
-    if method not in ("box", "sirt"):
-        raise ValueError(f"preview method must be 'box' or 'sirt', got {method!r}")
-    shape, extent = preview_grid(geometry, voxel_size, extend)
-    positive = np.sign(contrast) * np.asarray(data, dtype=np.float32)
-    upper = np.float32(abs(contrast))
-    box = method == "box"
-    if geometry.ndim == 2 and not box:  # ASTRA's own SIRT: about a second, no per-iteration callback
-        from bubsub.core.voxel.astra2d import reconstruct_2d
-
-        with phase("voxel preview (2D SIRT)", 1, unit="reconstruction", enabled=progress) as bar:
-            image = reconstruct_2d("sirt", positive, geometry, shape, extent, iterations=iterations or 100,
-                                   nonneg=True)
-            bar.update(1, voxels="x".join(map(str, shape)))
-        return image, extent
-    n = iterations or ((50 if box else 100) if geometry.ndim == 2 else (30 if box else 15))
-
-    def step(k, x):
-        if box:  # pgd_bb projects onto x >= 0 itself; this adds the upper bound to each iterate
-            np.minimum(x, upper, out=x)
-        bar.update(1)
-
-    name = "bb" if box else "sirt"
-    label = f"voxel preview ({geometry.ndim}D {'box-constrained BB' if box else 'SIRT'})"
-    if geometry.ndim == 2:
-        from bubsub.core.voxel.astra2d import reconstruct_2d
-
-        with phase(label, n, enabled=progress) as bar:
-            image = reconstruct_2d(name, positive, geometry, shape, extent, iterations=n, nonneg=True, callback=step)
-            bar.postfix["voxels"] = "x".join(map(str, shape))
-        return image, extent
-    from bubsub.core.voxel.reconstruct3d import reconstruct_3d
-
-    # Coarse to fine: the iterations run on voxels twice as large (8x fewer, so 8x
-    # cheaper: the 3D preview was half of a reconstruction's time), then a few on
-    # the requested grid refine the edges from there.
-    fine = min(n, PREVIEW_FINE_ITERATIONS_3D)
-    coarse = n - fine if coarse_3d else 0
-    x0 = None
-    with phase(label, n, enabled=progress) as bar:
-        if coarse > 0:
-            voxel = (extent[1] - extent[0]) / shape[-1]
-            shape_c, extent_c = preview_grid(geometry, 2 * voxel, extend)
-            image_c = reconstruct_3d(name, positive, geometry, shape_c, extent_c, iterations=coarse, nonneg=True,
-                                     callback=step)
-            x0 = resample_image(image_c, extent_c, shape, extent)
-        image = reconstruct_3d(name, positive, geometry, shape, extent, iterations=n - coarse, nonneg=True, x0=x0,
-                               callback=step)
-        bar.postfix["voxels"] = "x".join(map(str, shape))
-    return image, extent
-
-
-def resample_image(image, extent, shape, new_extent):
-    """Trilinear (bilinear in 2D) resampling of a voxel image onto another grid (edge values extended).
-
-    Parameters
-    ----------
-    image : ndarray, ``(rows, cols)`` or ``(slices, rows, cols)``
-    extent : tuple
-        Of ``image``, mm (grid convention of :mod:`bubsub.core.voxel.grid`).
-    shape, new_extent
-        The new grid.
-
-    Returns
-    -------
-    ndarray float32 of ``shape``
-    """
-    from scipy import ndimage
-
-    from bubsub.core.voxel.grid import index_to_world, world_to_index
-
-    # both grids are axis-aligned, so each new index maps to an old one by a per-axis affine
-    # function: found from indices 0 and 1, applied without any coordinate arrays
-    nd = len(shape)
-    src = world_to_index(index_to_world(np.array([np.zeros(nd), np.ones(nd)]), shape, new_extent), image.shape, extent)
-    out = ndimage.affine_transform(np.asarray(image, dtype=np.float32), src[1] - src[0], offset=src[0],
-                                   output_shape=tuple(shape), order=1, mode="nearest")
-    return out.astype(np.float32, copy=False)
-
-
 def load_initial(path, contrast, levels=2):
     """Initial control meshes from a previous reconstruction (``bubbles.ply`` or ``bubbles.json``)."""
     path = Path(path)
@@ -235,7 +104,21 @@ def load_initial(path, contrast, levels=2):
     return [SubdivisionSurface(m, levels) for m in items]
 
 
-def _split(geometry, data, holdout):
+def split_holdout(geometry, data, holdout):
+    """The projections to fit and those held out for validation (``--holdout``).
+
+    Parameters
+    ----------
+    geometry : bubsub.core.ScanGeometry
+    data : ndarray, ``(angles, ...)``
+    holdout : {None, "odd", "even"}
+        Which projections (by index) are held out; None holds out none.
+
+    Returns
+    -------
+    fit_geometry, fit_data, held_geometry, held_data
+        The last two None when nothing is held out.
+    """
     if holdout is None:
         return geometry, data, None, None
     if holdout not in ("odd", "even"):
@@ -274,7 +157,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     contrast = scan.bubble_contrast
     data = scan.bubble_data
     geometry = scan.geometry
-    g_fit, d_fit, g_val, d_val = _split(geometry, data, s.holdout)
+    g_fit, d_fit, g_val, d_val = split_holdout(geometry, data, s.holdout)
 
     image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress, method=s.preview,
                                   extend=preview_extension(s.fov_model))
@@ -424,79 +307,3 @@ def prune(surfaces, min_radius):
         if size >= least:
             kept.append(s)
     return kept, len(surfaces) - len(kept)
-
-
-def write_outputs(out_dir, rec, scan_path=None, *, progress=False):
-    """Write ``bubbles.ply|json``, ``control.ply|json``, ``bubbles.csv`` and its column sidecar,
-    ``report.json`` and the pictures of :func:`write_figures`.
-
-    Every file goes to a temporary name first and is renamed when complete;
-    then the files of an earlier run in ``out_dir`` that were not replaced are
-    removed (:func:`bubsub.clients.pipeline.outputs.finish_outputs`). Callers
-    that must not replace earlier results check the folder first
-    (:func:`bubsub.clients.pipeline.outputs.check_output_folder`).
-    ``progress`` shows the pictures as a phase (seconds for 3D meshes).
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    fine = [s.fine() for s in rec.surfaces]
-    files = {}
-    if rec.report["dimension"] == 3:
-        files["mesh"] = out / "bubbles.ply"
-        write_ply(files["mesh"], [s.fine() for s in rec.surfaces], rec.ids)
-        files["control"] = out / "control.ply"
-        write_ply(files["control"], [s.control for s in rec.surfaces], rec.ids)
-    else:
-        files["mesh"] = out / "bubbles.json"
-        write_polygons_json(files["mesh"], fine, rec.ids)
-        files["control"] = out / "control.json"
-        write_polygons_json(files["control"], [s.control for s in rec.surfaces], rec.ids)
-    files["table"] = out / "bubbles.csv"
-    rows = bubble_table(fine, rec.ids)
-    columns = BUBBLE_COLUMNS_3D if rec.report["dimension"] == 3 else BUBBLE_COLUMNS_2D
-    info = BUBBLE_COLUMN_INFO
-    if rec.report.get("field_of_view_mm") is not None and fine:
-        # bubbles cut by the edge of the field of view are flagged, not dropped; their whole size is left empty
-        columns = (*columns, *fov_columns(rows, fine, rec.report))
-        info = {**info, **FOV_COLUMN_INFO}
-    write_csv(files["table"], rows, columns,
-              describe=info, title="bubbles reconstructed by bubsub reconstruct")
-    files["table_columns"] = csv_metadata_path(files["table"])
-    report = dict(rec.report)
-    if scan_path is not None:
-        report["scan"] = str(scan_path)
-    files.update(write_figures(out, rec, fine, rows, progress=progress))
-    report["files"] = {k: v.name for k, v in files.items()}
-    files["report"] = out / "report.json"
-    with atomic_path(files["report"]) as tmp:
-        Path(tmp).write_text(json.dumps(report, indent=2, default=json_default))
-    rec.files = files
-    finish_outputs(out, files.values(), command="reconstruct")
-    return files
-
-
-def write_figures(out, rec, fine, rows, *, progress=False):
-    """``overlay.png`` (preview slices with outlines), ``sizes.png`` and, in 3D, ``meshes.png``."""
-    from bubsub.clients.pipeline.figures import write_mesh_view, write_overlay, write_size_histogram
-
-    out = Path(out)
-    ids = [r["id"] for r in rows]
-    files = {}
-    three_d = rec.report["dimension"] == 3
-    total = 1 + (rec.preview is not None) + three_d
-    with phase("pictures", total, unit="picture", enabled=progress) as bar:
-        if rec.preview is not None:
-            files["overlay"] = out / "overlay.png"
-            write_overlay(files["overlay"], rec.preview, rec.preview_extent, fine, ids)
-            bar.update()
-        files["sizes"] = out / "sizes.png"
-        write_size_histogram(files["sizes"], [r["equivalent_diameter_mm"] for r in rows
-                                              if r["equivalent_diameter_mm"] != ""], rec.report["dimension"])
-        bar.update()
-        if three_d:
-            # mplot3d draws every face: very many bubbles are shown by their control meshes
-            shown = fine if sum(len(m.faces) for m in fine) <= 60000 else [s.control for s in rec.surfaces]
-            files["meshes"] = out / "meshes.png"
-            write_mesh_view(files["meshes"], shown, ids)
-            bar.update()
-    return files

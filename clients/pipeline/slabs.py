@@ -350,7 +350,7 @@ def estimate_halo(scan_path, geometry, settings, bubble_contrast=None):
     from bubsub.core.io.scanfile import read_scan
 
     from bubsub.clients.pipeline.initial import initial_centres
-    from bubsub.clients.pipeline.reconstruct import voxel_preview
+    from bubsub.clients.pipeline.preview import voxel_preview
 
     n = min(STRIP_ROWS, geometry.det_rows)
     start = (geometry.det_rows - n) // 2

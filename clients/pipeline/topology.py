@@ -265,7 +265,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         Projections, ``projector.geometry.shape``.
     preview : callable(projections) -> (image, extent)
         Voxel reconstruction of a projection array (bubbles positive), e.g.
-        :func:`bubsub.clients.pipeline.reconstruct.voxel_preview` with the
+        :func:`bubsub.clients.pipeline.preview.voxel_preview` with the
         scan's geometry and contrast.
     new_bubble : callable(centre, radius) -> SubdivisionSurface
         A round bubble with the fit's topology.
@@ -362,7 +362,7 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
         The fitted projections.
     contrast : float
     image : ndarray
-        The voxel preview (:func:`~bubsub.clients.pipeline.reconstruct.voxel_preview`).
+        The voxel preview (:func:`~bubsub.clients.pipeline.preview.voxel_preview`).
     extent : tuple
         Of the voxel preview; ``voxel`` its voxel size, mm.
     settings : ReconstructionSettings
@@ -374,7 +374,7 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     from bubsub.core import MeshProjector
     from bubsub.core.projection.subdivision import circle_surface, sphere_surface
     from bubsub.clients.pipeline.fov import preview_extension
-    from bubsub.clients.pipeline.reconstruct import preview_grid, resample_image, voxel_preview
+    from bubsub.clients.pipeline.preview import preview_grid, resample_image, voxel_preview
 
     ndim = surfaces[0].ndim
     k = len(surfaces[0].vertices)

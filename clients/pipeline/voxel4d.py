@@ -51,11 +51,12 @@ def voxel_baseline(scan, holdout, *, iterations=BB_ITERATIONS, shape=None, exten
         ``image`` (bubbles positive, ``|contrast|`` inside), ``extent``,
         ``holdout_mse`` (None without a holdout), ``seconds``.
     """
-    from bubsub.clients.pipeline.reconstruct import _split, preview_grid
+    from bubsub.clients.pipeline.preview import preview_grid
+    from bubsub.clients.pipeline.reconstruct import split_holdout
     from bubsub.core.voxel import solvers
 
     t0 = time.perf_counter()
-    g_fit, d_fit, g_val, d_val = _split(scan.geometry, scan.bubble_data, holdout)
+    g_fit, d_fit, g_val, d_val = split_holdout(scan.geometry, scan.bubble_data, holdout)
     if shape is None:
         shape, extent = preview_grid(g_fit)
     sign = np.float32(np.sign(scan.bubble_contrast))

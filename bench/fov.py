@@ -213,7 +213,7 @@ def column_case(args, extra):
     from pathlib import Path
 
     from bubsub.bench.matching import column_truth, match, mesh_labels, truth_labels
-    from bubsub.bench.reconstruct import _cli
+    from bubsub.bench.reconstruct import cli_command as _cli
     from bubsub.bench.scale import run_tree, simulate_case
     from bubsub.clients.pipeline.fov import fov_mask
     from bubsub.core.io.meshio import read_ply

@@ -32,8 +32,6 @@ def cli_command(*args):
             *map(str, args)]
 
 
-_cli = cli_command  # the name bench/fov.py and bench/scale.py import; to be removed
-
 
 def _child_run(cmd):
     """Run ``cmd``; its wall seconds, CPU seconds (user + system) and peak RSS (MiB).

@@ -43,7 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bubsub.bench.reconstruct import PHASES, _cli
+from bubsub.bench.reconstruct import PHASES
+from bubsub.bench.reconstruct import cli_command as _cli
 from bubsub.core.foam.column import COLUMN_PRESETS
 
 __all__ = ["main", "run_tree", "simulate_case", "score_case", "project", "table", "TOMO_00080"]

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.projection.backends.frames import _CHUNK as RAY_CHUNK  # rays per work item of the ray casters
+from ..core.projection.backends.frames import RAY_CHUNK  # rays per work item of the ray casters
 from .errors import APIError
 
 __all__ = ["Estimate", "estimate", "check_job", "ComputeBudget", "OVERHEAD_BYTES", "PIXEL_BYTES", "BackendCosts", "RASTER",
@@ -310,10 +310,10 @@ def estimate(job, op, crossings_per_ray, vertices=None, arrays=None, body_bytes=
     parts = threads if backend == "raster" else max(1, -(-rays * k2 // RAY_CHUNK))
     face_sums = costs.face_thread[job.ndim] * n_faces * parts
     if backend == "raster":
-        from ..core.projection.backends.raster import _ITEM_MAJOR_FACES
+        from ..core.projection.backends.raster import ITEM_MAJOR_FACES
 
         cap = _store_cap(job)
-        if kept <= cap and job.ndim == 3 and k2 == 1 and n_faces >= _ITEM_MAJOR_FACES:
+        if kept <= cap and job.ndim == 3 and k2 == 1 and n_faces >= ITEM_MAJOR_FACES:
             face_sums //= threads  # kept item by item: one array of face sums for all threads
         # three arrays (face, pixel, coefficients) per thread
         kept = min(kept + 3 * threads * HUGE_PAGE // 2, cap) if gradient and kept > 0 else 0

@@ -60,8 +60,6 @@ def test_every_module_imports_first_without_a_cycle():
 #: not a design choice: nothing here is an optional dependency (those are third-party imports, which the
 #: graph below does not contain). To be removed by the pipeline rewrite (clients/pipeline, clients/cluster).
 CYCLES_ALLOWED = [
-    # to be removed: worker.py imports engine.py, engine.py imports worker.py inside a function
-    {"bubsub.clients.cluster.engine", "bubsub.clients.cluster.worker"},
     # to be removed: pipeline/dynamic.py <-> dynamic_outputs.py, and pipeline/dynamic.py <-> cluster/dynamic.py
     {"bubsub.clients.cluster.dynamic", "bubsub.clients.pipeline.dynamic", "bubsub.clients.pipeline.dynamic_outputs"},
 ]
@@ -70,14 +68,7 @@ CYCLES_ALLOWED = [
 #: gives the name a public home (or the caller stops needing it); the owners of the importing files
 #: (clients/pipeline, clients/cluster, core/foam, service, bench/fov.py, bench/scale.py) switch them.
 PRIVATE_IMPORTS_ALLOWED = {
-    ("bubsub.clients.pipeline.voxel4d", "bubsub.core.voxel.astra2d", "_have_astra"),  # public: have_astra
-    ("bubsub.clients.cluster.dynamic", "bubsub.clients.cluster.engine", "_distributed"),
-    ("bubsub.core.foam.simulate", "bubsub.core.voxel.astra2d", "_have_astra"),  # public: have_astra
     ("bubsub.core.foam.expanding", "bubsub.core.foam.simulate", "_finish"),
-    ("bubsub.service.budget", "bubsub.core.projection.backends.frames", "_CHUNK"),  # public: RAY_CHUNK
-    ("bubsub.service.budget", "bubsub.core.projection.backends.raster", "_ITEM_MAJOR_FACES"),  # ITEM_MAJOR_FACES
-    ("bubsub.bench.fov", "bubsub.bench.reconstruct", "_cli"),  # public: cli_command
-    ("bubsub.bench.scale", "bubsub.bench.reconstruct", "_cli"),  # public: cli_command
 }
 
 

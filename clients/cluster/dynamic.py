@@ -248,7 +248,7 @@ def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=N
         Per chunk boundary: the shared subscan, matched count, smallest
         overlap, unmatched ids of either side.
     """
-    from bubsub.clients.cluster.engine import _distributed
+    from bubsub.clients.cluster.engine import distributed
 
     parts = chunk_bounds(order, chunks)
     linker = _Linker(parts, start.ids if start is not None else ())
@@ -286,7 +286,7 @@ def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=N
                     prev = run_subscan(where(k), k, prev, worker_settings, when(k))
                     take(c, prev)
         else:
-            dd = _distributed()
+            dd = distributed()
             futures, owner, token = [], {}, uuid.uuid4().hex[:8]
             for c, part in enumerate(parts):
                 prev = start if c == 0 else None

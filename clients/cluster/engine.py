@@ -18,8 +18,11 @@ import os
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from .environment import pinned_environment
+
 __all__ = ["ClusterSpec", "in_process", "local", "remote", "from_scheduler_file", "spec_from_options",
-           "spec_from_args", "add_cluster_arguments", "open_client", "run_tasks", "workers_of", "pinned_environment"]
+           "spec_from_args", "add_cluster_arguments", "open_client", "run_tasks", "workers_of",
+           "distributed"]
 
 #: what ``import dask.distributed`` failing tells the user
 _INSTALL_HINT = "running on a Dask cluster needs the 'cluster' extra: pip install 'bubsub[cluster]'"
@@ -140,14 +143,8 @@ def spec_from_args(args):
     return spec_from_options(args.workers, args.scheduler, args.scheduler_file, args.dashboard)
 
 
-def pinned_environment(threads):
-    """Environment variables that hold one task's projector, numba and BLAS threads to ``threads``."""
-    n = str(int(threads))
-    return {"BUBSUB_THREADS": n, "NUMBA_NUM_THREADS": n, "OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n,
-            "MKL_NUM_THREADS": n}
-
-
-def _distributed():
+def distributed():
+    """The ``dask.distributed`` module; an ImportError naming the ``cluster`` extra when it is missing."""
     try:
         import dask.distributed as dd
     except ImportError as exc:
@@ -161,7 +158,7 @@ def open_client(spec):
     if spec.in_process:
         yield None
         return
-    dd = _distributed()
+    dd = distributed()
     from .worker import PinThreads
 
     cluster = None
@@ -220,7 +217,7 @@ def run_tasks(client, fn, tasks, *, on_result=None, retries=2):
             if on_result is not None:
                 on_result(i, results[i])
         return results
-    dd = _distributed()
+    dd = distributed()
     futures = [client.submit(fn, *args, pure=False, retries=retries) for args in tasks]
     index = {f.key: i for i, f in enumerate(futures)}
     try:

@@ -2,7 +2,7 @@
 
 ``slurm_cluster(...)`` returns a ``dask_jobqueue.SLURMCluster`` whose batch jobs
 each start ``workers_per_job`` Dask workers with bubsub's projector, numba and
-BLAS threads pinned (:func:`bubsub.clients.cluster.engine.pinned_environment`).
+BLAS threads pinned (:func:`bubsub.clients.cluster.environment.pinned_environment`).
 Scale it (``cluster.scale(jobs=4)`` or ``cluster.adapt(maximum_jobs=8)``) and
 pass ``dask.distributed.Client(cluster)`` as the ``client`` of a run. The
 script each job runs is ``cluster.job_script()``; see docs/cluster.md.
@@ -10,7 +10,7 @@ script each job runs is ``cluster.job_script()``; see docs/cluster.md.
 
 from __future__ import annotations
 
-from .engine import pinned_environment
+from .environment import pinned_environment
 
 __all__ = ["slurm_cluster"]
 

@@ -6,7 +6,7 @@ import os
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from .engine import pinned_environment
+from .environment import pinned_environment
 
 __all__ = ["PinThreads"]
 

@@ -23,9 +23,9 @@ BB_ITERATIONS = 30
 
 def _operator(geometry, shape, extent):
     if geometry.ndim == 2:
-        from bubsub.core.voxel.astra2d import AstraProjector2D, _have_astra
+        from bubsub.core.voxel.astra2d import AstraProjector2D, have_astra
 
-        if _have_astra():
+        if have_astra():
             return AstraProjector2D(geometry, shape, extent)
     from bubsub.core.voxel.projector3d import VoxelProjector
 

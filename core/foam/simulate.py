@@ -141,7 +141,7 @@ def project_image(image, extent, geometry, projector="auto"):
     (n_angles, det_count) float32
         Line integrals.
     """
-    from bubsub.core.voxel.astra2d import AstraProjector2D, _have_astra
+    from bubsub.core.voxel.astra2d import AstraProjector2D, have_astra as _have_astra
 
     if not _have_astra():  # pragma: no cover - depends on the environment
         raise ImportError(

@@ -52,8 +52,6 @@ def have_astra():
     return True
 
 
-_have_astra = have_astra  # the name core/foam/simulate.py and clients/pipeline/voxel4d.py import; to be removed
-
 
 def astra_vol_geom(shape, extent):
     """ASTRA 2D volume geometry of a grid.

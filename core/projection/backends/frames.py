@@ -10,7 +10,6 @@ __all__ = ["Frames", "RayCaster", "EPS_REL"]
 
 EPS_REL = 1e-5  # restart offset after a hit, relative to the scene size
 RAY_CHUNK = 1 << 17  #: rays per work item
-_CHUNK = RAY_CHUNK  # the name service/budget.py imports; to be removed
 
 
 def _item_spheres(scene):

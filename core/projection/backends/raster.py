@@ -147,7 +147,6 @@ def store_bytes():
 
 #: faces from which the forward pass goes item by item (raster_kernels.raster3d, _Job)
 ITEM_MAJOR_FACES = 100_000
-_ITEM_MAJOR_FACES = ITEM_MAJOR_FACES  # the name service/budget.py imports; to be removed
 
 _POOL_LOCK = threading.Lock()
 _POOL = []  # crossing stores handed back by finished gradients, reused: fresh pages cost a fault each

@@ -55,7 +55,7 @@ def _groups(analysis, table):
     return out
 
 
-def _histograms(path, analysis, column, xlabel, title, integer=False):
+def _histograms(path, analysis, column, xlabel, title, integer=False, unit=""):
     from bubsub.clients.pipeline.figures import subplots
 
     fig, ax = subplots(figsize=(7, 4.5), dpi=100)
@@ -74,11 +74,11 @@ def _histograms(path, analysis, column, xlabel, title, integer=False):
         if len(groups) == 1:
             v = groups[0][1]
             ax.hist(v, bins=bins, color="tab:blue", edgecolor="white")
-            ax.axvline(v.mean(), color="tab:orange", lw=1.5, label=f"mean {v.mean():.3g}")
+            ax.axvline(v.mean(), color="tab:orange", lw=1.5, label=f"mean {v.mean():.3g}{unit}")
         else:
             for label, v in groups:
                 ax.hist(v, bins=bins, histtype="step", lw=1.3,
-                        label=f"{label} (mean {v.mean():.3g})" if v.size else label)
+                        label=f"{label} (mean {v.mean():.3g}{unit})" if v.size else label)
         ax.legend(fontsize=8)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("bubbles (not cut by the field of view)")
@@ -179,7 +179,8 @@ def write_figures(out, analysis):
 
     out = Path(out)
     _histograms(out / "sizes.png", analysis, "equivalent_radius_mm", "equivalent radius (mm; ball of equal volume)",
-                "Bubble sizes")
+                "Bubble sizes",
+                unit=" mm")
     _histograms(out / "sphericity.png", analysis, "sphericity", "sphericity pi^(1/3) (6V)^(2/3) / A", "Sphericity")
     _histograms(out / "coordination.png", analysis, "coordination",
                 f"coordination (contacts closer than {analysis.summary['contact_gap_mm']:.3g} mm)", "Coordination",

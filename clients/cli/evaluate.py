@@ -7,7 +7,9 @@ import argparse
 from bubsub.clients.pipeline.evaluate import evaluate_dir
 
 DDI_TEXT = ("DDI (Dice dissimilarity) = 1 - 2 |R n T| / (|R| + |T|) of the reconstructed bubbles R and the true "
-            "bubbles T on the truth's grid: 0 is a perfect match, 1 no overlap; lower is better.")
+            "bubbles T on the truth's grid, counting only its voxels inside the field of view (the region the data "
+            "see: the reconstruction's report.json, else a column simulation's phantom.json): 0 is a perfect match, "
+            "1 no overlap; lower is better.")
 
 _LABELS = {
     "ddi": "DDI (lower is better)",

@@ -172,9 +172,15 @@ def register(sub):
                         "kept when the Akaike score improves; docs/robustness.md)")
     p.add_argument("--no-repair", action="store_true",
                    help="only report self-intersecting or overlapping bubbles (report.json), do not repair them")
-    p.add_argument("--fov-model", action="store_true",
-                   help="voxel preview over 1.25 times the reconstructable cylinder and bubbles cut by the "
-                        "detector's top or bottom seeded at their visible cross-section (docs/prepare.md)")
+    fov = p.add_mutually_exclusive_group()
+    fov.add_argument("--no-fov-model", dest="fov_model", action="store_false",
+                     help="treat the detector's top and bottom rows and the reconstructable cylinder as background "
+                          "instead of the edge of what the data see: no preview beyond the field of view, and "
+                          "bubbles cut by the edge seeded as smaller spheres inside it (docs/prepare.md)")
+    fov.add_argument("--fov-model", dest="fov_model", action="store_true",
+                     help="the default: voxel preview over 1.25 times the reconstructable cylinder and bubbles cut "
+                          "by the detector's top or bottom seeded at their visible part (docs/prepare.md)")
+    p.set_defaults(fov_model=True)
     p.add_argument("--init", type=existing_file,
                    help="initial control mesh: a previous reconstruction's control.ply / control.json")
     p.add_argument("--holdout", choices=("odd", "even"),

@@ -11,7 +11,8 @@ import numbers
 
 import numpy as np
 
-__all__ = ["check_settings", "check_bubble_signal", "CONTROL_POINTS_3D", "MAX_LEVELS"]
+__all__ = ["check_settings", "check_bubble_signal", "check_lateral_truncation", "side_signal", "CONTROL_POINTS_3D",
+           "MAX_LEVELS", "TRUNCATED_VIEWS"]
 
 #: Control vertices of the icosphere control meshes (3D bubbles).
 CONTROL_POINTS_3D = (12, 42, 162)
@@ -115,3 +116,92 @@ def check_bubble_signal(scan, *, background_subtracted=False):
             f"and no /exchange/background, so the fit would take the liquid for bubbles; gas bubbles have a "
             f"negative contrast: correct its sign and {prepare}; if the data really hold only the bubbles' "
             f"projection, pass --background-subtracted")
+    check_lateral_truncation(scan)
+
+
+#: Least fraction of the projections in which the sample reaches a side of the detector for
+#: :func:`check_lateral_truncation` to refuse the scan (a centred sample wider than the detector reaches both
+#: sides in every projection; one inside the field of view in none).
+TRUNCATED_VIEWS = 0.1
+
+#: Columns at each side of the detector whose values :func:`side_signal` takes.
+SIDE_COLUMNS = 2
+
+
+def side_signal(values):
+    """How far a projection array's outermost columns stand above the air level, view by view.
+
+    Parameters
+    ----------
+    values : ndarray, ``(views, cols)`` or ``(views, rows, cols)``
+        Line integrals of what attenuates (the sample, or the bubbles' signal made positive).
+
+    Returns
+    -------
+    left, right : (views,) float
+        Median over rows (and the :data:`SIDE_COLUMNS` outermost columns) of each side.
+    level : float
+        Above it a side sees the sample: 6 standard errors of that median in air (the noise estimated
+        from neighbouring side columns' differences, robustly) or 1 % of the array's 99th percentile,
+        whichever is larger.
+    """
+    a = np.asarray(values, dtype=np.float32)
+    a = a.reshape(a.shape[0], -1, a.shape[-1])
+    k = min(SIDE_COLUMNS, a.shape[-1] // 4)
+    if k < 1:
+        raise ValueError(f"a detector of {a.shape[-1]} columns is too narrow to check its sides")
+    left, right = a[:, :, :k], a[:, :, -k:]
+    # adjacent side columns differ by noise only (a smooth sample changes little over one pixel)
+    d = np.diff(np.concatenate([a[:, :, :k + 1], a[:, :, -k - 1:]], axis=2), axis=2)
+    sigma = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2)
+    per_view = a.shape[1] * k
+    # the percentile from every few rows: the same level, a fraction of a second less on a tall detector
+    step = max(1, a.shape[1] // 64)
+    level = max(6 * 1.25 * sigma / np.sqrt(per_view), 0.01 * float(np.percentile(a[:, ::step], 99)))
+    return (np.median(left.reshape(len(a), -1), axis=1), np.median(right.reshape(len(a), -1), axis=1), level)
+
+
+def check_lateral_truncation(scan):
+    """Refuse a scan whose sample is wider than the detector (local tomography).
+
+    The pipeline models what the data see: bubbles within 1.25 times the
+    radius of the cylinder every projection sees
+    (:data:`bubsub.clients.pipeline.fov.FOV_EXTEND`) and, through
+    ``/exchange/background``, the liquid. A sample (or liquid column) wider
+    than the detector reaches the detector's sides: its gas beyond that
+    radius enters some projections but no modelled bubble, and the fit turns
+    it into spurious or swollen bubbles at the edge, with nothing in the
+    result to say so. It is detected from the data: with a background, the
+    sample's projection ``data`` (the liquid with its bubbles) at the
+    outermost columns stands above the air level (:func:`side_signal`) in
+    at least :data:`TRUNCATED_VIEWS` of the projections; without one (the
+    projections hold only the bubbles' signal, so the liquid's edge is not
+    in them), the bubbles' signal does so in at least half of them (a few
+    bubbles partly outside the field of view, which the model covers, reach
+    a side in fewer).
+
+    Parameters
+    ----------
+    scan : bubsub.core.io.scanfile.Scan
+
+    Raises
+    ------
+    ValueError
+        Naming the problem (how many projections see the sample at the
+        detector's left and right sides) and what to do.
+    """
+    name = scan.path.name if scan.path is not None else "the scan"
+    if scan.background is not None:
+        values, least, what = scan.data, TRUNCATED_VIEWS, "the sample (data, with its liquid)"
+    else:
+        values, least, what = np.sign(scan.bubble_contrast) * scan.data, 0.5, "the bubbles' signal"
+    left, right, level = side_signal(values)
+    n = len(left)
+    hit_l, hit_r = int(np.count_nonzero(left > level)), int(np.count_nonzero(right > level))
+    if max(hit_l, hit_r) >= least * n:
+        raise ValueError(
+            f"{name} is laterally truncated (local tomography): {what} reaches the detector's left side in "
+            f"{hit_l} and its right side in {hit_r} of {n} projections, so the sample is wider than the field of "
+            f"view and its gas outside it would be fitted as spurious bubbles at the edge; bubsub needs a "
+            f"detector wider than the sample (a wider field of view, or the sample centred on the rotation axis "
+            f"if it is narrower than the detector but off-centre)")

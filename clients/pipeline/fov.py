@@ -27,9 +27,34 @@ __all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "
 FOV_EXTEND = 1.25
 
 
-def preview_extension(fov_model):
-    """Factor by which the voxel preview's grid exceeds the field of view (1 without the model)."""
-    return FOV_EXTEND if fov_model else 1.0
+def preview_extension(fov_model, data=None, contrast=None):
+    """Factor by which the voxel preview's grid radius exceeds the field of view's.
+
+    :data:`FOV_EXTEND` with the model, 1 without it, and 1 as well when
+    ``data`` show that nothing lies outside the field of view's cylinder: in
+    every projection both sides of the detector see no bubble signal
+    (:func:`bubsub.clients.pipeline.checks.side_signal`), so each view's
+    shadow of the sample lies within the detector and the sample within the
+    cylinder (the common case of a column narrower than the detector; the
+    wider grid would only add 56 % to the preview's voxels).
+
+    Parameters
+    ----------
+    fov_model : bool
+    data : ndarray, optional
+        The fitted projections' bubble signal (``data - background``),
+        ``(views, cols)`` or ``(views, rows, cols)``.
+    contrast : float, optional
+        Bubble contrast (its sign makes the signal positive); needed with ``data``.
+    """
+    if not fov_model:
+        return 1.0
+    if data is None:
+        return FOV_EXTEND
+    from bubsub.clients.pipeline.checks import side_signal
+
+    left, right, level = side_signal(np.sign(contrast) * np.asarray(data, dtype=np.float32))
+    return FOV_EXTEND if bool(np.any(left > level) or np.any(right > level)) else 1.0
 
 
 def field_of_view(geometry):

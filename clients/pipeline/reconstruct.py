@@ -70,7 +70,7 @@ class ReconstructionSettings:
     topology_rounds: int = 2
     repair: bool = True  # round self-intersecting bubbles, separate overlapping ones, refit (see .repair)
     repair_iterations: int = 20  # BFGS iterations of each refit after a repair
-    fov_model: bool = False  # preview beyond the field of view, cut bubbles seeded at their edge (see .fov)
+    fov_model: bool = True  # preview beyond the field of view, cut bubbles seeded at their edge (see .fov)
     # strength of the penalty keeping bubbles a film apart during the fits (.optimise.separation); off by
     # default: at 1 the dense 2D foam's DDI went from 0.010 to 0.077 (docs/robustness.md)
     separation: float = 0.0
@@ -160,7 +160,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     g_fit, d_fit, g_val, d_val = split_holdout(geometry, data, s.holdout)
 
     image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress, method=s.preview,
-                                  extend=preview_extension(s.fov_model))
+                                  extend=preview_extension(s.fov_model, d_fit, contrast))
     clock.mark("preview")
     local = MeshProjector(g_fit, supersampling=s.supersampling)
     detector, initialisation = default_detector(s.detector, g_fit.ndim), None
@@ -291,8 +291,8 @@ class _PhaseClock:
 def prune(surfaces, min_radius):
     """Drop bubbles the fit collapsed or turned inside out (spurious initial centres).
 
-    A bubble stays when its subdivided surface encloses a positive area
-    (volume) of at least that of a disc (ball) of ``min_radius``.
+    A bubble stays when its subdivided surface's equivalent radius (of the
+    disc or ball of its area or volume) is at least ``min_radius``.
 
     Returns
     -------
@@ -301,9 +301,6 @@ def prune(surfaces, min_radius):
     """
     kept = []
     for s in surfaces:
-        fine = s.fine()
-        size = fine.volume if s.ndim == 3 else fine.area
-        least = 4 / 3 * np.pi * min_radius**3 if s.ndim == 3 else np.pi * min_radius**2
-        if size >= least:
+        if s.fine().equivalent_radius >= min_radius:
             kept.append(s)
     return kept, len(surfaces) - len(kept)

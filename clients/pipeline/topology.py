@@ -392,7 +392,7 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     # an added bubble is at least 3 preview voxels in radius, and a full-size residual
     # preview with its blob search cost as much as the first fit and 400 MB of scale space
     coarse = 2 * voxel if ndim == 3 else settings.voxel_size
-    extend = preview_extension(getattr(settings, "fov_model", False))
+    extend = preview_extension(settings.fov_model, data, contrast)  # as the data preview's
     if ndim == 3:
         shape_c, extent_c = preview_grid(geometry, coarse, extend)
         image, extent = resample_image(image, extent, shape_c, extent_c), extent_c

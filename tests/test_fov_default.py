@@ -1,0 +1,108 @@
+"""The field-of-view model as the default: a bubble cut by the detector's top measured against its analytic
+cap, laterally truncated scans refused, ``bubsub evaluate`` scoring inside the field of view."""
+
+import json
+
+import numpy as np
+import pytest
+
+from bubsub.core.foam.containers import sphere_mesh
+from bubsub.core.foam.ellipsoids import project_ellipsoids
+from bubsub.core.io.meshio import write_ply
+from bubsub.core.io.scanfile import Scan
+from bubsub.core.metrics import shapes_dice_dissimilarity
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.projection.mesh import Mesh
+from bubsub.clients.cli.main import build_parser
+from bubsub.clients.pipeline.checks import check_lateral_truncation
+from bubsub.clients.pipeline.evaluate import evaluate_dir
+from bubsub.clients.pipeline.fov import field_of_view, size_inside_fov
+from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
+
+C = -0.1
+
+
+def _cap(r, h):
+    """Volume of a ball's cap of height ``h`` (mm^3)."""
+    return np.pi * h * h * (3 * r - h) / 3
+
+
+def test_the_model_is_the_default_and_a_flag_switches_it_off_also_in_4d(tmp_path):
+    from bubsub.clients.pipeline.dynamic import DynamicSettings, _static_settings
+
+    assert ReconstructionSettings().fov_model is True
+    scan = tmp_path / "s.h5"
+    scan.write_bytes(b"")
+
+    def parse(*extra):
+        return build_parser().parse_args(["reconstruct", str(scan), "--out", str(tmp_path / "o"), *extra])
+
+    assert parse().fov_model is True and parse("--fov-model").fov_model is True
+    assert parse("--no-fov-model").fov_model is False
+    assert _static_settings(DynamicSettings()).fov_model is True  # the 4D cold start and its warm starts
+
+
+def test_a_bubble_cut_by_the_detectors_top_is_measured_within_two_percent_of_its_visible_cap():
+    # 24 parallel views of a 40 x 16 detector: field of view radius 1 mm, half height 0.4 mm; the ball's top
+    # 0.18 mm above the detector, projected exactly (closed-form chords), no noise
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 24, endpoint=False), pixel_size=0.05, cols=40, rows=16)
+    r_xy, half_z = field_of_view(g)
+    centre, r = np.array([0.12, -0.05, 0.26]), 0.32
+    data = project_ellipsoids(g, centre[None], np.full((1, 3), r), np.eye(3)[None], C, supersampling=2)
+    rec = reconstruct(Scan(data=data.astype(np.float32), geometry=g, bubble_contrast=C),
+                      ReconstructionSettings(progress=False))
+    assert len(rec.surfaces) == 1, rec.report["bubbles"]
+    visible = 4 / 3 * np.pi * r ** 3 - _cap(r, centre[2] + r - half_z)
+    assert size_inside_fov(rec.surfaces[0].fine(), (r_xy, half_z)) == pytest.approx(visible, rel=0.02)
+    assert rec.report["unobserved_control_vertices"][0] > 0  # the cap above the detector is not measured
+
+
+def _column_scan(radius_over_fov):
+    """A liquid cylinder with two bubbles, 12 parallel views of a 48 x 12 detector (field of view radius
+    1.2 mm), the cylinder's projection as background (exact chords)."""
+    from bubsub.core.foam.ellipsoids import project_cylinder
+
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 12, endpoint=False), pixel_size=0.05, cols=48, rows=12)
+    radius = radius_over_fov * field_of_view(g)[0]
+    background = project_cylinder(g, radius, (-1.0, 1.0), 0.1, 2)
+    data = project_ellipsoids(g, np.array([[0.3, 0.1, 0.0], [-0.4, -0.2, 0.05]]), np.full((2, 3), 0.25),
+                              np.stack([np.eye(3)] * 2), C, supersampling=2, out=background.copy())
+    noise = np.random.default_rng(0).normal(0, 0.002, data.shape)
+    return Scan(data=(data + noise).astype(np.float32), geometry=g, background=background.astype(np.float32),
+                bubble_contrast=C)
+
+
+def test_a_laterally_truncated_scan_is_refused_with_the_problem_named():
+    check_lateral_truncation(_column_scan(0.9))  # the liquid inside the field of view: accepted
+    for wider in (1.03, 1.5):
+        with pytest.raises(ValueError, match=r"laterally truncated \(local tomography\).* 12 and its right side "
+                                             r"in 12 of 12 projections"):
+            reconstruct(_column_scan(wider), ReconstructionSettings(progress=False))
+    # without a background the liquid's edge is not in the data: the bubbles' signal is checked instead
+    scan = _column_scan(0.9)
+    scan.data = scan.bubble_data.copy()
+    scan.background = None
+    check_lateral_truncation(scan)
+
+
+def test_evaluate_scores_only_the_truth_grids_voxels_inside_the_field_of_view(tmp_path):
+    half_z = 0.4
+    truth = sphere_mesh((0.0, 0.0, 0.3), 0.3, C, subdivisions=3)  # its top 0.2 mm above the field of view
+    v = np.asarray(truth.vertices).copy()
+    v[:, 2] = np.minimum(v[:, 2], half_z)  # the same bubble, flattened where the data do not see it
+    rec = Mesh(v, truth.faces, C)
+    shape, extent = (40, 32, 32), (-0.4, 0.4, -0.4, 0.4, -0.2, 0.8)
+    sim, out = tmp_path / "sim", tmp_path / "rec"
+    sim.mkdir(), out.mkdir()
+    write_ply(sim / "truth.ply", [truth])
+    (sim / "phantom.json").write_text(json.dumps({"ndim": 3, "truth": "truth.ply", "grid_shape": list(shape),
+                                                  "grid_extent": list(extent)}))
+    write_ply(out / "bubbles.ply", [rec])
+    (out / "report.json").write_text(json.dumps({"dimension": 3, "field_of_view_mm": {
+        "radius": 2.0, "half_height": half_z, "margin": 0.05}}))
+    res = evaluate_dir(out, sim)
+    whole = shapes_dice_dissimilarity([rec], [truth], shape, extent)
+    assert res["ddi"] < 0.01 < 0.05 < whole  # the cap above the detector no longer counts
+    assert res["scored_on"].endswith("inside the field of view")
+    (out / "report.json").write_text(json.dumps({"dimension": 3}))
+    assert evaluate_dir(out, sim)["ddi"] == pytest.approx(whole)  # no field of view known: the whole grid

@@ -37,7 +37,8 @@ def _simulate(ndim, folder):
 
 def _run(scan_path, out, client=None, chunks=1, threads=None):
     from bubsub.core.io.scanfile import read_scan
-    from bubsub.clients.pipeline.dynamic import DynamicSettings, reconstruct_dynamic
+    from bubsub.clients.pipeline.dynamic import DynamicSettings
+    from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
 
     before = os.environ.get("BUBSUB_THREADS")
     if threads is not None:

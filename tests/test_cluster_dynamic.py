@@ -15,7 +15,8 @@ import pytest
 from bubsub.clients.cli.main import main
 from bubsub.clients.cluster.dynamic import chunk_bounds, link_ids
 from bubsub.clients.cluster.engine import local, open_client
-from bubsub.clients.pipeline.dynamic import BubbleState, DynamicSettings, reconstruct_dynamic
+from bubsub.clients.pipeline.dynamic import BubbleState, DynamicSettings
+from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
 from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
 from bubsub.core import circle_surface
 from bubsub.core.io.scanfile import read_scan

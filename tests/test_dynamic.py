@@ -267,7 +267,7 @@ def test_resume_continues_from_complete_subscans(sim, rec, tmp_path, capsys):
     shutil.copytree(rec, out)
     shutil.rmtree(out / "subscan_0000")
     with pytest.raises(ValueError, match="--resume"):
-        from bubsub.clients.pipeline.dynamic import reconstruct_dynamic
+        from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
 
         reconstruct_dynamic(read_scan(sim / "scan.h5"), out, DynamicSettings(iterations=5, progress=False))
     assert main(["reconstruct4d", str(sim / "scan.h5"), "--out", str(out), "--holdout", "odd", "--iterations", "30",
@@ -342,7 +342,7 @@ def test_a_diverged_subscan_is_kept_flagged_and_the_chain_goes_on(three, tmp_pat
 
 
 def test_projections_per_subscan_that_does_not_divide_runs_the_complete_subscans(three, tmp_path):
-    from bubsub.clients.pipeline.dynamic import reconstruct_dynamic
+    from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
 
     scan, starts = three
     plain = Scan(data=scan.data, geometry=scan.geometry, bubble_contrast=scan.bubble_contrast,
@@ -356,9 +356,9 @@ def test_projections_per_subscan_that_does_not_divide_runs_the_complete_subscans
 
 
 def test_ctrl_c_leaves_finished_subscans_complete(sim, tmp_path, monkeypatch):
-    from bubsub.clients.pipeline import dynamic
+    from bubsub.clients.pipeline import reconstruct4d
 
-    real = dynamic.reconstruct_subscan
+    real = reconstruct4d.reconstruct_subscan
     calls = {"n": 0}
 
     def interrupted(*a, **k):
@@ -367,7 +367,7 @@ def test_ctrl_c_leaves_finished_subscans_complete(sim, tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(*a, **k)
 
-    monkeypatch.setattr(dynamic, "reconstruct_subscan", interrupted)
+    monkeypatch.setattr(reconstruct4d, "reconstruct_subscan", interrupted)  # the step the chain driver runs
     out = tmp_path / "c"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -458,3 +458,27 @@ def test_a_warm_fit_stops_at_the_objective_plateau(small):
     assert early.report["objective"] <= 1.01 * full.report["objective"]
     for s, r in zip(early.state.surfaces(), truth.radii):
         assert np.sqrt(s.fine().area / np.pi) == pytest.approx(r, rel=0.1)
+
+
+def test_dynamic_settings_hold_every_static_setting():
+    import dataclasses
+
+    from bubsub.clients.pipeline.dynamic import _static_settings
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings
+
+    settings = DynamicSettings(iterations=7, separation=0.5, topology_rounds=1, shrink=0.9)
+    assert settings.static == ReconstructionSettings(iterations=7, separation=0.5, topology_rounds=1)
+    assert (settings.iterations, settings.separation, settings.shrink) == (7, 0.5, 0.9)
+    # every field of the static settings is read through, so a new one reaches the 4D cold start
+    for f in dataclasses.fields(ReconstructionSettings):
+        assert getattr(settings, f.name) == getattr(settings.static, f.name)
+    cold = _static_settings(settings)
+    assert cold.refine is False and cold.separation == 0.5 and cold.topology_rounds == 1
+    assert pickle.loads(pickle.dumps(settings)) == settings
+    assert dataclasses.replace(settings, warm_rtol=0.0).static == settings.static
+    with pytest.raises(TypeError, match="unknown settings"):
+        DynamicSettings(iteration=7)
+    with pytest.raises(ValueError, match="non-negative integer"):
+        DynamicSettings(iterations=-1)
+    with pytest.raises(AttributeError):
+        settings.no_such_setting

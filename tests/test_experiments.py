@@ -129,7 +129,7 @@ def test_experiment_folders_follow_the_output_folder_policy(tmp_path, capsys):
 
 
 def test_ctrl_c_inside_a_fig6_fit_stops_the_experiment(tmp_path, monkeypatch, capsys):
-    from bubsub.clients.pipeline import dynamic
+    from bubsub.clients.pipeline import reconstruct4d
 
     def interrupted_chain(scan, out, settings, **kw):
         # what reconstruct_dynamic returns when Ctrl-C stops a fit after the last subscan was finished
@@ -137,7 +137,7 @@ def test_ctrl_c_inside_a_fig6_fit_stops_the_experiment(tmp_path, monkeypatch, ca
         (out / "subscan_0001" / "report.json").write_text("{}")
         return {"interrupted": True, "subscans": [{"subscan": 1}]}
 
-    monkeypatch.setattr(dynamic, "reconstruct_dynamic", interrupted_chain)
+    monkeypatch.setattr(reconstruct4d, "reconstruct_dynamic", interrupted_chain)
     assert main(["experiment", "fig6", "--quick", "--out", str(tmp_path), "--quiet"]) == 130
     assert "rerun with --resume" in capsys.readouterr().out
     assert not (tmp_path / "fig6.csv").exists()  # nothing scored

@@ -56,13 +56,9 @@ def test_every_module_imports_first_without_a_cycle():
     assert res.returncode == 0, res.stdout + res.stderr
 
 
-#: Import cycles still in the tree, each as the modules of one cycle. Every entry is a cycle to break,
-#: not a design choice: nothing here is an optional dependency (those are third-party imports, which the
-#: graph below does not contain). To be removed by the pipeline rewrite (clients/pipeline, clients/cluster).
-CYCLES_ALLOWED = [
-    # to be removed: pipeline/dynamic.py <-> dynamic_outputs.py, and pipeline/dynamic.py <-> cluster/dynamic.py
-    {"bubsub.clients.cluster.dynamic", "bubsub.clients.pipeline.dynamic", "bubsub.clients.pipeline.dynamic_outputs"},
-]
+#: Import cycles allowed, each as the modules of one cycle: none. Optional dependencies need no entry:
+#: they are third-party imports, which the graph below does not contain.
+CYCLES_ALLOWED = []
 
 #: ``(importing module, imported module, private name)`` still in the tree. To be removed: each module
 #: gives the name a public home (or the caller stops needing it); the owners of the importing files

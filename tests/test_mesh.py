@@ -63,3 +63,18 @@ def test_polygon_measures_and_orientation():
         Polygon(sq[:2])
     with pytest.raises(ValueError, match="attenuation"):
         Polygon(sq, float("nan"))
+
+
+def test_equivalent_radius_and_size_of_meshes_and_polygons():
+    from bubsub.core.projection.mesh import equivalent_radius
+
+    v, f = unit_cube()
+    cube = Mesh(v * 2, f)  # volume 8: the ball of volume 8 has radius (6 / pi)^(1/3)
+    assert cube.size == cube.volume == pytest.approx(8.0)
+    assert cube.equivalent_radius == pytest.approx((6 / np.pi) ** (1 / 3))
+    square = Polygon([[0, 0], [3, 0], [3, 3], [0, 3]])  # area 9: the disc of area 9 has radius 3 / sqrt(pi)
+    assert square.size == square.area == pytest.approx(9.0)
+    assert square.equivalent_radius == pytest.approx(3 / np.sqrt(np.pi))
+    inside_out = square.with_vertices(square.vertices[::-1])  # a fit may turn a bubble clockwise
+    assert inside_out.size == pytest.approx(-9.0) and inside_out.equivalent_radius == 0.0
+    np.testing.assert_allclose(equivalent_radius(np.array([4 / 3 * np.pi, -1.0]), 3), [1.0, 0.0])

@@ -12,7 +12,8 @@ def cmd_reconstruct4d(args):
     from bubsub.core.io.scanfile import read_scan
 
     from bubsub.clients.cluster.engine import open_client, spec_from_args
-    from bubsub.clients.pipeline.dynamic import DynamicSettings, reconstruct_dynamic
+    from bubsub.clients.pipeline.dynamic import DynamicSettings
+    from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
     from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs
 
     # --resume continues the run in --out, so the folder is expected to hold results

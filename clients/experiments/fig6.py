@@ -123,7 +123,8 @@ def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, co
     """
     from bubsub.core.io.scanfile import read_scan
 
-    from bubsub.clients.pipeline.dynamic import DynamicSettings, reconstruct_dynamic
+    from bubsub.clients.pipeline.dynamic import DynamicSettings
+    from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
     from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
     from bubsub.clients.pipeline.simulation import simulate_dynamic_to_dir
 

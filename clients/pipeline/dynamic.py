@@ -15,8 +15,9 @@ Two layers, so that another engine can run the same step on workers:
   output are plain data (arrays, tuples, dataclasses), never projectors.
 * :func:`run_chain` -- the local driver: subscans in descending order, each
   from the previous result, with progress over subscans and Ctrl-C handling;
-  :func:`reconstruct_dynamic` adds the output folder, ``--resume`` and the
-  summary files (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
+  :func:`bubsub.clients.pipeline.reconstruct4d.reconstruct_dynamic` adds the
+  output folder, ``--resume``, the cluster engine and the summary files
+  (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
 """
 
 from __future__ import annotations
@@ -25,35 +26,48 @@ import dataclasses
 import time as _time
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from bubsub.core import MeshProjector, SubdivisionSurface
 from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.projection.remesh import SHRINK, warm_start
+from bubsub.core.validate import check_int
 
-__all__ = ["DynamicSettings", "BubbleState", "SubscanResult", "reconstruct_subscan", "run_chain", "reconstruct_dynamic"]
+from bubsub.clients.optimise.levels import bin_factors, fit_levels
+from bubsub.clients.pipeline.fov import fov_report
+from bubsub.clients.pipeline.preview import preview_voxel_size
+from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
+from bubsub.clients.pipeline.voxel4d import voxel_baseline
+
+__all__ = ["DynamicSettings", "STATIC_FIELDS", "BubbleState", "SubscanResult", "reconstruct_subscan", "run_chain"]
 
 
-@dataclasses.dataclass(frozen=True)
+#: The fields of :class:`ReconstructionSettings`, which :class:`DynamicSettings` holds and reads through.
+STATIC_FIELDS = frozenset(f.name for f in dataclasses.fields(ReconstructionSettings))
+
+
+@dataclasses.dataclass(frozen=True, init=False)
 class DynamicSettings:
-    """What ``bubsub reconstruct4d`` can be told (defaults follow the paper).
+    """What ``bubsub reconstruct4d`` can be told: the static pipeline's settings and the 4D ones.
+
+    ``DynamicSettings(iterations=15, holdout="odd", shrink=0.9)`` sets fields
+    of either kind; a field of :class:`ReconstructionSettings` is read through
+    (``settings.iterations`` is ``settings.static.iterations``), so every
+    static setting reaches the cold start and the warm fits use the ones they
+    share with it (``iterations``, ``control_points``, ``levels``,
+    ``holdout``, ``supersampling``, ``progress``).
 
     Attributes
     ----------
-    iterations : int
-        BFGS iterations per subscan (80).
-    control_points : int, optional
-        Per bubble: 42 (3D) / 9 (2D) by default, for the cold start and as
-        the remeshing target.
-    levels : int
-        Subdivision levels (2).
-    holdout : {None, "odd", "even"}
-        Projections of every subscan kept aside and scored (held-out MSE).
+    static : ReconstructionSettings
+        Of the cold start (:func:`bubsub.clients.pipeline.reconstruct.reconstruct`,
+        with ``refine`` off: warm starts remesh to ``control_points`` at
+        ``levels``, so the cold start's meshes stay alike); ``iterations`` is
+        also each warm fit's cap, ``holdout`` the projections of every subscan
+        kept aside and scored (held-out MSE).
     shrink : float
         Warm-start shrink factor toward each bubble's centroid (0.8).
-    estimate_radii : bool
-        Radius-only pre-fit of the cold start.
-    supersampling : int
     min_radius : float, optional
         A bubble whose equivalent radius falls below this (mm) has collapsed
         and ends its track; default the static pipeline's preview voxel size.
@@ -65,31 +79,41 @@ class DynamicSettings:
         lowered the objective by less than ``warm_rtol`` of its value (it
         starts near the optimum and would spend its remaining iterations on
         the noise); ``warm_rtol=0`` always runs ``iterations``.
-    progress : bool
     """
 
-    iterations: int = 80
-    control_points: int | None = None
-    levels: int = 2
-    holdout: str | None = None
+    static: ReconstructionSettings
     shrink: float = SHRINK
-    estimate_radii: bool = True
-    supersampling: int = 1
     min_radius: float | None = None
     voxel_baseline: bool = False
     warm_rtol: float = 1e-3
     warm_window: int = 5
-    progress: bool = True
 
-    def __post_init__(self):
-        if isinstance(self.iterations, bool) or not isinstance(self.iterations, int) or self.iterations < 0:
-            raise ValueError(f"iterations must be a non-negative integer, got {self.iterations!r}")
-        if self.holdout not in (None, "odd", "even"):
-            raise ValueError(f"holdout must be None, 'odd' or 'even', got {self.holdout!r}")
-        if not self.warm_rtol >= 0:
-            raise ValueError(f"warm_rtol must be >= 0, got {self.warm_rtol!r}")
-        if not 0 < self.shrink <= 1.5:
-            raise ValueError(f"shrink must be in (0, 1.5], got {self.shrink!r}")
+    def __init__(self, static=None, *, shrink=SHRINK, min_radius=None, voxel_baseline=False, warm_rtol=1e-3,
+                 warm_window=5, **static_fields):
+        unknown = sorted(set(static_fields) - STATIC_FIELDS)
+        if unknown:
+            raise TypeError(f"DynamicSettings got unknown settings {unknown}")
+        static = ReconstructionSettings() if static is None else static
+        if static_fields:
+            static = dataclasses.replace(static, **static_fields)
+        for name, value in (("static", static), ("shrink", shrink), ("min_radius", min_radius),
+                            ("voxel_baseline", voxel_baseline), ("warm_rtol", warm_rtol),
+                            ("warm_window", warm_window)):
+            object.__setattr__(self, name, value)
+        check_int(static.iterations, "iterations", 0)
+        if static.holdout not in (None, "odd", "even"):
+            raise ValueError(f"holdout must be None, 'odd' or 'even', got {static.holdout!r}")
+        if not warm_rtol >= 0:
+            raise ValueError(f"warm_rtol must be >= 0, got {warm_rtol!r}")
+        if not 0 < shrink <= 1.5:
+            raise ValueError(f"shrink must be in (0, 1.5], got {shrink!r}")
+
+    def __getattr__(self, name):
+        # only reached for names that are not attributes of their own (unpickling looks up __setstate__ first)
+        static = self.__dict__.get("static")
+        if static is None or name not in STATIC_FIELDS:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return getattr(static, name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -180,25 +204,16 @@ class SubscanResult:
 
 
 def _static_settings(settings):
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings
-
-    return ReconstructionSettings(iterations=settings.iterations, control_points=settings.control_points,
-                                  levels=settings.levels, estimate_radii=settings.estimate_radii,
-                                  supersampling=settings.supersampling, holdout=settings.holdout,
-                                  progress=settings.progress,
-                                  # warm starts remesh to control_points at `levels`: keep the cold start's alike
-                                  refine=False)
+    """The cold start's settings: ``settings.static`` without the refinement (warm starts remesh to
+    ``control_points`` at ``levels``, so the cold start's meshes stay alike)."""
+    return dataclasses.replace(settings.static, refine=False)
 
 
 def _split(scan, holdout):
-    from bubsub.clients.pipeline.reconstruct import split_holdout as split
-
-    return split(scan.geometry, scan.bubble_data, holdout)
+    return split_holdout(scan.geometry, scan.bubble_data, holdout)
 
 
 def _cold(scan, settings):
-    from bubsub.clients.pipeline.reconstruct import reconstruct
-
     rec = reconstruct(scan, _static_settings(settings))
     r = rec.report
     report = {"start": "cold", "iterations": r["iterations"], "evaluations": r["evaluations"],
@@ -213,17 +228,7 @@ def _cold(scan, settings):
         rec.preview, rec.preview_extent
 
 
-def _equivalent_radius(surface):
-    fine = surface.fine()
-    if surface.ndim == 3:
-        return float(np.cbrt(max(fine.volume, 0.0) * 3 / (4 * np.pi)))
-    return float(np.sqrt(max(fine.area, 0.0) / np.pi))
-
-
 def _warm(scan, previous, settings):
-    from bubsub.clients.optimise.levels import bin_factors, fit_levels
-    from bubsub.clients.pipeline.preview import preview_voxel_size
-
     g_fit, d_fit, _, _ = _split(scan, settings.holdout)
     min_radius = settings.min_radius or preview_voxel_size(g_fit)
     ended = {}
@@ -261,7 +266,7 @@ def _warm(scan, previous, settings):
                   initial_objective=initial)
     kept_ids, kept = [], []
     for i, s in zip(ids, result.surfaces):
-        r = _equivalent_radius(s)
+        r = s.fine().equivalent_radius
         if not np.all(np.isfinite(s.vertices)) or not r >= min_radius:
             ended[i] = f"collapsed (equivalent radius {r:.3g} mm < {min_radius:.3g} mm)"
         else:
@@ -310,13 +315,9 @@ def reconstruct_subscan(scan, previous, settings, index=0, time=0.0):
         report["holdout_mse"] = projection_mse(pred, d_val)
         parts["holdout"] = _time.perf_counter() - t1
     if settings.voxel_baseline and g_val is not None:
-        from bubsub.clients.pipeline.voxel4d import voxel_baseline
-
         baseline = voxel_baseline(scan, settings.holdout)
         report["voxel_holdout_mse"] = baseline["holdout_mse"]
         parts["voxel_baseline"] = baseline["seconds"]
-    from bubsub.clients.pipeline.fov import fov_report
-
     # the field of view: bubbles.csv and tracks.csv flag the bubbles cut by its edge
     report.update(subscan=int(index), time=float(time), bubbles=len(state), field_of_view_mm=fov_report(scan.geometry),
                   ended={str(k): v for k, v in sorted(ended.items())}, seconds=_time.perf_counter() - t0,
@@ -356,8 +357,6 @@ def run_chain(get_scan, indices, settings, *, start=None, step=reconstruct_subsc
     state = start
     bar = None
     if settings.progress:
-        from tqdm.auto import tqdm
-
         bar = tqdm(total=len(indices), desc="subscans", unit="subscan", position=0)
     try:
         for k in indices:
@@ -377,101 +376,3 @@ def run_chain(get_scan, indices, settings, *, start=None, step=reconstruct_subsc
         if bar is not None:
             bar.close()
     return results, False
-
-
-def _run_record(scan, layout, settings):
-    return {"scan": str(scan.path) if scan.path else None, "projections_per_subscan": layout.per_subscan,
-            "subscans": [layout.selected.start, layout.selected.stop], "holdout": settings.holdout,
-            "dimension": scan.ndim, "levels": settings.levels, "iterations": settings.iterations,
-            "warm_rtol": settings.warm_rtol, "warm_window": settings.warm_window}
-
-
-def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False,
-                        overwrite=False, client=None, chunks=1):
-    """``bubsub reconstruct4d``: the whole chain into an output folder.
-
-    Parameters
-    ----------
-    scan : Scan
-        The dynamic scan (all projections in acquisition order).
-    out : path
-        Output folder: ``subscan_NNNN/``, ``tracks.csv``, ``report.json``,
-        ``growth.png``, ``mse.png`` (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
-    settings : DynamicSettings, optional
-    projections_per_subscan : int, optional
-        If the scan file lacks the attribute (see :func:`bubsub.core.io.subscans.subscan_layout`).
-    subscans : str or range, optional
-        ``"A:B"``: subscans A..B-1 (default all).
-    resume : bool
-        Keep the complete subscan folders of an earlier run with the same
-        settings and continue the chain from the earliest of them.
-    overwrite : bool
-        Start afresh in a folder holding an earlier run (its subscan folders
-        are replaced as the new ones complete).
-    client : dask.distributed.Client, optional
-        Run one task per subscan on this cluster
-        (:func:`bubsub.clients.cluster.dynamic.run_chunks`); None: here.
-    chunks : int
-        Cut the chain into this many chunks run in parallel, each cold-started
-        at its last subscan, ids linked where they overlap (see
-        :mod:`bubsub.clients.cluster.dynamic`); 1: one chain, as the paper.
-
-    Returns
-    -------
-    dict
-        The run's ``report.json``.
-    """
-    import json
-    from pathlib import Path
-
-    from bubsub.core.io.atomic import atomic_write_text
-    from bubsub.core.io.subscans import subscan, subscan_layout, subscan_times
-    from bubsub.clients.pipeline import dynamic_outputs as outputs
-
-    settings = settings or DynamicSettings()
-    layout = subscan_layout(scan, projections_per_subscan, subscans)
-    times, unit = subscan_times(scan, layout)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    record = _run_record(scan, layout, settings)
-    order = list(reversed(layout.selected))
-    done = [i for i in outputs.complete_subscans(out) if i in layout.selected]
-    run_file = out / "run.json"
-    if done and not resume:
-        if not overwrite:
-            raise ValueError(f"{out} already holds {len(done)} complete subscan folder(s); pass --resume to "
-                             f"continue that run, --overwrite to start again, or choose another --out")
-        done = []
-    if resume and run_file.is_file():
-        before = json.loads(run_file.read_text())
-        changed = sorted(k for k in record if k != "scan" and before.get(k) != record[k])
-        if changed:
-            raise ValueError(f"--resume: {out} was made with different {changed} "
-                             f"({ {k: before.get(k) for k in changed} } vs { {k: record[k] for k in changed} })")
-    if set(done) != set(order[: len(done)]):
-        raise ValueError(f"--resume: the complete subscans {done} in {out} are not the latest ones of "
-                         f"{layout.selected.start}..{layout.selected.stop - 1}; start again in another --out")
-    atomic_write_text(run_file, json.dumps(record, indent=2))
-    prior = [outputs.read_subscan_result(out, i, scan.bubble_contrast) for i in done]
-    start = min(prior, key=lambda r: r.index).state if prior else None
-
-    def write(result):
-        outputs.write_subscan(out, result, scan.ndim, scan.path)
-
-    if client is None and chunks == 1:
-        results, interrupted = run_chain(
-            lambda k: subscan(scan, layout, k), order[len(done):], settings, start=start, times=times,
-            step=reconstruct_subscan, on_result=write)
-        engine = {}
-    else:
-        from bubsub.clients.cluster.dynamic import ScanFileSubscans, run_chunks
-        from bubsub.clients.cluster.engine import workers_of
-
-        source = (ScanFileSubscans(str(scan.path), scan.bubble_contrast, layout.per_subscan) if scan.path
-                  and client is not None else lambda k: subscan(scan, layout, k))
-        results, interrupted, links = run_chunks(client, source, order[len(done):], settings, chunks=chunks,
-                                                 start=start, times=times, on_result=write)
-        engine = {"engine": "dask" if client is not None else "local", "workers": max(1, workers_of(client)),
-                  "chunks": chunks, "chunk_links": links}
-    return outputs.write_summary(out, prior + results, layout=layout, time_unit=unit, settings=settings,
-                                 interrupted=interrupted, **engine)

@@ -40,7 +40,11 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
-from bubsub.core.io.meshio import bubble_table, read_ply, read_polygons_json, unit_column, write_csv
+from bubsub.core.io.meshio import read_ply, read_polygons_json
+from bubsub.core.io.tables import bubble_table, unit_column, write_csv
+from bubsub.core.projection.subdivision import SubdivisionSurface
+
+from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
 from bubsub.clients.pipeline.outputs import json_default
 
 __all__ = ["subscan_dir", "write_subscan", "read_subscan_result", "complete_subscans", "track_rows",
@@ -79,9 +83,6 @@ def write_subscan(out, result, ndim, scan_path=None):
 
 def read_subscan_result(out, index, attenuation):
     """A completed subscan folder back as a :class:`~bubsub.clients.pipeline.dynamic.SubscanResult`."""
-    from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
-    from bubsub.core.projection.subdivision import SubdivisionSurface
-
     d = subscan_dir(out, index)
     report = json.loads((d / "report.json").read_text())
     levels = int(report.get("levels", 2))

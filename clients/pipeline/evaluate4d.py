@@ -24,8 +24,7 @@ def match_to_truth(items, truth):
     if not items:
         return np.zeros(0, int)
     tc = np.array([t.centroid for t in truth])
-    tr = np.array([np.sqrt(t.area / np.pi) if t.vertices.shape[1] == 2 else np.cbrt(3 * t.volume / (4 * np.pi))
-                   for t in truth])
+    tr = np.array([t.equivalent_radius for t in truth])
     out = []
     for it in items:
         d = np.linalg.norm(tc - np.asarray(it.centroid), axis=1)

@@ -291,8 +291,8 @@ class _PhaseClock:
 def prune(surfaces, min_radius):
     """Drop bubbles the fit collapsed or turned inside out (spurious initial centres).
 
-    A bubble stays when its subdivided surface encloses a positive area
-    (volume) of at least that of a disc (ball) of ``min_radius``.
+    A bubble stays when its subdivided surface's equivalent radius (of the
+    disc or ball of its area or volume) is at least ``min_radius``.
 
     Returns
     -------
@@ -301,9 +301,6 @@ def prune(surfaces, min_radius):
     """
     kept = []
     for s in surfaces:
-        fine = s.fine()
-        size = fine.volume if s.ndim == 3 else fine.area
-        least = 4 / 3 * np.pi * min_radius**3 if s.ndim == 3 else np.pi * min_radius**2
-        if size >= least:
+        if s.fine().equivalent_radius >= min_radius:
             kept.append(s)
     return kept, len(surfaces) - len(kept)

@@ -117,11 +117,11 @@ def bubble_table(items, ids=None):
         c = np.asarray(it.centroid, dtype=float)
         if want is Polygon:
             a = float(it.area)
-            values = (i, c[0], c[1], a, it.perimeter, 2.0 * np.sqrt(max(a, 0.0) / np.pi))
+            values = (i, c[0], c[1], a, it.perimeter, 2.0 * it.equivalent_radius)
             rows.append(dict(zip(BUBBLE_COLUMNS_2D, (i, *map(float, values[1:])))))
         else:
             v = float(it.volume)
-            values = (c[0], c[1], c[2], v, it.area, np.cbrt(6.0 * max(v, 0.0) / np.pi))
+            values = (c[0], c[1], c[2], v, it.area, 2.0 * it.equivalent_radius)
             rows.append(dict(zip(BUBBLE_COLUMNS_3D, (i, *map(float, values)))))
     return rows
 

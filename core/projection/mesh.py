@@ -10,7 +10,25 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["Mesh", "Polygon", "bounding_box"]
+__all__ = ["Mesh", "Polygon", "bounding_box", "equivalent_radius"]
+
+
+def equivalent_radius(size, ndim):
+    """Radius (mm) of the ball (``ndim`` 3) or disc (2) of the given volume or area; 0 for a size <= 0.
+
+    Parameters
+    ----------
+    size : float or ndarray
+        Volume (mm^3) or area (mm^2).
+    ndim : {2, 3}
+
+    Returns
+    -------
+    float or ndarray, like ``size``
+    """
+    size = np.maximum(size, 0.0)
+    r = np.cbrt(3.0 * size / (4.0 * np.pi)) if ndim == 3 else np.sqrt(size / np.pi)
+    return float(r) if np.ndim(r) == 0 else r
 
 
 def bounding_box(points):
@@ -101,6 +119,16 @@ class Mesh:
         """Enclosed volume, mm^3 (divergence theorem)."""
         a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
         return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+    @property
+    def size(self):
+        """The bubble's size: its enclosed volume, mm^3 (:attr:`area` for a :class:`Polygon`)."""
+        return self.volume
+
+    @property
+    def equivalent_radius(self):
+        """Radius of the ball of the same volume, mm (0 for a mesh turned inside out)."""
+        return equivalent_radius(self.volume, 3)
 
     @property
     def area(self):
@@ -214,7 +242,18 @@ class Polygon:
         return float(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
     @property
+    def size(self):
+        """The bubble's size: its signed area, mm^2 (:attr:`Mesh.volume` for a mesh)."""
+        return self.area
+
+    @property
+    def equivalent_radius(self):
+        """Radius of the disc of the same area, mm (0 for a clockwise polygon)."""
+        return equivalent_radius(self.area, 2)
+
+    @property
     def perimeter(self):
+        """Length of the boundary, mm."""
         return float(np.linalg.norm(np.roll(self.vertices, -1, axis=0) - self.vertices, axis=1).sum())
 
     @property

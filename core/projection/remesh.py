@@ -72,7 +72,7 @@ def _edge_per_radius(control, levels):
     s = sphere_surface(np.zeros(3), 1.0, 1.0, control=control, levels=levels)
     v, f = s.vertices, s.control_faces
     edges = np.concatenate([v[f[:, 0]] - v[f[:, 1]], v[f[:, 1]] - v[f[:, 2]], v[f[:, 2]] - v[f[:, 0]]])
-    r_eq = np.cbrt(3 * s.control.volume / (4 * np.pi))
+    r_eq = s.control.equivalent_radius
     return float(np.linalg.norm(edges, axis=1).mean() / r_eq)
 
 
@@ -144,6 +144,6 @@ def warm_start(surface, *, shrink=SHRINK, control_points=None):
     if not volume > 0:
         raise ValueError("bubble has no positive volume")
     small = control.with_vertices(shrink_toward_centroid(control.vertices, control.centroid, shrink))
-    r_eq = shrink * np.cbrt(3 * volume / (4 * np.pi))
+    r_eq = shrink * control.equivalent_radius
     h = _edge_per_radius(int(control_points or 42), surface.levels) * r_eq
     return SubdivisionSurface(remesh_isotropic(small, h), surface.levels)

@@ -17,6 +17,8 @@ import numbers
 
 import numpy as np
 
+from bubsub.core.validate import check_int
+
 __all__ = ["sirt", "cgls", "lsqr", "tv_pdhg", "pgd_bb", "check_iterations"]
 
 
@@ -37,9 +39,7 @@ def _check(op, b, x0):
 
 def check_iterations(n, name="iterations"):
     """``n`` as an int, or a ValueError naming ``name`` unless it is a non-negative integer."""
-    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 0:
-        raise ValueError(f"{name} must be a non-negative integer, got {n!r}")
-    return int(n)
+    return check_int(n, name, 0)
 
 
 def _dot(a, b):

@@ -1,0 +1,114 @@
+"""``bubsub reconstruct4d``: a dynamic scan's chain of subscans into an output folder.
+
+:func:`reconstruct_dynamic` cuts the scan into subscans
+(:mod:`bubsub.core.io.subscans`), runs the chain here
+(:func:`bubsub.clients.pipeline.dynamic.run_chain`) or in chunks on a Dask
+cluster (:func:`bubsub.clients.cluster.dynamic.run_chunks`), writes each
+subscan's folder as soon as it is done, keeps the complete ones of an earlier
+run for ``--resume`` (``run.json`` records the settings they were made with)
+and ends with the summary files (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from bubsub.core.io.atomic import atomic_write_text
+from bubsub.core.io.subscans import subscan, subscan_layout, subscan_times
+
+from bubsub.clients.cluster.dynamic import ScanFileSubscans, run_chunks
+from bubsub.clients.cluster.engine import workers_of
+from bubsub.clients.pipeline import dynamic_outputs as outputs
+from bubsub.clients.pipeline.dynamic import DynamicSettings, reconstruct_subscan, run_chain
+
+__all__ = ["reconstruct_dynamic"]
+
+
+def _run_record(scan, layout, settings):
+    """What ``run.json`` records of a run: ``--resume`` refuses a folder made with other values."""
+    return {"scan": str(scan.path) if scan.path else None, "projections_per_subscan": layout.per_subscan,
+            "subscans": [layout.selected.start, layout.selected.stop], "holdout": settings.holdout,
+            "dimension": scan.ndim, "levels": settings.levels, "iterations": settings.iterations,
+            "warm_rtol": settings.warm_rtol, "warm_window": settings.warm_window}
+
+
+def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False,
+                        overwrite=False, client=None, chunks=1):
+    """``bubsub reconstruct4d``: the whole chain into an output folder.
+
+    Parameters
+    ----------
+    scan : Scan
+        The dynamic scan (all projections in acquisition order).
+    out : path
+        Output folder: ``subscan_NNNN/``, ``tracks.csv``, ``report.json``,
+        ``growth.png``, ``mse.png`` (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
+    settings : DynamicSettings, optional
+    projections_per_subscan : int, optional
+        If the scan file lacks the attribute (see :func:`bubsub.core.io.subscans.subscan_layout`).
+    subscans : str or range, optional
+        ``"A:B"``: subscans A..B-1 (default all).
+    resume : bool
+        Keep the complete subscan folders of an earlier run with the same
+        settings and continue the chain from the earliest of them.
+    overwrite : bool
+        Start afresh in a folder holding an earlier run (its subscan folders
+        are replaced as the new ones complete).
+    client : dask.distributed.Client, optional
+        Run one task per subscan on this cluster
+        (:func:`bubsub.clients.cluster.dynamic.run_chunks`); None: here.
+    chunks : int
+        Cut the chain into this many chunks run in parallel, each cold-started
+        at its last subscan, ids linked where they overlap (see
+        :mod:`bubsub.clients.cluster.dynamic`); 1: one chain, as the paper.
+
+    Returns
+    -------
+    dict
+        The run's ``report.json``.
+    """
+    settings = settings or DynamicSettings()
+    layout = subscan_layout(scan, projections_per_subscan, subscans)
+    times, unit = subscan_times(scan, layout)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    record = _run_record(scan, layout, settings)
+    order = list(reversed(layout.selected))
+    done = [i for i in outputs.complete_subscans(out) if i in layout.selected]
+    run_file = out / "run.json"
+    if done and not resume:
+        if not overwrite:
+            raise ValueError(f"{out} already holds {len(done)} complete subscan folder(s); pass --resume to "
+                             f"continue that run, --overwrite to start again, or choose another --out")
+        done = []
+    if resume and run_file.is_file():
+        before = json.loads(run_file.read_text())
+        changed = sorted(k for k in record if k != "scan" and before.get(k) != record[k])
+        if changed:
+            raise ValueError(f"--resume: {out} was made with different {changed} "
+                             f"({ {k: before.get(k) for k in changed} } vs { {k: record[k] for k in changed} })")
+    if set(done) != set(order[: len(done)]):
+        raise ValueError(f"--resume: the complete subscans {done} in {out} are not the latest ones of "
+                         f"{layout.selected.start}..{layout.selected.stop - 1}; start again in another --out")
+    atomic_write_text(run_file, json.dumps(record, indent=2))
+    prior = [outputs.read_subscan_result(out, i, scan.bubble_contrast) for i in done]
+    start = min(prior, key=lambda r: r.index).state if prior else None
+
+    def write(result):
+        outputs.write_subscan(out, result, scan.ndim, scan.path)
+
+    if client is None and chunks == 1:
+        results, interrupted = run_chain(
+            lambda k: subscan(scan, layout, k), order[len(done):], settings, start=start, times=times,
+            step=reconstruct_subscan, on_result=write)
+        engine = {}
+    else:
+        source = (ScanFileSubscans(str(scan.path), scan.bubble_contrast, layout.per_subscan) if scan.path
+                  and client is not None else lambda k: subscan(scan, layout, k))
+        results, interrupted, links = run_chunks(client, source, order[len(done):], settings, chunks=chunks,
+                                                 start=start, times=times, on_result=write)
+        engine = {"engine": "dask" if client is not None else "local", "workers": max(1, workers_of(client)),
+                  "chunks": chunks, "chunk_links": links}
+    return outputs.write_summary(out, prior + results, layout=layout, time_unit=unit, settings=settings,
+                                 interrupted=interrupted, **engine)

@@ -69,8 +69,8 @@ def test_resume_refuses_runs_of_the_other_mode_and_unknown_methods(tmp_path, cap
 
 
 def test_ctrl_c_inside_a_fit_stops_the_experiment_and_keeps_the_finished_runs(tmp_path, monkeypatch):
-    # fit() turns Ctrl-C into an "interrupted" result; inside an experiment that used to be
-    # scored as a finished run and the experiment went on with the next one
+    # fit() turns Ctrl-C into an "interrupted" result; an experiment must not score it as a
+    # finished run and go on with the next one
     from bubsub.clients.experiments import runner
     from bubsub.core import MeshProjector
 

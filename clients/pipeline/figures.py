@@ -98,7 +98,7 @@ def mesh_section(mesh, axis, value):
     cut = above.sum(axis=1) % 3 != 0
     tri, h, above = tri[cut], h[cut], above[cut]
     # a cut triangle has exactly two edges whose ends lie on opposite sides: their points, in edge order
-    # (0-1, 1-2, 2-0), whole arrays at once (a loop over the cut triangles was a third of a picture's time)
+    # (0-1, 1-2, 2-0), whole arrays at once (a loop over the cut triangles would take a third of a picture's time)
     i, j = np.array([0, 1, 2]), np.array([1, 2, 0])
     crosses = above[:, i] != above[:, j]
     with np.errstate(divide="ignore", invalid="ignore"):  # edges that do not cross are discarded below

@@ -2,7 +2,7 @@
 
 ``python -m bubsub.bench analysis [--bubbles 150] [--seed 0] [--simulation DIR] [--reconstruction DIR]
 [--keep DIR] [--contact-gap MM] [--voxel-method cgls] [--cost-bubbles 150 600] [--repeats 3] [--no-foamquant]
-[--cost-only]``
+[--cost-only] [--shapes]``
 
 The foam is a simulated synchrotron column (:mod:`bubsub.core.foam.column`:
 rotated polydisperse ellipsoids in a liquid cylinder, gas fraction 0.4,
@@ -38,6 +38,11 @@ pairs whose contact point lies in the field of view: precision and recall of
 the measured pairs (through the matching) against the true pairs closer than
 the contact gap. The cost table times :func:`analyse_meshes` on the truth
 meshes of columns of ``--cost-bubbles`` bubbles (median of ``--repeats``).
+``--shapes`` prints the analysis' own error on analytic shapes instead: Loop
+subdivision surfaces fitted to an ellipsoid at four resolutions (volume,
+area, sphericity, semi-axes, strain against their closed forms), and the gap
+between two such meshes of rotated ellipsoids whose support planes are a
+known distance apart (:func:`shape_table`).
 
 FoamQuant is optional (``pip install 'bubsub[foamquant]'``, or ``pip install
 --no-deps foamquant``: the functions used need only numpy, scipy and
@@ -53,7 +58,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ellipsoid_area", "ellipsoid_gap", "load_column", "column_truth", "score", "foamquant_route", "label_contacts", "main"]
+__all__ = ["ellipsoid_area", "ellipsoid_gap", "subdivided_ellipsoid", "shape_table", "load_column", "column_truth",
+           "score", "foamquant_route", "label_contacts", "main"]
 
 
 def ellipsoid_area(axes):
@@ -98,6 +104,86 @@ def ellipsoid_gap(c1, S1, c2, S2):
     p1 = c1 + S1 @ n / np.sqrt(n @ S1 @ n)
     p2 = c2 - S2 @ n / np.sqrt(n @ S2 @ n)
     return float(-res.fun), 0.5 * (p1 + p2)
+
+
+def subdivided_ellipsoid(axes, rotation, centre, control=1, levels=2):
+    """A Loop subdivision surface fitted (least squares) to an ellipsoid, as bubsub fits its bubbles.
+
+    The control mesh is an icosphere of ``control`` subdivisions (1: 42 vertices,
+    bubsub's default); its ``levels``-times subdivided vertices are asked to lie
+    on the ellipsoid (semi-axes ``axes`` along the columns of ``rotation``, about
+    ``centre``) at the images of their directions.
+
+    Returns
+    -------
+    Mesh
+        The fine (subdivided) mesh.
+    """
+    from bubsub.core.projection.mesh import Mesh
+    from bubsub.core.projection.subdivision import icosphere, loop_subdivision
+
+    v, f = icosphere(control)
+    S, fine_faces = loop_subdivision(f, len(v), levels)
+    u = S @ v
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    target = np.asarray(centre) + (u * np.asarray(axes)) @ np.asarray(rotation).T
+    x = np.linalg.lstsq(S.toarray(), target, rcond=None)[0]
+    return Mesh(S @ x, fine_faces)
+
+
+def shape_table(pairs=20, seed=1):
+    """Print the analysis' errors on analytic shapes (the ``--shapes`` tables of the module docstring).
+
+    Parameters
+    ----------
+    pairs : int
+        Ellipsoid pairs of the gap table, at support-plane distances spread over 5-50 um.
+    seed : int
+    """
+    from scipy.spatial.transform import Rotation
+
+    from bubsub.core.analysis.contacts import find_contacts
+    from bubsub.core.analysis.shape import bubble_shape, strain_from_axes
+    from bubsub.core.foam.ellipsoids import shape_matrices
+
+    axes = np.array([0.6, 0.45, 0.3])
+    rot = Rotation.from_euler("zyx", [30, 50, -20], degrees=True).as_matrix()
+    volume, area = 4 / 3 * np.pi * axes.prod(), ellipsoid_area(axes)
+    sph = np.pi ** (1 / 3) * (6 * volume) ** (2 / 3) / area
+    _, vm, _ = strain_from_axes(axes)
+    print(f"Loop subdivision surfaces fitted to an ellipsoid of semi-axes {axes.tolist()} mm\n\n"
+          "| fine vertices | volume error (%) | area error (%) | sphericity error | semi-axis error (%) | strain error |\n"
+          "|---|---|---|---|---|---|")
+    for control, levels in ((1, 2), (1, 3), (2, 2), (2, 3)):
+        mesh = subdivided_ellipsoid(axes, rot, np.zeros(3), control, levels)
+        s = bubble_shape(mesh)
+        semi = np.array([s[f"semi_axis_{i}_mm"] for i in (1, 2, 3)])
+        worst = int(np.argmax(np.abs(semi / axes - 1)))
+        print(f"| {len(mesh.vertices)} ({10 * 4 ** control + 2} control, {levels} levels) | "
+              f"{100 * (s['volume_mm3'] / volume - 1):.3f} | {100 * (s['surface_area_mm2'] / area - 1):.3f} | "
+              f"{s['sphericity'] - sph:.5f} | {100 * (semi[worst] / axes[worst] - 1):.3f} | "
+              f"{s['strain_von_mises'] - vm:.5f} |", flush=True)
+    rng = np.random.default_rng(seed)
+    errors = {2: [], 3: []}
+    for g in np.linspace(0.005, 0.05, pairs):
+        ax1, ax2 = 0.3 + 0.3 * rng.random(3), 0.3 + 0.3 * rng.random(3)
+        r1, r2 = Rotation.random(2, random_state=rng).as_matrix()
+        s1, s2 = shape_matrices(np.stack([ax1, ax2]), np.stack([r1, r2]))
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        c1 = np.zeros(3)
+        p1 = c1 + s1 @ n / np.sqrt(n @ s1 @ n)
+        c2 = p1 + g * n + s2 @ n / np.sqrt(n @ s2 @ n)  # parallel support planes g apart along n
+        for levels in errors:
+            meshes = [subdivided_ellipsoid(ax1, r1, c1, 1, levels), subdivided_ellipsoid(ax2, r2, c2, 1, levels)]
+            c = find_contacts(meshes, 0.1)
+            errors[levels].append(c.gap[0] - g if len(c) else np.nan)
+    print(f"\nGap between two such meshes of rotated ellipsoids (semi-axes 0.3-0.6 mm) {pairs} times, their support "
+          "planes 5-50 um apart\n\n| fine vertices | mean gap error (um) | largest gap error (um) |\n|---|---|---|")
+    for levels, e in errors.items():
+        e = 1000 * np.array(e)
+        print(f"| {10 * 4 ** (levels + 1) + 2} (42 control, {levels} levels) | {np.mean(e):.2f} | "
+              f"{e[np.argmax(np.abs(e))]:.2f} |", flush=True)
 
 
 def load_column(folder):
@@ -408,7 +494,11 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--no-foamquant", action="store_true", help="leave the FoamQuant columns out")
     p.add_argument("--cost-only", action="store_true", help="only the cost table")
+    p.add_argument("--shapes", action="store_true", help="only the analysis' errors on analytic shapes (no column)")
     a = p.parse_args(argv)
+    if a.shapes:
+        shape_table()
+        return 0
     if not a.cost_only:
         compare(a)
     if a.cost_bubbles:

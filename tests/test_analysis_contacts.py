@@ -4,10 +4,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bubsub.bench.analysis import ellipsoid_gap
+from bubsub.bench.analysis import ellipsoid_gap, subdivided_ellipsoid
 from bubsub.core.analysis.contacts import Surface, find_contacts, surface_distance
 from bubsub.core.projection.mesh import Mesh
-from test_analysis_shape import subdivided_ellipsoid
 
 
 def shape_matrix(axes, rotation):

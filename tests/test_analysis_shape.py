@@ -4,22 +4,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bubsub.bench.analysis import ellipsoid_area
+from bubsub.bench.analysis import ellipsoid_area, subdivided_ellipsoid
 from bubsub.core.analysis.shape import bubble_shape, solid_moments, strain_from_axes
-from bubsub.core.projection.mesh import Mesh
-from bubsub.core.projection.subdivision import icosphere, loop_subdivision, sphere_surface
-
-
-def subdivided_ellipsoid(axes, rotation, centre, control=1, levels=2):
-    """A Loop subdivision surface fitted (least squares) to an ellipsoid: its fine mesh, as bubsub fits them."""
-    v, f = icosphere(control)
-    S, fine_faces = loop_subdivision(f, len(v), levels)
-    u = S @ v
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    target = centre + (u * axes) @ rotation.T
-    x = np.linalg.lstsq(S.toarray(), target, rcond=None)[0]
-    return Mesh(S @ x, fine_faces)
-
+from bubsub.core.projection.subdivision import sphere_surface
 
 AXES = np.array([0.6, 0.45, 0.3])
 ROT = Rotation.from_euler("zyx", [30, 50, -20], degrees=True).as_matrix()

@@ -106,3 +106,16 @@ def test_contacts_precision_and_recall_against_the_true_surfaces():
     assert all(abs(truth[p] - gap) < 0.004 for p in wrong)  # only pairs at the threshold itself may flip
     coordination = c.coordination(len(meshes))
     assert coordination.sum() == 2 * len(found)
+
+
+def test_film_area_of_two_spheres_against_the_analytic_near_contact_caps():
+    from bubsub.core.projection.subdivision import sphere_surface
+
+    R, g0 = 0.5, 0.01
+    D = 2 * R + g0
+    a, b = sphere_surface((0, 0, 0), R, -0.1, levels=3).fine(), sphere_surface((D, 0, 0), R, -0.1, levels=3).fine()
+    for gap in (0.06, 0.1):
+        # a point of one sphere at polar angle t from the axis is within the gap of the other where
+        # R^2 + D^2 - 2 R D cos t < (R + gap)^2: a cap of area 2 pi R^2 (1 - cos t0)
+        cap = 2 * np.pi * R * R * (1 - (R * R + D * D - (R + gap) ** 2) / (2 * R * D))
+        assert find_contacts([a, b], gap).film_area[0] == pytest.approx(cap, rel=0.1)

@@ -99,3 +99,22 @@ def test_a_repair_that_costs_the_refinement_its_advantage_keeps_the_coarse_bubbl
     out, summary, validity = refine_and_check(projector, coarse, data, drops_one, iterations=30)
     assert not summary["kept"] and validity is None and out == coarse
     assert summary["score_after_repair"] > summary["score_before"]
+
+
+def test_an_unfinished_coarse_fit_does_not_pass_its_own_progress_off_as_the_refinement_s():
+    from bubsub.clients.optimise.fit import fit
+    from bubsub.clients.pipeline.refine import coarse_rate
+
+    truth = [circle_surface([-1.0, 0.2], 0.7, MU, control=64, levels=3), circle_surface([1.0, -0.3], 0.8, MU,
+                                                                                        control=64, levels=3)]
+    projector, data = _scan([t.fine() for t in truth])
+    start = [circle_surface(c, 0.6, MU) for c in ([-0.9, 0.3], [1.1, -0.2])]
+    unfinished = fit(projector, start, data, iterations=8, progress=False)
+    rate = coarse_rate(unfinished.history)
+    assert rate > 0 and coarse_rate(unfinished.history[:5]) == 0.0
+    # judged against the coarse objective alone, refining round bubbles looks worth its unknowns ...
+    _, naive = refine_and_fit(projector, unfinished.surfaces, data, iterations=30, trial=5)
+    assert naive["kept"] and naive["iterations"] > 5
+    # ... but not against what the coarse fit would have reached by going on
+    out, fair = refine_and_fit(projector, unfinished.surfaces, data, iterations=30, trial=5, coarse_rate=rate)
+    assert not fair["kept"] and fair["iterations"] == 5 and out == unfinished.surfaces

@@ -40,7 +40,7 @@ from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
 from bubsub.clients.pipeline.fov import fov_report, preview_extension, unobserved_control
 from bubsub.clients.pipeline.initial import choose_initial, default_detector
 from bubsub.clients.pipeline.preview import voxel_preview
-from bubsub.clients.pipeline.refine import can_refine, refine_and_check
+from bubsub.clients.pipeline.refine import can_refine, coarse_rate, refine_and_check
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
@@ -213,7 +213,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         if s.refine and init is None and can_refine(kept) and not interrupted:
             # after the repair, so the refined fit also fills the gas of dropped bubbles; checked again
             kept, refinement, again = refine_and_check(local, kept, d_fit, checked, iterations=s.refine_iterations,
-                                                       penalty=penalty, progress=s.progress, rtol=s.fit_rtol)
+                                                       penalty=penalty, progress=s.progress, rtol=s.fit_rtol,
+                                                       coarse_rate=coarse_rate(result.history))
             if again is not None:
                 validity = merged_validity(validity, again)
         clock.mark("refine")

@@ -16,7 +16,12 @@ The refined fit is kept only when it lowers the Akaike score
 of the coarse one: more unknowns must explain more of the data than noise
 would. Round, well separated bubbles gain little and stay coarse; the
 refined fit stops after ``trial`` iterations (10) when it has not yet paid
-for its unknowns, so they cost little time.
+for its unknowns, so they cost little time. That trial is measured against
+what the coarse fit would have reached in as many more iterations at the
+pace it ended with (:func:`coarse_rate`): a coarse fit stopped by its
+iteration cap still gains each iteration, and a refined fit would otherwise
+be kept, and run to its own cap with four times the unknowns, for progress
+the coarse bubbles would have made too.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from bubsub.core.projection.subdivision import refine_control
 
 from bubsub.clients.optimise.criteria import akaike_score
 
-__all__ = ["refine_and_fit", "refine_and_check", "can_refine"]
+__all__ = ["refine_and_fit", "refine_and_check", "can_refine", "coarse_rate"]
 
 
 def can_refine(surfaces):
@@ -35,7 +40,21 @@ def can_refine(surfaces):
     return bool(surfaces) and all(s.levels >= 1 for s in surfaces)
 
 
-def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=None, progress=False, rtol=None):
+def coarse_rate(history, window=5):
+    """Objective decrease per iteration over a fit's last ``window`` iterations (0 for shorter fits).
+
+    Parameters
+    ----------
+    history : list of dict
+        :attr:`bubsub.clients.optimise.fit.FitResult.history`.
+    """
+    if len(history) <= window:
+        return 0.0
+    return max(0.0, (history[-window - 1]["objective"] - history[-1]["objective"]) / window)
+
+
+def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=None, progress=False, rtol=None,
+                   coarse_rate=0.0):
     """Refine the control meshes once, fit, and keep the result if its Akaike score is lower.
 
     Parameters
@@ -56,6 +75,12 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         As :func:`bubsub.clients.optimise.fit.fit`'s (it works on any control topology).
     rtol : float, optional
         The refined fit's convergence test (:func:`bubsub.clients.optimise.fit.fit`).
+    coarse_rate : float
+        How much the coarse fit's objective still fell per iteration when it
+        stopped (:func:`coarse_rate`). The trial must beat the coarse
+        objective less ``trial`` times this: a coarse fit stopped by its
+        iteration cap would gain as much by going on, and the refinement
+        must be worth more than that.
 
     Returns
     -------
@@ -76,24 +101,30 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         f0 += float(penalty([s.vertices for s in surfaces])[0])
     refined = [refine_control(s) for s in surfaces]
     m, k = data.size, sum(s.vertices.size for s in refined)
-    before = akaike_score(f0, m, sum(s.vertices.size for s in surfaces))
+    k0 = sum(s.vertices.size for s in surfaces)
+    before = akaike_score(f0, m, k0)
+    # what the coarse bubbles would reach in as many more iterations of their own fit
+    before_trial = akaike_score(max(f0 - trial * max(float(coarse_rate), 0.0), 1e-300), m, k0)
 
     def trial_failed(iteration, objective, _):
         # a refinement that has not paid for its unknowns after a few iterations is not worth the rest
-        return iteration == trial and akaike_score(objective, m, k) >= before
+        return iteration == trial and akaike_score(objective, m, k) >= before_trial
 
     result = fit(projector, refined, data, iterations=iterations, progress=progress, catch_interrupt=False,
                  penalty=penalty, label="refined fit", callback=trial_failed, rtol=rtol)
     after = akaike_score(result.objective, m, k)
-    kept = after < before
+    # a refinement stopped by the trial is judged by the trial's own bar
+    kept = after < (before_trial if result.stop_reason == "stopped by callback" else before)
     summary = {"kept": bool(kept), "objective_before": f0, "objective_after": result.objective,
+               "coarse_rate": float(coarse_rate), "stop_reason": result.stop_reason,
                "score_before": before, "score_after": after, "iterations": result.iterations,
                "control_vertices_before": len(surfaces[0].vertices),
                "control_vertices_after": len(refined[0].vertices)}
     return (result.surfaces if kept else surfaces), summary
 
 
-def refine_and_check(projector, surfaces, data, check, *, iterations, penalty=None, progress=False, rtol=None):
+def refine_and_check(projector, surfaces, data, check, *, iterations, penalty=None, progress=False, rtol=None,
+                     coarse_rate=0.0):
     """:func:`refine_and_fit`, then ``check`` (the pipeline's validity check and repair) on a kept result,
     whose Akaike score must still beat the coarse one's afterwards (else the valid coarse bubbles stay).
 
@@ -111,7 +142,7 @@ def refine_and_check(projector, surfaces, data, check, *, iterations, penalty=No
         ``check``'s summary of the kept refined bubbles.
     """
     refined, summary = refine_and_fit(projector, surfaces, data, iterations=iterations, penalty=penalty,
-                                      progress=progress, rtol=rtol)
+                                      progress=progress, rtol=rtol, coarse_rate=coarse_rate)
     if not summary["kept"]:
         return surfaces, summary, None
     repaired, validity = check(refined)

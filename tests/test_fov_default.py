@@ -106,3 +106,78 @@ def test_evaluate_scores_only_the_truth_grids_voxels_inside_the_field_of_view(tm
     assert res["scored_on"].endswith("inside the field of view")
     (out / "report.json").write_text(json.dumps({"dimension": 3}))
     assert evaluate_dir(out, sim)["ddi"] == pytest.approx(whole)  # no field of view known: the whole grid
+
+
+@pytest.mark.parametrize("factor", [0.3, 2.0])
+def test_an_unseen_cap_that_collapsed_or_swelled_is_continued_as_the_sphere_the_seen_part_lies_on(factor):
+    from bubsub.core import sphere_surface
+    from bubsub.clients.pipeline.repair import continued
+
+    centre, r = np.array([0.1, -0.2, 0.3]), 0.4
+    ball = sphere_surface(centre, r, C)
+    v = ball.vertices.copy()
+    unseen = v[:, 2] > centre[2] + 0.5 * r  # the cap above the detector's top (its control vertices)
+    v[unseen] = centre + factor * (v[unseen] - centre)  # folded in, or standing off
+    out = continued(ball.with_vertices(v), unseen)
+    assert np.array_equal(out.vertices[~unseen], v[~unseen])  # what the data see is kept
+    fine = out.fine().vertices
+    dist = np.linalg.norm(fine - centre, axis=1)
+    truth = np.linalg.norm(ball.fine().vertices - centre, axis=1)
+    assert np.abs(dist - truth).max() < 0.02 * r  # the subdivided sphere again, to 2 % of its radius
+    assert abs(out.fine().volume - ball.fine().volume) < 0.01 * ball.fine().volume
+    few = v[:, 2] > centre[2] - 0.8 * r  # under a quarter seen: the sphere it started as is left alone
+    assert np.array_equal(continued(ball.with_vertices(v), few).vertices, v)
+
+
+def test_a_cap_thinner_than_the_previews_voxels_is_seeded_from_the_detectors_edge_row():
+    from bubsub.core import MeshProjector
+    from bubsub.clients.pipeline.initial import choose_initial, edge_slices
+    from bubsub.clients.pipeline.preview import voxel_preview
+
+    # 20 parallel views of a 64 x 24 detector of 25 um pixels: field of view radius 0.8 mm, half height 0.3 mm
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 20, endpoint=False), pixel_size=0.025, cols=64, rows=24)
+    half_z = field_of_view(g)[1]
+    r, lift = 0.2, 0.16  # the second ball's centre 0.16 mm above the top: a cap 0.04 mm high, 0.12 mm across
+    centres = np.array([[-0.2, -0.1, 0.0], [0.3, 0.2, half_z + lift]])
+    data = project_ellipsoids(g, centres, np.full((2, 3), r), np.stack([np.eye(3)] * 2), C, supersampling=2)
+    ((lo, down, _, _), (top, up, discs, radii)) = edge_slices(data, g, C, (-0.8, 0.8, -0.8, 0.8), 0.025)
+    assert (lo, down, top, up) == pytest.approx((-half_z, -1.0, half_z, 1.0))
+    k = np.argmin(np.linalg.norm(discs - centres[1, :2], axis=1))
+    assert np.linalg.norm(discs[k] - centres[1, :2]) < 0.03
+    assert radii[k] == pytest.approx(np.sqrt(r * r - lift * lift), abs=0.04)
+    # a preview of 50 um voxels (two rows each): the cap is half a voxel high
+    image, extent = voxel_preview(data, g, C, 0.05)
+    proj = MeshProjector(g)
+
+    def seeds(model):
+        surfaces, _ = choose_initial(image, extent, C, proj, data, detector="dt", estimate=False,
+                                     border_is_background=not model)
+        return np.array([s.control.vertices.mean(axis=0) for s in surfaces])
+
+    near = lambda c: np.linalg.norm(c[:, :2] - centres[1, :2], axis=1) < 0.05
+    assert not near(seeds(False)).any()
+    found = seeds(True)
+    assert near(found).sum() == 1 and found[near(found)][0, 2] > half_z  # centred beyond the edge plane
+    assert len(found) == 2
+
+
+def test_topology_never_merges_a_bubble_that_reaches_the_edge_of_the_field_of_view():
+    from bubsub.core import MeshProjector, sphere_surface
+    from bubsub.clients.pipeline.topology import adapt_topology
+
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 16, endpoint=False), pixel_size=0.05, cols=40, rows=16)
+    # one ball of 0.3 mm started as two halves side by side: inside the field of view (z = 0) the merge wins;
+    # at z = 0.3 the ball crosses the detector's top (0.4 mm) and the pair is left alone
+    for z, merged in ((0.0, True), (0.3, False)):
+        data = project_ellipsoids(g, np.array([[0.0, 0.0, z]]), np.full((1, 3), 0.3), np.eye(3)[None], C,
+                                  supersampling=2)
+        start = [sphere_surface((-0.15, 0, z), 0.16, C), sphere_surface((0.15, 0, z), 0.16, C)]
+        out, summary = adapt_topology(MeshProjector(g), start, data, preview=None,
+                                      new_bubble=lambda c, r: sphere_surface(c, r, C), min_radius=0.05,
+                                      max_radius=0.5, rounds=1, steps=("merge",), touch=0.05, fov_edge=True)
+        assert len(out) == (1 if merged else 2)
+        if not merged:  # the same pair without the rule: merged
+            out, _ = adapt_topology(MeshProjector(g), start, data, preview=None,
+                                    new_bubble=lambda c, r: sphere_surface(c, r, C), min_radius=0.05,
+                                    max_radius=0.5, rounds=1, steps=("merge",), touch=0.05)
+            assert len(out) == 1

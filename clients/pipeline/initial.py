@@ -24,7 +24,8 @@ from scipy.spatial import cKDTree
 
 from bubsub.core import circle_surface, sphere_surface
 
-__all__ = ["LOG_THRESHOLD", "initial_centres", "initial_surfaces", "choose_initial", "default_detector"]
+__all__ = ["LOG_THRESHOLD", "initial_centres", "initial_surfaces", "choose_initial", "default_detector", "edge_slices",
+           "edge_centres", "EDGE_ITERATIONS", "HALF_HEIGHT_OVER_RADIUS", "MIN_DISC_PIXELS"]
 
 
 def default_detector(detector, ndim):
@@ -84,7 +85,7 @@ def initial_centres(image, extent, *, detector="dt", min_distance=None, contrast
 
 
 def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, radius=None, min_distance=None,
-                     detector="dt", border_is_background=True):
+                     detector="dt", border_is_background=True, edges=None):
     """Spherical bubbles at the centres :func:`initial_centres` finds in the preview.
 
     Parameters
@@ -104,6 +105,13 @@ def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, 
     detector : {"dt", "log"}
     border_is_background : bool
         See :func:`initial_centres`.
+    edges : list of (plane, outward, centres, radii), optional
+        :func:`edge_slices`: the discs that bubbles cut by the detector's top
+        and bottom edge show on the edge rows. Each disc no bubble found in
+        the preview accounts for becomes one more bubble, placed so that its
+        sphere (the common initial radius) has that disc as its cross-section
+        with the edge plane (:func:`edge_centres`): a thin visible cap, which
+        the preview's voxels do not resolve, is seeded as such a cap.
 
     Returns
     -------
@@ -122,6 +130,11 @@ def initial_surfaces(image, extent, contrast, *, control_points=None, levels=2, 
         r = np.full(len(centres), float(np.median(radii)))
     if not np.all(r > 0):
         raise ValueError(f"initial radius must be positive, got {radius if radius is not None else r.min()}")
+    if edges and ndim == 3:
+        extra = edge_centres(centres, r, edges, float(np.median(r)))
+        if len(extra):
+            centres = np.concatenate([centres, extra])
+            r = np.concatenate([r, np.full(len(extra), float(np.median(r)))])
     # Overlapping initial bubbles count their overlap twice and can lock each other
     # in a poor local minimum: cap each radius at half the distance to the nearest centre.
     if len(centres) > 1:
@@ -158,7 +171,10 @@ def choose_initial(image, extent, contrast, projector, data, *, detector="auto",
         place. Else only that detector.
     options
         ``control_points``, ``levels``, ``radius``, ``min_distance``,
-        ``border_is_background`` of :func:`initial_surfaces`.
+        ``border_is_background`` of :func:`initial_surfaces`; with
+        ``border_is_background=False`` (the field-of-view model) in 3D, the
+        discs of :func:`edge_slices` at half the preview's voxel size are added
+        as ``edges``.
 
     Returns
     -------
@@ -176,6 +192,10 @@ def choose_initial(image, extent, contrast, projector, data, *, detector="auto",
         raise ValueError(f"detector must be 'auto', 'log' or 'dt', got {detector!r}")
     names = ("log", "dt") if detector == "auto" else (detector,)
     data = np.asarray(data)
+    if not options.get("border_is_background", True) and image.ndim == 3:
+        # the field-of-view model: bubbles cut by the detector's top and bottom, seen on the edge rows
+        voxel = (extent[1] - extent[0]) / image.shape[-1]
+        options = dict(options, edges=edge_slices(data, projector.geometry, contrast, extent, voxel / 2))
     candidates, summary = {}, {}
     for name in names:
         try:
@@ -198,3 +218,134 @@ def choose_initial(image, extent, contrast, projector, data, *, detector="auto",
     best = min(candidates, key=lambda n: summary[n]["score"]) if len(names) > 1 else names[0]
     summary["detector"] = best
     return candidates[best], summary
+
+
+#: Box-constrained BB iterations of each edge row's slice (:func:`edge_slices`).
+EDGE_ITERATIONS = 30
+
+#: Least radius of an edge disc (:func:`edge_slices`), in the slice's pixels.
+MIN_DISC_PIXELS = 3
+
+
+def edge_slices(data, geometry, contrast, extent, voxel):
+    """Discs of bubble cut by the detector's top and bottom edge, found on the edge rows' slices.
+
+    In a parallel-beam scan whose rows are slices of the sample, the first and
+    last detector rows see the two slices at the edge of the field of view.
+    Each is reconstructed alone as a 2D scan (box-constrained BB,
+    :data:`EDGE_ITERATIONS` iterations, pixels of ``voxel``) and its distance-transform
+    maxima are the discs that the bubbles crossing the edge cut from it, however
+    thin their visible cap: the low-resolution preview, whose voxels are several
+    rows thick, averages a cap thinner than about two of them away.
+
+    Parameters
+    ----------
+    data : ndarray, ``(views, rows, cols)``
+        The fitted projections' bubble signal.
+    geometry : ScanGeometry
+        Of ``data``.
+    contrast : float
+    extent : tuple
+        Of the voxel preview, mm: the slices span its ``x`` and ``y`` range.
+    voxel : float
+        Pixel of the slices, mm (at least one detector column; two columns binned
+        where it is at least two).
+
+    Returns
+    -------
+    list of (plane, outward, centres, radii)
+        One per edge: its height (mm), +1 (top) or -1 (bottom), the discs' centres
+        ``(k, 2)`` and radii ``(k,)`` (mm). Empty for a cone-beam or 2D scan (rows
+        are not slices there) and for fewer than 8 rows.
+    """
+    from bubsub.core.projection.geometry import ScanGeometry
+    from bubsub.core.voxel.astra2d import reconstruct_2d
+
+    g = geometry
+    if g.ndim != 3 or g.is_cone or g.det_rows < 8:
+        return []
+    vec = g.vectors
+    if np.abs(vec[:, [2, 8]]).max() > 1e-9 * np.abs(vec[:, 6:9]).max():
+        return []  # rays or detector columns tilted out of the horizontal plane: a row is no slice
+    # each row's 2D scan: the rays, the row's centre and the column direction in the horizontal plane; pairs of
+    # columns binned where the slice's pixels are at least two columns wide (half the projector's work), and
+    # pixels no finer than the columns (finer ones only resolve noise)
+    pixel = float(np.linalg.norm(vec[0, 6:9]))
+    binning = 2 if voxel >= 2 * pixel else 1
+    voxel = max(voxel, binning * pixel)
+    pairs = g.det_cols // binning
+    flat = vec[:, [0, 1, 3, 4, 6, 7]].copy()
+    flat[:, 2:4] -= 0.5 * (g.det_cols - binning * pairs) * flat[:, 4:6]  # the centre of the columns used
+    flat[:, 4:6] *= binning
+    n = max(8, int(round((extent[1] - extent[0]) / voxel)))
+    xy = tuple(extent[:4])
+    positive = np.sign(contrast) * np.asarray(data, dtype=np.float32)
+    upper = np.float32(abs(contrast))
+    height = float(np.linalg.norm(vec[0, 9:12]))
+    out = []
+    for row in (0, g.det_rows - 1):
+        # the row's centre height and the edge plane on its outer face (ScanGeometry.window's row offset)
+        z = float(g.window(row, 0, rows=1, cols=g.det_cols).vectors[0, 5])
+        side = 1.0 if z > 0 else -1.0
+        slice_geometry = ScanGeometry("parallel_vec", flat, None, pairs)
+        sinogram = positive[:, row, :binning * pairs].reshape(len(positive), pairs, binning).mean(axis=2)
+        image = reconstruct_2d("bb", sinogram, slice_geometry, (n, n), xy, iterations=EDGE_ITERATIONS,
+                               nonneg=True, callback=lambda k, x: np.minimum(x, upper, out=x))
+        if float(image.max()) < 0.5 * upper:  # no gas at full contrast: nothing cut by this edge
+            centres, radii = np.zeros((0, 2)), np.zeros(0)
+        else:
+            centres, radii = initial_centres(image, xy, detector="dt", contrast=contrast, border_is_background=True)
+            # discs narrower than 3 pixels are noise the opening left (a cap one row high and 0.5 mm in radius
+            # cuts a disc of 0.11 mm)
+            keep = radii >= MIN_DISC_PIXELS * voxel
+            centres, radii = centres[keep], radii[keep]
+        out.append((z + side * height / 2, side, centres, radii))
+    return out
+
+
+#: A found bubble may reach this many times its initial radius from its centre along the rotation axis
+#: (:func:`edge_centres`; ~150-bubble column: at 1.0, 7 bubbles whose top the edge cuts got a second seed).
+HALF_HEIGHT_OVER_RADIUS = 1.5
+
+
+def edge_centres(centres, radii, edges, radius):
+    """Centres of the bubbles that edge discs add: the discs no found bubble accounts for.
+
+    A disc (centre ``p``, radius ``rho``) on the edge plane ``z = h`` is
+    accounted for when a found bubble (centre ``c``, radius ``r``) may cut the
+    plane (``|c_z - h|`` below :data:`HALF_HEIGHT_OVER_RADIUS` times the larger
+    of ``r`` and ``radius``) and its centre lies within ``rho`` of ``p`` across. Otherwise
+    a sphere of ``radius`` with that disc as its section is placed beyond the
+    plane, its centre at ``h + outward sqrt(radius^2 - rho^2)`` (on the plane
+    for a disc wider than the sphere), so that its visible part is the cap the
+    disc bounds.
+
+    Parameters
+    ----------
+    centres : (n, 3) float
+    radii : (n,) float
+        The found bubbles, mm.
+    edges : list of (plane, outward, centres, radii)
+        :func:`edge_slices`.
+    radius : float
+        Radius of the added spheres, mm.
+
+    Returns
+    -------
+    (k, 3) float
+    """
+    centres = np.asarray(centres, dtype=float).reshape(-1, 3)
+    radii = np.asarray(radii, dtype=float)
+    added = []
+    for plane, outward, discs, rho in edges:
+        # the found spheres' radii are the common one capped at half the nearest centre's distance, short of an
+        # elongated or large bubble's half-height: a bubble within 1.5 times its radius of the plane may cut it
+        reach = HALF_HEIGHT_OVER_RADIUS * np.maximum(radii, radius)
+        cuts = np.abs(centres[:, 2] - plane) < reach if len(centres) else np.zeros(0, bool)
+        near = centres[cuts, :2]
+        for p, rk in zip(np.asarray(discs).reshape(-1, 2), rho):
+            if len(near) and np.min(np.linalg.norm(near - p, axis=1)) <= rk:
+                continue
+            lift = np.sqrt(max(radius ** 2 - rk ** 2, 0.0))
+            added.append((p[0], p[1], plane + outward * lift))
+    return np.array(added, dtype=float).reshape(-1, 3)

@@ -20,6 +20,15 @@ and acts:
   itself would always suffice; the bisection only moves less;
 * a bubble wholly inside another, or turned inside out, is dropped ("dropped").
 
+Before the check, the part of each bubble that no ray sees (beyond the
+detector's top or bottom row: control vertices whose refined neighbourhood
+no projection sees, :func:`bubsub.clients.pipeline.fov.unobserved_control`)
+is continued from the part the data determine (:func:`continued`): the fit
+leaves those vertices where the bubble started, so when the visible part
+has moved or grown they would fold into it (collapse) or stand off it
+(swell), and an unseen part of the wrong size overlaps a neighbour's and
+makes the repair move the neighbours' visible parts.
+
 Then a short refit lets the data reshape the repaired bubbles; the refit may
 undo a repair, so the check and the repairs run again (up to ``rounds``
 times) and the last round repairs without refitting. A bubble still invalid
@@ -34,7 +43,8 @@ import numpy as np
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.core.projection.validity import check_bubbles, self_crossing_vertices, self_crossings
 
-__all__ = ["check_and_repair", "merged_validity", "repair_bubbles", "rounded", "untangled", "separate"]
+__all__ = ["check_and_repair", "merged_validity", "repair_bubbles", "rounded", "untangled", "separate", "continued",
+           "MIN_SEEN"]
 
 
 def _centre_radius(surface):
@@ -69,6 +79,71 @@ def _control_edges(surface):
         return np.concatenate([np.stack([i, nxt], 1), np.stack([nxt, i], 1)])
     f = surface.control_faces
     return np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+
+
+#: Least fraction of a bubble's control vertices that the data see for its unseen part to be continued from
+#: them (:func:`continued`); below it the sphere the bubble started as is the better guess.
+MIN_SEEN = 0.25
+
+
+def continued(surface, unseen):
+    """The bubble with its unseen control vertices continued from the seen ones: a sphere and a smooth rest.
+
+    A sphere is fitted (least squares, algebraic) to the seen control
+    vertices; every unseen one is put on it along its own direction from the
+    sphere's centre, plus the seen vertices' offsets from the sphere extended
+    harmonically over the control mesh (each unseen offset the mean of its
+    neighbours'), so the continuation meets the visible part without a kink
+    and is as round as a sphere beyond it: it neither folds in nor swells.
+
+    Parameters
+    ----------
+    surface : SubdivisionSurface
+    unseen : (n_control,) bool
+        Control vertices no ray sees (:func:`bubsub.clients.pipeline.fov.unobserved_control`).
+
+    Returns
+    -------
+    SubdivisionSurface
+        ``surface`` itself when nothing is unseen, fewer than :data:`MIN_SEEN`
+        of the vertices (or fewer than ``ndim + 3``) are seen, or the sphere
+        fit is degenerate (radius outside half to twice the seen vertices'
+        median distance from its centre).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import spsolve
+
+    v = np.asarray(surface.vertices, dtype=float)
+    unseen = np.asarray(unseen, dtype=bool)
+    seen = ~unseen
+    n, d = v.shape
+    if not unseen.any() or seen.sum() < max(d + 3, MIN_SEEN * n):
+        return surface
+    x = v[seen]
+    a = np.c_[2 * x, np.ones(len(x))]
+    sol, *_ = np.linalg.lstsq(a, np.einsum("ij,ij->i", x, x), rcond=None)
+    c = sol[:d]
+    r2 = sol[d] + c @ c
+    spread = float(np.median(np.linalg.norm(x - c, axis=1)))
+    if not (np.isfinite(r2) and r2 > 0 and 0.5 * spread <= np.sqrt(r2) <= 2 * spread):
+        return surface
+    rho = np.sqrt(r2)
+    out = v - c
+    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    ref = c + rho * out / np.where(norm > 0, norm, 1.0)
+    offset = v - ref
+    e = _control_edges(surface)
+    adj = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    adj.data[:] = 1.0  # an edge listed twice is one neighbour
+    lap = (coo_matrix((np.asarray(adj.sum(axis=1)).ravel(), (np.arange(n), np.arange(n))), shape=(n, n)) - adj)
+    lap = lap.tocsr()
+    u, s_ = np.flatnonzero(unseen), np.flatnonzero(seen)
+    rhs = -(lap[u][:, s_] @ offset[s_])
+    inner = lap[u][:, u].tocsc()
+    filled = np.column_stack([spsolve(inner, rhs[:, k]) for k in range(d)])
+    w = v.copy()
+    w[u] = ref[u] + filled
+    return surface.with_vertices(w)
 
 
 def _grown(surface, mask):
@@ -334,7 +409,8 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
     Returns
     -------
     surfaces, summary
-        As :func:`repair_bubbles`; ``summary["repaired"]`` says whether repairs ran,
+        As :func:`repair_bubbles`; ``summary["repaired"]`` says whether repairs ran
+        (and then ``unseen_parts_continued`` how many bubbles' unseen parts :func:`continued` reshaped),
         ``summary["objective_after_repair"]`` (when anything was repaired) is
         ``0.5 ||Proj(S x) - d||^2`` of the returned bubbles.
     """
@@ -342,7 +418,13 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
         found = [v.as_dict() for v in check_bubbles(surfaces)]
         return list(surfaces), {"violations_found": found, "actions": [], "violations_remaining": found,
                                 "dropped": 0, "repaired": False}
+    from bubsub.clients.pipeline.fov import unobserved_control
     from bubsub.clients.pipeline.local import local_refit
+
+    # the unseen parts first: they decide overlaps the data cannot
+    before = list(surfaces)
+    surfaces = [continued(x, unobserved_control(x, projector.geometry)) for x in surfaces]
+    n_continued = sum(a is not b for a, b in zip(surfaces, before))
 
     def refit(items, changed, gone):
         # only the repaired bubbles and their neighbours, on detector windows with the rest held fixed
@@ -351,6 +433,7 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
 
     kept, summary = repair_bubbles(surfaces, refit, gap=gap, rounds=rounds)
     summary["repaired"] = True
+    summary["unseen_parts_continued"] = n_continued
     if summary["actions"] and kept:
         summary["objective_after_repair"] = float(projector.objective(kept, data)[0])
     return kept, summary
@@ -372,4 +455,5 @@ def merged_validity(first, second, stage="after refinement"):
     out["actions"] = first["actions"] + tagged(second["actions"])
     out["dropped"] = first["dropped"] + second["dropped"]
     out["repaired"] = first["repaired"] or second["repaired"]
+    out["unseen_parts_continued"] = first.get("unseen_parts_continued", 0) + second.get("unseen_parts_continued", 0)
     return out

@@ -70,22 +70,25 @@ def _centre(s):
 def remove_step(surfaces, residual, own, changes, round_no, cost=0.0):
     """Greedy removal of bubbles whose removal raises ``0.5 ||r||^2`` by at most ``cost`` (in place on ``residual``).
 
-    Every bubble's gain is computed once from its footprint (not kept); the
+    ``cost`` is one number, or one per bubble (a bubble cut by the field of
+    view's edge is charged only for the unknowns the data see). Every
+    bubble's gain is computed once from its footprint (not kept); the
     candidates' gains are computed again, best first, after each removal.
     """
-    candidates = [k for k in range(len(surfaces)) if own.compute(k).removal_gain(residual) <= cost]
+    limit = np.broadcast_to(np.asarray(cost, dtype=float), (len(surfaces),))
+    candidates = [k for k in range(len(surfaces)) if own.compute(k).removal_gain(residual) <= limit[k]]
     gone = set()
     while candidates:
         f = _half_sq(residual)
-        gains = [own[k].removal_gain(residual) for k in candidates]
+        gains = [own[k].removal_gain(residual) - limit[k] for k in candidates]
         best = int(np.argmin(gains))
-        if gains[best] > cost:
+        if gains[best] > 0:
             break
         k = candidates.pop(best)
         own[k].add_to(residual, -1.0)
         gone.add(k)
         changes.append({"round": round_no, "change": "remove", "centre": _centre(surfaces[k]).tolist(),
-                        "objective_before": f, "objective_after": f + gains[best]})
+                        "objective_before": f, "objective_after": f + gains[best] + limit[k]})
     alive = [k for k in range(len(surfaces)) if k not in gone]
     return [surfaces[k] for k in alive], own.subset(alive)
 
@@ -136,8 +139,16 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
 
 
 def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, touch, iterations,
-               max_tries, cost=0.0):
-    """Replace touching pairs by one bubble when that fits the data better than the pair."""
+               max_tries, cost=0.0, at_edge=None):
+    """Replace touching pairs by one bubble when that fits the data better than the pair.
+
+    ``at_edge`` (one bool per bubble, optional): bubbles that reach the edge
+    of the field of view, never merged. Such a bubble's part beyond the edge
+    costs the objective nothing, so one round bubble of the pair's joint size
+    can explain a cut bubble's visible part and its neighbour's about as well
+    as the two (a neighbour absorbing a cut bubble): the comparison cannot
+    tell them apart there.
+    """
     if len(surfaces) < 2:
         return surfaces, own
     fines = [s.fine().vertices for s in surfaces]
@@ -146,6 +157,8 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     pairs = []
     for i, j in cKDTree(centres).query_pairs(2 * float(radii.max()) + touch):
         if np.linalg.norm(centres[i] - centres[j]) > radii[i] + radii[j] + touch:
+            continue
+        if at_edge is not None and (at_edge[i] or at_edge[j]):
             continue
         d = float(cKDTree(fines[i]).query(fines[j])[0].min())
         if d <= touch:
@@ -174,6 +187,22 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
                             _centre(pair[1]).tolist()], "objective_before": f_pair, "objective_after": f_one})
     keep = [k for k in range(len(surfaces)) if k not in gone]
     return [surfaces[k] for k in keep], own.subset(keep)
+
+
+def _seen_unknowns(surfaces, geometry):
+    """(n,) float: coordinates of each bubble's control vertices that some ray of ``geometry`` sees."""
+    from bubsub.clients.pipeline.fov import unobserved_control
+
+    return np.array([s.vertices.shape[1] * float(np.count_nonzero(~unobserved_control(s, geometry)))
+                     for s in surfaces])
+
+
+def _at_edge(surfaces, geometry):
+    """(n,) bool: the bubbles whose refined surface reaches the edge of the field of view (one pixel's margin)."""
+    from bubsub.clients.pipeline.fov import field_of_view, fov_report, truncated_flags
+
+    return [bool(f) for f in truncated_flags([s.fine() for s in surfaces], field_of_view(geometry),
+                                             fov_report(geometry)["margin"])]
 
 
 def _axes(s):
@@ -252,7 +281,7 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
 def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius, max_radius, rounds=3,
                    iterations=30, threshold=0.15, touch=0.0, split_ratio=1.6, local_iterations=15, max_add=20,
                    max_tries=8, steps=("remove", "add", "merge", "split"), complexity=1.0, image=None,
-                   progress=False, penalty=None):
+                   progress=False, penalty=None, fov_edge=False):
     """Alternate topology changes and joint BFGS fits.
 
     Parameters
@@ -298,6 +327,12 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         always fit noise a little better than one.
     penalty : callable, optional
         Added to the objective of the joint fits (:func:`bubsub.clients.optimise.fit`).
+    fov_edge : bool
+        Respect the edge of the field of view (:mod:`bubsub.clients.pipeline.fov`): a
+        bubble that reaches it is never merged, and its removal is weighed
+        against the unknowns the data see (its control vertices that some ray
+        sees), not all of them, so that a cut bubble whose visible part is small
+        is kept when it explains that part.
 
     Returns
     -------
@@ -324,14 +359,18 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         residual = projector.forward(surfaces).astype(np.float64) - data if surfaces else -data.astype(np.float64)
         cost = complexity * unknowns * 2 * _half_sq(residual) / residual.size
         if "remove" in steps:
-            surfaces, own = remove_step(surfaces, residual, own, changes, r, cost)
+            # unknowns no ray sees cost nothing to remove: a cut bubble is charged for its visible ones only
+            removal_cost = cost * _seen_unknowns(surfaces, projector.geometry) / unknowns if fov_edge else cost
+            surfaces, own = remove_step(surfaces, residual, own, changes, r, removal_cost)
         if "add" in steps:
             surfaces, own = add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r,
                                      min_radius=min_radius, max_radius=max_radius, threshold=threshold,
                                      max_add=max_add, cost=cost)
         if "merge" in steps:
+            at_edge = _at_edge(surfaces, projector.geometry) if fov_edge else None
             surfaces, own = merge_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
-                                       touch=touch, iterations=local_iterations, max_tries=max_tries, cost=cost)
+                                       touch=touch, iterations=local_iterations, max_tries=max_tries, cost=cost,
+                                       at_edge=at_edge)
         if "split" in steps:
             surfaces, own = split_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
                                        ratio=split_ratio, iterations=local_iterations, max_tries=max_tries, cost=cost,
@@ -405,4 +444,5 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     return adapt_topology(MeshProjector(geometry, supersampling=settings.supersampling), surfaces, data,
                           preview=preview, new_bubble=new_bubble, min_radius=3 * voxel, max_radius=size / 8,
                           rounds=settings.topology_rounds, iterations=max(10, settings.iterations // 2),
-                          touch=2 * voxel, image=(image, extent), progress=settings.progress, penalty=penalty)
+                          touch=2 * voxel, image=(image, extent), progress=settings.progress, penalty=penalty,
+                          fov_edge=settings.fov_model)

@@ -177,24 +177,34 @@ def lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1):
 
 # faces per chunk of the candidate pass: its buffer stays in the core's first caches
 CHUNK = 256
-# rows of a chunk's flat buffer (chunk_buffers), CHUNK values each: the projected vertices
-# x0 x1 x2 y0 y1 y2 (rows 0-5) and the clipped box c0 c1 r0 r1 (rows 6-9) of each face of the
-# chunk, then SMALL_ROWS rows of its small candidates (gather_small, small_terms; some unused). Constant
-# offsets into one array let LLVM vectorise loops over it without run-time checks that the
-# rows do not overlap (with a 2D array's strides it gives up: "too many memory checks").
-# The small candidates' rows, SMALL + r, one lane per small candidate q:
-#   in (gather_small):  r 0-5 x0 x1 x2 y0 y1 y2 | r 10 vertex order code | r 13-15 normal | r 16 plane
-#                       offset | r 17-19 inverse depths of the three vertices
-#   out (small_terms):  point k (0-3) in r 10 k + 0..5: value, coefficients a b c, lattice index, crossing
-#                       flag (point 0 overwrites rows 0-5 and point 1 rows 10-15 once they are read)
-BOX, SMALL, SMALL_ROWS = 6, 10, 36
+
+# The rows of a chunk's flat buffer ``w`` (chunk_buffers), CHUNK values each: row r of lane j is
+# ``w[r * CHUNK + j]``. Constant offsets into one array let LLVM vectorise loops over it without
+# run-time checks that the rows do not overlap (with a 2D array's strides it gives up: "too many
+# memory checks"). Numba compiles these module constants into the kernels.
+#
+# One lane per face of the chunk (chunk_candidates, face_into):
+VX0, VX1, VX2, VY0, VY1, VY2 = 0, 1, 2, 3, 4, 5  # the projected vertices' lattice coordinates
+BOX = 6  # first row of the face's lattice box clipped to the footprint, c0 c1 r0 r1:
+BOX_C0, BOX_C1, BOX_R0, BOX_R1 = BOX, BOX + 1, BOX + 2, BOX + 3
+# One lane per small candidate, rows SMALL + r (gather_small writes them, small_terms reads them):
+SMALL = 10
+S_ORDER = 10  # the vertex indices' order: edge_from's three swaps as bits (after the coordinates, r 0-5)
+S_NORMAL = 13  # the face's unit normal (3 rows)
+S_OFFSET = 16  # its plane offset n.x0
+S_DEPTH = 17  # its vertices' inverse depths (3 rows)
+# small_terms' results for lattice point k (0-3) of the box, rows SMALL + POINT_ROWS * k + P_*, over
+# rows already read (point 0 over the coordinates, point 1 over S_ORDER .. S_OFFSET - 1):
+POINT_ROWS = 10
+P_VALUE, P_COEF, P_LATTICE, P_FLAG = 0, 1, 4, 5  # value, three gradient coefficients, lattice index, crossing
+SMALL_ROWS = 3 * POINT_ROWS + P_FLAG + 1  # through point 3's flag
 
 
 @jit
 def chunk_candidates(faces, s, m, XY, F0, F1, R0, R1, w, flags, idx, sidx):
     """Faces ``s .. s + m - 1`` that may hold a lattice point, in two lists: those whose box holds
     at most two (``sidx``: small) and the others (``idx``); returns how many of each, and every
-    face's lattice coordinates and box (as floats) in rows 0-9 of ``w`` (:data:`BOX`).
+    face's lattice coordinates and box (as floats) in rows :data:`VX0` .. :data:`BOX_R1` of ``w``.
 
     The projected vertices are gathered first, then tested over contiguous
     lanes (LLVM vectorises that loop), then the kept ones are listed, all
@@ -209,11 +219,11 @@ def chunk_candidates(faces, s, m, XY, F0, F1, R0, R1, w, flags, idx, sidx):
     for j in range(m):
         f = s + j
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        w[j], w[CHUNK + j], w[2 * CHUNK + j] = XY[i0, 0], XY[i1, 0], XY[i2, 0]
-        w[3 * CHUNK + j], w[4 * CHUNK + j], w[5 * CHUNK + j] = XY[i0, 1], XY[i1, 1], XY[i2, 1]
+        w[VX0 * CHUNK + j], w[VX1 * CHUNK + j], w[VX2 * CHUNK + j] = XY[i0, 0], XY[i1, 0], XY[i2, 0]
+        w[VY0 * CHUNK + j], w[VY1 * CHUNK + j], w[VY2 * CHUNK + j] = XY[i0, 1], XY[i1, 1], XY[i2, 1]
     for j in range(m):
-        x0, x1, x2 = w[j], w[CHUNK + j], w[2 * CHUNK + j]
-        y0, y1, y2 = w[3 * CHUNK + j], w[4 * CHUNK + j], w[5 * CHUNK + j]
+        x0, x1, x2 = w[VX0 * CHUNK + j], w[VX1 * CHUNK + j], w[VX2 * CHUNK + j]
+        y0, y1, y2 = w[VY0 * CHUNK + j], w[VY1 * CHUNK + j], w[VY2 * CHUNK + j]
         c0, c1, r0, r1 = lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)
         area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
         t = abs(x0) + abs(x1) + abs(x2) + abs(y0) + abs(y1) + abs(y2)
@@ -225,8 +235,8 @@ def chunk_candidates(faces, s, m, XY, F0, F1, R0, R1, w, flags, idx, sidx):
         outside = single & ((e0 < -a) | (e1 < -a) | (e2 < -a))
         flags[j] = (c0 <= c1) & (r0 <= r1) & (area2 != 0.0) & ~outside
         flags[CHUNK + j] = (c1 - c0) + (r1 - r0) <= 1.0
-        w[BOX * CHUNK + j], w[(BOX + 1) * CHUNK + j] = c0, c1
-        w[(BOX + 2) * CHUNK + j], w[(BOX + 3) * CHUNK + j] = r0, r1
+        w[BOX_C0 * CHUNK + j], w[BOX_C1 * CHUNK + j] = c0, c1
+        w[BOX_R0 * CHUNK + j], w[BOX_R1 * CHUNK + j] = r0, r1
     n = n_small = 0
     for j in range(m):
         idx[n] = j
@@ -238,8 +248,8 @@ def chunk_candidates(faces, s, m, XY, F0, F1, R0, R1, w, flags, idx, sidx):
 
 @jit
 def face_into(faces, f, XY, F0, F1, R0, R1, w):
-    """One face's lattice coordinates and clipped box into place 0 of rows 0-9 of ``w`` (the
-    layout of :func:`chunk_candidates`)."""
+    """One face's lattice coordinates and clipped box into lane 0 of rows :data:`VX0` ..
+    :data:`BOX_R1` of ``w`` (the layout of :func:`chunk_candidates`)."""
     i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
     x0, x1, x2, y0, y1, y2 = XY[i0, 0], XY[i1, 0], XY[i2, 0], XY[i0, 1], XY[i1, 1], XY[i2, 1]
     for r, v in enumerate((x0, x1, x2, y0, y1, y2) + lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)):
@@ -302,24 +312,25 @@ def edge_value(bx, by, dx, dy, s, col, row):
 @jit
 def gather_small(faces, s, sidx, n, nrm, offset, iW, w):
     """Copy the small candidates ``sidx[:n]`` of the chunk at face ``s`` into contiguous rows
-    ``SMALL ..`` of ``w``: lattice coordinates (rows 0-5), the vertex indices' order (row 10: one
-    number, :func:`edge_from`'s three swaps as bits), normal and plane offset (13-16) and the
-    vertices' inverse depths (17-19), for :func:`small_terms`. Not the box: computing it again
+    ``SMALL ..`` of ``w``: lattice coordinates (``SMALL + VX0 .. VY2``), the vertex indices' order
+    (:data:`S_ORDER`), normal and plane offset (:data:`S_NORMAL`, :data:`S_OFFSET`) and the
+    vertices' inverse depths (:data:`S_DEPTH`), for :func:`small_terms`. Not the box: computing it again
     there, vectorised, costs less than copying it (level 3 forward, one thread: 6 ms less)."""
     for q in range(n):
         j = sidx[q]
         f = s + j
         # written out rather than as a loop over the rows, which LLVM does not unroll (the loop
         # copies ten rows about 10 % slower at level 3)
-        a0, a1, a2, a3, a4 = w[j], w[CHUNK + j], w[2 * CHUNK + j], w[3 * CHUNK + j], w[4 * CHUNK + j]
-        a5 = w[5 * CHUNK + j]
-        w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q] = a0, a1, a2
-        w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q], w[(SMALL + 5) * CHUNK + q] = a3, a4, a5
+        a0, a1, a2 = w[VX0 * CHUNK + j], w[VX1 * CHUNK + j], w[VX2 * CHUNK + j]
+        a3, a4, a5 = w[VY0 * CHUNK + j], w[VY1 * CHUNK + j], w[VY2 * CHUNK + j]
+        w[(SMALL + VX0) * CHUNK + q], w[(SMALL + VX1) * CHUNK + q], w[(SMALL + VX2) * CHUNK + q] = a0, a1, a2
+        w[(SMALL + VY0) * CHUNK + q], w[(SMALL + VY1) * CHUNK + q], w[(SMALL + VY2) * CHUNK + q] = a3, a4, a5
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        w[(SMALL + 10) * CHUNK + q] = (i1 < i0) + 2 * (i2 < i1) + 4 * (i0 < i2)  # edge_from's swaps
-        w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q] = nrm[f, 0], nrm[f, 1]
-        w[(SMALL + 15) * CHUNK + q], w[(SMALL + 16) * CHUNK + q] = nrm[f, 2], offset[f]
-        w[(SMALL + 17) * CHUNK + q], w[(SMALL + 18) * CHUNK + q], w[(SMALL + 19) * CHUNK + q] = iW[i0], iW[i1], iW[i2]
+        w[(SMALL + S_ORDER) * CHUNK + q] = (i1 < i0) + 2 * (i2 < i1) + 4 * (i0 < i2)  # edge_from's swaps
+        w[(SMALL + S_NORMAL) * CHUNK + q], w[(SMALL + S_NORMAL + 1) * CHUNK + q] = nrm[f, 0], nrm[f, 1]
+        w[(SMALL + S_NORMAL + 2) * CHUNK + q], w[(SMALL + S_OFFSET) * CHUNK + q] = nrm[f, 2], offset[f]
+        w[(SMALL + S_DEPTH) * CHUNK + q] = iW[i0]
+        w[(SMALL + S_DEPTH + 1) * CHUNK + q], w[(SMALL + S_DEPTH + 2) * CHUNK + q] = iW[i1], iW[i2]
 
 
 @jit
@@ -342,8 +353,8 @@ def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, C, F0, F1, R0, R1, quad, c
     """The forward terms of the lattice points of the ``n`` small candidates in rows ``SMALL ..`` of
     ``w`` (:func:`gather_small`; attenuation ``mu``): boxes of one or two points, or with ``quad``
     boxes of 2 x 2. Each point gets its :func:`point_terms` (value, three coefficients, lattice
-    index as a float, exact) in rows ``SMALL + 10 k + 0..4`` and its crossing flag in
-    ``SMALL + 10 k + 5``, over rows already read: k = 0 for (c0, r0), 1 for (c1, r1) (never a
+    index as a float, exact) and its crossing flag in rows ``SMALL + POINT_ROWS * k + P_VALUE ..
+    P_FLAG``, over rows already read: k = 0 for (c0, r0), 1 for (c1, r1) (never a
     crossing in a one-point box), and for 2 x 2 boxes 2 for (c1, r0) and 3 for (c0, r1). Returns
     how many points are crossings, listed in ``cross`` as 4 times the candidate plus k, each box's
     row by row (the order in which the gradient pass would visit them). ``F0..F1, R0..R1``: the
@@ -362,41 +373,47 @@ def small_terms(n, w, mu, pc, cone, ik, a_off, b_off, C, F0, F1, R0, R1, quad, c
     """
     numba.literally(quad)
     for q in range(n):
-        x0, x1, x2 = w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q]
-        y0, y1, y2 = w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q], w[(SMALL + 5) * CHUNK + q]
+        x0, x1, x2 = w[(SMALL + VX0) * CHUNK + q], w[(SMALL + VX1) * CHUNK + q], w[(SMALL + VX2) * CHUNK + q]
+        y0, y1, y2 = w[(SMALL + VY0) * CHUNK + q], w[(SMALL + VY1) * CHUNK + q], w[(SMALL + VY2) * CHUNK + q]
         c0, c1, r0, r1 = lattice_box(x0, x1, x2, y0, y1, y2, F0, F1, R0, R1)
-        order = int(w[(SMALL + 10) * CHUNK + q])
-        plane = plane_terms(w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q], w[(SMALL + 15) * CHUNK + q],
-                            w[(SMALL + 16) * CHUNK + q], pc)
-        w0, w1, w2 = w[(SMALL + 17) * CHUNK + q], w[(SMALL + 18) * CHUNK + q], w[(SMALL + 19) * CHUNK + q]
+        order = int(w[(SMALL + S_ORDER) * CHUNK + q])
+        plane = plane_terms(w[(SMALL + S_NORMAL) * CHUNK + q], w[(SMALL + S_NORMAL + 1) * CHUNK + q],
+                            w[(SMALL + S_NORMAL + 2) * CHUNK + q], w[(SMALL + S_OFFSET) * CHUNK + q], pc)
+        w0 = w[(SMALL + S_DEPTH) * CHUNK + q]
+        w1, w2 = w[(SMALL + S_DEPTH + 1) * CHUNK + q], w[(SMALL + S_DEPTH + 2) * CHUNK + q]
         area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
         sig = 1.0 if area2 > 0 else -1.0
         edges = (edge_from((order & 1) != 0, x0, y0, x1, y1, sig) + edge_from((order & 2) != 0, x1, y1, x2, y2, sig)
                  + edge_from((order & 4) != 0, x2, y2, x0, y0, sig))
-        # written out point by point rather than looped: LLVM vectorises innermost loops only
+        # written out point by point rather than looped: LLVM vectorises innermost loops only;
+        # o is the first row of point k's results (SMALL + POINT_ROWS * k)
         ok, v, a, b, c, lat = point_terms(c0, r0, edges, w0, w1, w2, cone, ik, a_off, b_off, plane, mu, C)
-        w[SMALL * CHUNK + q], w[(SMALL + 1) * CHUNK + q], w[(SMALL + 2) * CHUNK + q] = v, a, b
-        w[(SMALL + 3) * CHUNK + q], w[(SMALL + 4) * CHUNK + q] = c, lat
-        w[(SMALL + 5) * CHUNK + q] = 1.0 if ok else 0.0
+        o = SMALL
+        w[(o + P_VALUE) * CHUNK + q], w[(o + P_COEF) * CHUNK + q], w[(o + P_COEF + 1) * CHUNK + q] = v, a, b
+        w[(o + P_COEF + 2) * CHUNK + q], w[(o + P_LATTICE) * CHUNK + q] = c, lat
+        w[(o + P_FLAG) * CHUNK + q] = 1.0 if ok else 0.0
         ok, v, a, b, c, lat = point_terms(c1, r1, edges, w0, w1, w2, cone, ik, a_off, b_off, plane, mu, C)
-        w[(SMALL + 10) * CHUNK + q], w[(SMALL + 11) * CHUNK + q], w[(SMALL + 12) * CHUNK + q] = v, a, b
-        w[(SMALL + 13) * CHUNK + q], w[(SMALL + 14) * CHUNK + q] = c, lat
-        w[(SMALL + 15) * CHUNK + q] = 1.0 if ok & ((c1 != c0) | (r1 != r0)) else 0.0
+        o = SMALL + POINT_ROWS
+        w[(o + P_VALUE) * CHUNK + q], w[(o + P_COEF) * CHUNK + q], w[(o + P_COEF + 1) * CHUNK + q] = v, a, b
+        w[(o + P_COEF + 2) * CHUNK + q], w[(o + P_LATTICE) * CHUNK + q] = c, lat
+        w[(o + P_FLAG) * CHUNK + q] = 1.0 if ok & ((c1 != c0) | (r1 != r0)) else 0.0
         if quad:  # a 2 x 2 box: its other two corners
             ok, v, a, b, c, lat = point_terms(c1, r0, edges, w0, w1, w2, cone, ik, a_off, b_off, plane, mu, C)
-            w[(SMALL + 20) * CHUNK + q], w[(SMALL + 21) * CHUNK + q], w[(SMALL + 22) * CHUNK + q] = v, a, b
-            w[(SMALL + 23) * CHUNK + q], w[(SMALL + 24) * CHUNK + q] = c, lat
-            w[(SMALL + 25) * CHUNK + q] = 1.0 if ok else 0.0
+            o = SMALL + 2 * POINT_ROWS
+            w[(o + P_VALUE) * CHUNK + q], w[(o + P_COEF) * CHUNK + q], w[(o + P_COEF + 1) * CHUNK + q] = v, a, b
+            w[(o + P_COEF + 2) * CHUNK + q], w[(o + P_LATTICE) * CHUNK + q] = c, lat
+            w[(o + P_FLAG) * CHUNK + q] = 1.0 if ok else 0.0
             ok, v, a, b, c, lat = point_terms(c0, r1, edges, w0, w1, w2, cone, ik, a_off, b_off, plane, mu, C)
-            w[(SMALL + 30) * CHUNK + q], w[(SMALL + 31) * CHUNK + q], w[(SMALL + 32) * CHUNK + q] = v, a, b
-            w[(SMALL + 33) * CHUNK + q], w[(SMALL + 34) * CHUNK + q] = c, lat
-            w[(SMALL + 35) * CHUNK + q] = 1.0 if ok else 0.0
+            o = SMALL + 3 * POINT_ROWS
+            w[(o + P_VALUE) * CHUNK + q], w[(o + P_COEF) * CHUNK + q], w[(o + P_COEF + 1) * CHUNK + q] = v, a, b
+            w[(o + P_COEF + 2) * CHUNK + q], w[(o + P_LATTICE) * CHUNK + q] = c, lat
+            w[(o + P_FLAG) * CHUNK + q] = 1.0 if ok else 0.0
     m = 0
     for q in range(n):  # each box's crossings row by row: (c0, r0), (c1, r0), (c0, r1), (c1, r1)
         for j in range(4 if quad else 2):
             k = (0, 2, 3, 1)[j] if quad else j
             cross[m] = 4 * q + k
-            m += w[(SMALL + 10 * k + 5) * CHUNK + q] != 0.0
+            m += w[(SMALL + POINT_ROWS * k + P_FLAG) * CHUNK + q] != 0.0
     return m
 
 
@@ -481,8 +498,8 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
             n_quad = n_large = 0
             for q in range(n_keep):
                 j = idx[q]
-                quad = ((w[(BOX + 1) * CHUNK + j] - w[BOX * CHUNK + j] == 1.0)
-                        & (w[(BOX + 3) * CHUNK + j] - w[(BOX + 2) * CHUNK + j] == 1.0))
+                quad = ((w[BOX_C1 * CHUNK + j] - w[BOX_C0 * CHUNK + j] == 1.0)
+                        & (w[BOX_R1 * CHUNK + j] - w[BOX_R0 * CHUNK + j] == 1.0))
                 qidx[n_quad] = j
                 idx[n_large] = j
                 n_quad += quad
@@ -505,24 +522,25 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
                 for e in range(n_cross):
                     q, pt = cross[e] >> 2, cross[e] & 3
                     f = s + listed[q]
-                    o = (SMALL + 10 * pt) * CHUNK + q
-                    lat = int(w[o + 4 * CHUNK])
-                    Lf[lat] += w[o]
+                    o = (SMALL + POINT_ROWS * pt) * CHUNK + q  # the point's results (small_terms)
+                    lat = int(w[o + P_LATTICE * CHUNK])
+                    Lf[lat] += w[o + P_VALUE * CHUNK]
                     if stored < 0:  # a stored crossing marks its face only if the store fills (mark_stored)
                         hit[p, f >> 3] |= np.uint8(1 << (f & 7))
                     else:
                         pix = p * npix + lat if k == 1 else lattice_pixel(p, lat // C, lat % C, rows, cols, k)
                         c = 1.0 if pix_rl else ray_length(p, lat % C, lat // C, cone, S, D, U, V, rows, cols, k, k)
-                        stored = put_crossing(st_face, st_pix, st_coef, stored, True, f, pix, c, w[o + CHUNK],
-                                              w[o + 2 * CHUNK], w[o + 3 * CHUNK])
+                        stored = put_crossing(st_face, st_pix, st_coef, stored, True, f, pix, c,
+                                              w[o + P_COEF * CHUNK], w[o + (P_COEF + 1) * CHUNK],
+                                              w[o + (P_COEF + 2) * CHUNK])
         for q in range(n_keep):
             j = idx[q]
             f = s + j
             i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-            x0, x1, x2 = w[j], w[CHUNK + j], w[2 * CHUNK + j]
-            y0, y1, y2 = w[3 * CHUNK + j], w[4 * CHUNK + j], w[5 * CHUNK + j]
-            c0, c1 = int(w[BOX * CHUNK + j]), int(w[(BOX + 1) * CHUNK + j])
-            r0, r1 = int(w[(BOX + 2) * CHUNK + j]), int(w[(BOX + 3) * CHUNK + j])
+            x0, x1, x2 = w[VX0 * CHUNK + j], w[VX1 * CHUNK + j], w[VX2 * CHUNK + j]
+            y0, y1, y2 = w[VY0 * CHUNK + j], w[VY1 * CHUNK + j], w[VY2 * CHUNK + j]
+            c0, c1 = int(w[BOX_C0 * CHUNK + j]), int(w[BOX_C1 * CHUNK + j])
+            r0, r1 = int(w[BOX_R0 * CHUNK + j]), int(w[BOX_R1 * CHUNK + j])
             area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
             if area2 == 0.0:
                 continue  # seen edge-on: no ray crosses it in a single point
@@ -585,7 +603,8 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
 
 @jit
 def chunk_buffers():
-    """Per-thread scratch of :func:`faces_pass`: a chunk's flat buffer (:data:`BOX`), its candidate
+    """Per-thread scratch of :func:`faces_pass`: a chunk's flat buffer (rows :data:`VX0` ..
+    ``SMALL + SMALL_ROWS - 1``, see the constants above :func:`chunk_candidates`), its candidate
     flags (kept, small), its candidate lists (others, small, 2 x 2) and its small candidates'
     crossings (:func:`small_terms`)."""
     return (np.empty((SMALL + SMALL_ROWS) * CHUNK), np.empty(2 * CHUNK, np.bool_), np.empty(CHUNK, np.int64),

@@ -30,6 +30,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from bubsub.core.validate import check_int
+
 __all__ = ["chunk_bounds", "link_ids", "relabel", "run_subscan", "run_chunks", "ScanFileSubscans"]
 
 #: matched bubbles of the two reconstructions of a shared subscan overlap at least this much (IoU)
@@ -88,8 +90,7 @@ def chunk_bounds(order, chunks):
         Each chunk latest first; chunk ``c``'s last subscan is chunk ``c + 1``'s first.
     """
     order = list(order)
-    if isinstance(chunks, bool) or not isinstance(chunks, int) or chunks < 1:
-        raise ValueError(f"chunks must be a positive integer, got {chunks!r}")
+    check_int(chunks, "chunks", 1)
     k = max(1, min(chunks, len(order) - 1))
     if k == 1:
         return [order]

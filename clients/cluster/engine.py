@@ -18,6 +18,8 @@ import os
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from bubsub.core.validate import check_int
+
 from .environment import pinned_environment
 
 __all__ = ["ClusterSpec", "in_process", "local", "remote", "from_scheduler_file", "spec_from_options",
@@ -81,10 +83,8 @@ def in_process():
 
 def local(workers, threads=1, dashboard=False):
     """An embedded ``LocalCluster`` of ``workers`` processes on 127.0.0.1, torn down after the run."""
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise ValueError(f"threads must be a positive integer, got {threads!r}")
+    check_int(workers, "workers", 1)
+    check_int(threads, "threads", 1)
     return ClusterSpec(workers=workers, threads=threads, dashboard=bool(dashboard))
 
 

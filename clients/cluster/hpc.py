@@ -10,6 +10,8 @@ script each job runs is ``cluster.job_script()``; see docs/cluster.md.
 
 from __future__ import annotations
 
+from bubsub.core.validate import check_int
+
 from .environment import pinned_environment
 
 __all__ = ["slurm_cluster"]
@@ -47,8 +49,7 @@ def slurm_cluster(*, workers_per_job=1, threads=1, memory="8GB", walltime="04:00
         raise ImportError("SLURM clusters need dask-jobqueue, part of the 'cluster' extra: "
                           "pip install 'bubsub[cluster]'") from exc
     for name, v in (("workers_per_job", workers_per_job), ("threads", threads)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        check_int(v, name, 1)
     exports = [f"export {k}={v}" for k, v in pinned_environment(threads).items()]
     return SLURMCluster(cores=workers_per_job * threads, processes=workers_per_job, memory=memory, walltime=walltime,
                         queue=queue, account=account, job_script_prologue=[*exports, *prologue],

@@ -49,6 +49,7 @@ import numpy as np
 
 from bubsub.core.io.atomic import atomic_path
 from bubsub.core.projection.geometry import KINDS, ScanGeometry
+from bubsub.core.validate import check_int
 
 __all__ = ["Scan", "read_scan", "read_geometry", "write_scan", "create_scan_datasets", "set_scan_attrs", "theta_from_geometry",
            "check_finite", "MIN_TRANSMISSION"]
@@ -145,8 +146,7 @@ class Scan:
             self.time = _theta_array(self.time, "time", self.geometry.n_angles)
         if self.projections_per_subscan is not None:
             k = self.projections_per_subscan
-            if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
-                raise ValueError(f"projections_per_subscan must be a positive integer, got {k!r}")
+            check_int(k, "projections_per_subscan", 1)
             self.projections_per_subscan = int(k)
         if self.path is not None:
             self.path = Path(self.path)

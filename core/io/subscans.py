@@ -10,12 +10,12 @@ scan that :func:`bubsub.clients.pipeline.reconstruct.reconstruct` accepts.
 from __future__ import annotations
 
 import dataclasses
-import numbers
 import warnings
 
 import numpy as np
 
 from bubsub.core.io.scanfile import Scan
+from bubsub.core.validate import check_int
 
 __all__ = ["SubscanLayout", "subscan_layout", "parse_subscan_range", "subscan", "subscan_times"]
 
@@ -111,8 +111,8 @@ def subscan_layout(scan, projections_per_subscan=None, subscans=None, *, incompl
     if not isinstance(scan, Scan):
         raise ValueError(f"scan must be a Scan, got {type(scan).__name__}")
     k = projections_per_subscan
-    if k is not None and (isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1):
-        raise ValueError(f"projections_per_subscan must be a positive integer, got {k!r}")
+    if k is not None:
+        check_int(k, "projections_per_subscan", 1)
     stored = scan.projections_per_subscan
     if k is not None and stored is not None and int(k) != stored:
         raise ValueError(f"projections_per_subscan {k} contradicts the scan file's attribute "

@@ -13,6 +13,8 @@ import dataclasses
 import numbers
 from pathlib import Path
 
+from bubsub.core.validate import check_int
+
 __all__ = ["PrepareOptions", "prepare_options", "parse_roi", "parse_projections", "check_against_raw",
            "FLAT_MODES", "STRIPE_METHODS", "CENTER_METHODS", "parse_quantity"]
 
@@ -132,8 +134,7 @@ def parse_projections(text):
             raise ValueError(f"--projections parts must be integers, got {text!r}") from None
         start, stop, step = vals
     step = 1 if step is None else step
-    if isinstance(step, bool) or not isinstance(step, numbers.Integral) or step < 1:
-        raise ValueError(f"projection step must be a positive integer, got {step!r}")
+    check_int(step, "projection step", 1)
     for b in (start, stop):
         if b is not None and (not isinstance(b, numbers.Integral) or b < 0):
             raise ValueError(f"projection bounds must be non-negative integers, got {b!r}")
@@ -173,11 +174,10 @@ def prepare_options(**kw):
     if "projections" in o:
         o["projections"] = parse_projections(o["projections"]) if o["projections"] is not None else (None, None, 1)
     b = o.get("bin", 1)
-    if isinstance(b, bool) or not isinstance(b, numbers.Integral) or b < 1:
-        raise ValueError(f"bin must be a positive integer, got {b!r}")
+    check_int(b, "bin", 1)
     fb = o.get("flats_before")
-    if fb is not None and (isinstance(fb, bool) or not isinstance(fb, numbers.Integral) or fb < 0):
-        raise ValueError(f"flats_before must be a non-negative integer, got {fb!r}")
+    if fb is not None:
+        check_int(fb, "flats_before", 0)
     o["center"] = _center(o.get("center", "auto"))
     o["background"] = _background(o.get("background", "auto"))
     c = o.get("contrast")

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bubsub.core.validate import check_int
+
 __all__ = ["ScanGeometry", "KINDS"]
 
 #: kind -> (dimension, number of values per vector row, is cone/fan)
@@ -35,8 +37,7 @@ KINDS = {
 
 
 def _positive_int(name, value):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    check_int(value, name, 1)
     return int(value)
 
 

@@ -32,6 +32,7 @@ from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.projection.subdivision import SubdivisionSurface
 from bubsub.core.threads import thread_map
+from bubsub.core.validate import check_int
 
 __all__ = ["MeshProjector", "Traversal", "DeadlineExceeded", "default_threads"]
 
@@ -97,8 +98,7 @@ class MeshProjector:
         self.backend = self._backend.name
         if not isinstance(geometry, ScanGeometry):
             raise TypeError(f"geometry must be a ScanGeometry, got {type(geometry).__name__}")
-        if isinstance(supersampling, bool) or not isinstance(supersampling, (int, np.integer)) or not 1 <= supersampling <= 16:
-            raise ValueError(f"supersampling must be an integer in 1..16, got {supersampling!r}")
+        check_int(supersampling, "supersampling", 1, 16)
         self.geometry = geometry
         self.supersampling = int(supersampling)
         if threads is None:

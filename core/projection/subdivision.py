@@ -17,6 +17,7 @@ import scipy.sparse as sp
 
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.threads import thread_map
+from bubsub.core.validate import check_int
 
 __all__ = [
     "loop_subdivision",
@@ -319,8 +320,7 @@ class SubdivisionSurface:
     def __init__(self, control, levels=2, *, _topology=None):
         if not isinstance(control, (Mesh, Polygon)):
             raise TypeError(f"control must be a Mesh or a Polygon, got {type(control).__name__}")
-        if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or not 0 <= levels <= 6:
-            raise ValueError(f"levels must be an integer in 0..6, got {levels!r}")
+        check_int(levels, "levels", 0, 6)
         self.control = control
         self._topo = _topology if _topology is not None else _shared_topology(control, int(levels))
 

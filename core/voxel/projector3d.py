@@ -38,7 +38,6 @@ in 3D as a one-row detector and a one-slice volume at z = 0.
 from __future__ import annotations
 
 import math
-import numbers
 import os
 
 import numpy as np
@@ -47,6 +46,7 @@ from scipy import sparse
 from bubsub.core.projection.geometry import KINDS, ScanGeometry
 from bubsub.core.voxel.grid import resolve_grid, voxel_sizes
 from bubsub.core.threads import thread_map
+from bubsub.core.validate import check_int
 from bubsub.core.voxel.splat import gather, splat
 
 __all__ = ["VoxelProjector", "as_scan_geometry"]
@@ -103,8 +103,7 @@ def _embed_2d(geom, h):
 def _threads(threads):
     if threads is None:
         return max(1, os.cpu_count() or 1)
-    if isinstance(threads, bool) or not isinstance(threads, numbers.Integral) or threads < 1:
-        raise ValueError(f"threads must be a positive integer or None, got {threads!r}")
+    check_int(threads, "threads (or None)", 1)
     return int(threads)
 
 

@@ -36,6 +36,7 @@ import numpy as np
 
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.projection.items import resolve_items
+from bubsub.core.validate import check_int
 
 __all__ = ["check_grid", "pixel_centres", "rasterize", "label_image", "bubble_mask", "coverage"]
 
@@ -133,8 +134,7 @@ def _as_items(items, ndim):
 
 
 def _supersample(supersample):
-    if isinstance(supersample, bool) or not isinstance(supersample, numbers.Integral) or supersample < 1:
-        raise ValueError(f"supersample must be a positive integer, got {supersample!r}")
+    check_int(supersample, "supersample", 1)
     return int(supersample)
 
 

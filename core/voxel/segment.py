@@ -20,6 +20,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from bubsub.core.validate import check_int
 from bubsub.core.voxel.grid import index_to_world, voxel_sizes
 
 __all__ = ["otsu_threshold", "binarise", "bubble_centres", "mask_distance"]
@@ -107,8 +108,7 @@ def binarise(image, opening_radius=1, *, bubbles_are_dark=True, roi=None, thresh
     """
     a = _image(image)
     r = _roi(roi, a.shape)
-    if isinstance(opening_radius, bool) or not isinstance(opening_radius, numbers.Integral) or opening_radius < 0:
-        raise ValueError(f"opening_radius must be a non-negative integer, got {opening_radius!r}")
+    check_int(opening_radius, "opening_radius", 0)
     if threshold is None:
         t = otsu_threshold(a, r)
     else:

@@ -101,7 +101,7 @@ class Analysis:
         from bubsub.clients.analysis.figures import write_figures
         from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs, json_default
         from bubsub.core.io.atomic import atomic_write_text
-        from bubsub.core.io.meshio import csv_metadata_path, write_csv
+        from bubsub.core.io.tables import csv_metadata_path, write_csv
 
         out = check_output_folder(out, overwrite=overwrite)
         out.mkdir(parents=True, exist_ok=True)

@@ -230,7 +230,7 @@ def write_size_histogram(path, diameters, ndim, title="Bubble size distribution"
     Parameters
     ----------
     diameters : (n,) float, mm
-        ``equivalent_diameter_mm`` of :func:`bubsub.core.io.meshio.bubble_table`.
+        ``equivalent_diameter_mm`` of :func:`bubsub.core.io.tables.bubble_table`.
     ndim : {2, 3}
         Says whether a diameter is that of a disc of equal area or a ball of equal volume.
     """

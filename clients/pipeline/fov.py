@@ -271,7 +271,7 @@ def fov_columns(rows, items, report):
     Parameters
     ----------
     rows : list of dict
-        :func:`bubsub.core.io.meshio.bubble_table` of ``items``.
+        :func:`bubsub.core.io.tables.bubble_table` of ``items``.
     items : list of Polygon or Mesh
         Refined bubbles.
     report : dict

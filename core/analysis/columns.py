@@ -110,5 +110,5 @@ def named_rows(rows, spec):
 
 
 def describe(spec):
-    """``{column: (unit, meaning)}`` of a spec, for :func:`bubsub.core.io.meshio.write_csv`."""
+    """``{column: (unit, meaning)}`` of a spec, for :func:`bubsub.core.io.tables.write_csv`."""
     return {c: (u, m) for c, u, m in spec.values()}

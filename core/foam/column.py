@@ -400,7 +400,8 @@ def write_column(out, phantom, scan, *, truth_subdivisions=4, grid_voxel=None):
         The contents of ``phantom.json``.
     """
     from bubsub.core.io.atomic import atomic_write_text
-    from bubsub.core.io.meshio import write_csv, write_ply
+    from bubsub.core.io.meshio import write_ply
+    from bubsub.core.io.tables import write_csv
     from bubsub.core.io.scanfile import write_scan
 
     out = Path(out)

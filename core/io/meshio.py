@@ -19,8 +19,7 @@ JSON (2D)
     "vertices": [[x, y], ...]}, ...]}``, vertices counter-clockwise, the
     first vertex not repeated at the end.
 
-The bubble tables (CSV) are in :mod:`bubsub.core.io.tables`; their names are
-re-exported here for the modules that still import them from this one.
+The bubble tables (CSV) are in :mod:`bubsub.core.io.tables`.
 All writers are atomic (:mod:`bubsub.core.io.atomic`).
 """
 
@@ -35,18 +34,6 @@ from plyfile import PlyData, PlyElement, PlyElementParseError, PlyHeaderParseErr
 from bubsub.core.io.atomic import atomic_open
 from bubsub.core.projection.items import bubble_ids, resolve_items
 from bubsub.core.projection.mesh import Mesh, Polygon
-
-# re-exported for the modules that import the table names from here (to be switched to bubsub.core.io.tables)
-from bubsub.core.io.tables import (  # noqa: F401
-    BUBBLE_COLUMN_INFO,
-    BUBBLE_COLUMNS_2D,
-    BUBBLE_COLUMNS_3D,
-    UNIT_SUFFIXES,
-    bubble_table,
-    csv_metadata_path,
-    unit_column,
-    write_csv,
-)
 
 __all__ = ["write_ply", "read_ply", "write_polygons_json", "read_polygons_json"]
 

@@ -36,7 +36,9 @@ method finds (a measured centroid within half the equivalent radius of the
 true centre, one to one) and does not flag as cut. Contacts are scored on the
 pairs whose contact point lies in the field of view: precision and recall of
 the measured pairs (through the matching) against the true pairs closer than
-the contact gap. The cost table times :func:`analyse_meshes` on the truth
+the contact gap, then the same among the bubbles the method found (measured
+pairs of two matched bubbles against true pairs of two found ones), which
+leaves out what the missed and spurious bubbles cost. The cost table times :func:`analyse_meshes` on the truth
 meshes of columns of ``--cost-bubbles`` bubbles (median of ``--repeats``).
 ``--shapes`` prints the analysis' own error on analytic shapes instead: Loop
 subdivision surfaces fitted to an ellipsoid at four resolutions (volume,
@@ -301,6 +303,11 @@ def score(m, truth, fov_half_height):
         found.add((min(ta, tb), max(ta, tb)))
     true = set(truth["contacts"])
     hit = len(found & true)
+    # the same among the bubbles the method found: what its surfaces get wrong, apart from bubbles it missed
+    kept = set(match.values())
+    found_m = {p for p in found if p[0] >= 0}
+    true_m = {p for p in true if p[0] in kept and p[1] in kept}
+    hit_m = len(found_m & true_m)
     coord_m = np.bincount(np.asarray(m["pairs"], dtype=int).ravel(), minlength=len(m["centroid"]))
     coord_t = np.bincount(np.array(list(true), dtype=int).ravel(), minlength=len(truth["centre"])) if true else \
         np.zeros(len(truth["centre"]), int)
@@ -314,6 +321,8 @@ def score(m, truth, fov_half_height):
         "strain": med(m["strain_vm"][i] - truth["strain_vm"][t]),
         "precision": hit / len(found) if found else float("nan"),
         "recall": hit / len(true) if true else float("nan"),
+        "precision_found": hit_m / len(found_m) if found_m else float("nan"),
+        "recall_found": hit_m / len(true_m) if true_m else float("nan"),
         "coordination": float(np.mean(np.abs(coord_m[i] - coord_t[t]))) if len(i) else float("nan"),
         "liquid_fraction": abs(m["liquid_fraction"] - truth["liquid_fraction"]),
         "seconds": m["seconds"],
@@ -416,6 +425,8 @@ _ROWS = (("found", "bubbles found whole (of the whole truth bubbles)", "{}"),
          ("strain", "median internal-strain error (von Mises)", "{:.4f}"),
          ("precision", "contacts: precision", "{:.3f}"),
          ("recall", "contacts: recall", "{:.3f}"),
+         ("precision_found", "contacts between found bubbles: precision", "{:.3f}"),
+         ("recall_found", "contacts between found bubbles: recall", "{:.3f}"),
          ("coordination", "mean coordination error", "{:.2f}"),
          ("liquid_fraction", "liquid fraction error", "{:.4f}"),
          ("seconds", "analysis seconds (after the reconstruction)", "{:.1f}"))

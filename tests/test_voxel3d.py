@@ -232,3 +232,23 @@ def test_bad_input(cone):
         VoxelProjector(g, SHAPE, EXT, threads=0)
     with pytest.raises(ValueError, match="geometry"):
         VoxelProjector("cone", SHAPE, EXT)
+
+
+def test_a_voxel_grid_is_one_object_every_voxel_driver_takes():
+    from bubsub.core.voxel.grid import VoxelGrid, resolve_grid
+
+    grid = VoxelGrid.of((4, 6, 8), pixel_size=0.5, centre=[1.0, 0.0, -1.0])
+    assert grid.shape == (4, 6, 8) and grid.extent == (-1.0, 3.0, -1.5, 1.5, -2.0, 0.0)
+    shape, extent = grid  # unpacks where the pair is expected
+    np.testing.assert_allclose(grid.voxel_sizes, [0.5, 0.5, 0.5])
+    np.testing.assert_allclose(grid.centre, [1.0, 0.0, -1.0])
+    np.testing.assert_allclose(grid.index_to_world(grid.world_to_index([[0.3, -0.7, -1.2]])), [[0.3, -0.7, -1.2]])
+    assert resolve_grid(grid) == grid
+    with pytest.raises(ValueError, match="whole grid"):
+        resolve_grid(grid, extent)
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 5, endpoint=False), pixel_size=0.5, cols=10, rows=6)
+    op = VoxelProjector(g, grid)
+    assert op.grid == grid and op.shape == shape and op.forward(np.ones(shape, np.float32)).shape == g.shape
+    by_pair = reconstruct_3d("sirt", op.forward(np.ones(shape, np.float32)), g, shape, extent, iterations=2)
+    np.testing.assert_array_equal(reconstruct_3d("sirt", op.forward(np.ones(shape, np.float32)), g, grid,
+                                                 iterations=2), by_pair)

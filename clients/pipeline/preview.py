@@ -15,7 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from bubsub.core.voxel.astra2d import reconstruct_2d
-from bubsub.core.voxel.grid import index_to_world, world_to_index
+from bubsub.core.voxel.grid import VoxelGrid, index_to_world, world_to_index
 from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 
 from bubsub.clients.pipeline.fov import field_of_view
@@ -30,18 +30,24 @@ def preview_voxel_size(geometry):
 
 
 def preview_grid(geometry, voxel_size=None, extend=1.0):
-    """Shape and extent (mm) of the voxel preview's grid: the field of view at ``voxel_size`` (default
-    :func:`preview_voxel_size`), its radius times ``extend`` (:func:`bubsub.clients.pipeline.fov.preview_extension`)."""
+    """The voxel preview's grid: the field of view at ``voxel_size`` (default :func:`preview_voxel_size`),
+    its radius times ``extend`` (:func:`bubsub.clients.pipeline.fov.preview_extension`).
+
+    Returns
+    -------
+    bubsub.core.voxel.grid.VoxelGrid
+        ``(shape, extent)``: ``(n, n)`` or ``(slices, n, n)``, extent in mm centred on the axis.
+    """
     r_xy, half_z = field_of_view(geometry)
     if voxel_size is None:
         voxel_size = preview_voxel_size(geometry)
     n = max(8, int(np.ceil(2 * extend * r_xy / voxel_size)))
     half = n * voxel_size / 2
     if geometry.ndim == 2:
-        return (n, n), (-half, half, -half, half)
+        return VoxelGrid((n, n), (-half, half, -half, half))
     nz = max(4, int(np.ceil(2 * half_z / voxel_size)))
     hz = nz * voxel_size / 2
-    return (nz, n, n), (-half, half, -half, half, -hz, hz)
+    return VoxelGrid((nz, n, n), (-half, half, -half, half, -hz, hz))
 
 
 PREVIEW_FINE_ITERATIONS_3D = 5  # of the 3D preview's iterations, those on the requested grid (the rest on a 2x coarser one)

@@ -112,7 +112,8 @@ class AstraProjector2D:
         astra = _astra()
         self.geometry = as_scan_geometry(geometry)
         _check_2d(self.geometry)
-        self.shape, self.extent = resolve_grid(shape, extent, pixel_size, centre)
+        self.grid = resolve_grid(shape, extent, pixel_size, centre)
+        self.shape, self.extent = self.grid
         if len(self.shape) != 2:
             raise ValueError(f"a 2D geometry needs a 2D grid (rows, cols), got {self.shape}")
         self.proj_shape = self.geometry.shape

@@ -16,17 +16,67 @@ array-axis order ``[row, col]`` / ``[slice, row, col]`` and may be
 fractional (pixel centres are at integers). :func:`world_to_index` and
 :func:`index_to_world` are the one pair of conversions used by the voxel
 reconstruction and segmentation code.
+
+:class:`VoxelGrid` is the grid as one object (as tomosipo's volume
+geometry): the validated ``(shape, extent)`` pair, built from an extent or
+from a voxel size and centre (:meth:`VoxelGrid.of`, :func:`resolve_grid`),
+with its voxel size, centre and conversions. It is a named tuple, so
+``shape, extent = grid`` works wherever the pair is expected, and every
+voxel driver (:class:`~bubsub.core.voxel.projector3d.VoxelProjector`,
+:class:`~bubsub.core.voxel.astra2d.AstraProjector2D`, ``reconstruct_3d``,
+``reconstruct_2d``) takes one in place of ``shape``.
 """
 
 from __future__ import annotations
 
 import numbers
+from typing import NamedTuple
 
 import numpy as np
 
 from bubsub.core.voxel.raster import check_grid
 
-__all__ = ["grid_extent", "resolve_grid", "voxel_sizes", "world_to_index", "index_to_world"]
+__all__ = ["VoxelGrid", "grid_extent", "resolve_grid", "voxel_sizes", "world_to_index", "index_to_world"]
+
+
+class VoxelGrid(NamedTuple):
+    """A validated voxel grid: ``shape`` (array-axis order) and ``extent`` (mm), see the module docstring.
+
+    Build it with :meth:`of` (which checks it); the fields are then a tuple of ints and a tuple of
+    floats. Being a tuple, it unpacks as ``shape, extent = grid``.
+    """
+
+    shape: tuple
+    extent: tuple
+
+    @classmethod
+    def of(cls, shape, extent=None, pixel_size=None, centre=None):
+        """The grid of :func:`resolve_grid` (an extent, or a voxel size and centre)."""
+        return resolve_grid(shape, extent, pixel_size, centre)
+
+    @property
+    def ndim(self):
+        """2 or 3."""
+        return len(self.shape)
+
+    @property
+    def voxel_sizes(self):
+        """``(ndim,)`` float: side lengths in array-axis order (``[dy, dx]`` or ``[dz, dy, dx]``), mm."""
+        return voxel_sizes(self.shape, self.extent)
+
+    @property
+    def centre(self):
+        """``(ndim,)`` float: the world position ``[x, y(, z)]`` of the grid's centre, mm."""
+        e = np.asarray(self.extent, dtype=float)
+        return 0.5 * (e[0::2] + e[1::2])
+
+    def world_to_index(self, points):
+        """:func:`world_to_index` on this grid."""
+        return world_to_index(points, self.shape, self.extent)
+
+    def index_to_world(self, indices):
+        """:func:`index_to_world` on this grid."""
+        return index_to_world(indices, self.shape, self.extent)
 
 
 def grid_extent(shape, pixel_size, centre=None):
@@ -73,7 +123,8 @@ def resolve_grid(shape, extent=None, pixel_size=None, centre=None):
 
     Parameters
     ----------
-    shape : (rows, cols) or (slices, rows, cols) ints
+    shape : (rows, cols) or (slices, rows, cols) ints, or VoxelGrid
+        A VoxelGrid is the whole grid (then no ``extent``, ``pixel_size`` or ``centre``).
     extent : (2 * len(shape),) floats, optional
         ``(xmin, xmax, ymin, ymax[, zmin, zmax])``, mm.
     pixel_size : float, optional
@@ -83,8 +134,8 @@ def resolve_grid(shape, extent=None, pixel_size=None, centre=None):
 
     Returns
     -------
-    shape : tuple of int
-    extent : tuple of float
+    VoxelGrid
+        ``(shape, extent)``: a tuple of int and a tuple of float.
 
     Raises
     ------
@@ -92,13 +143,17 @@ def resolve_grid(shape, extent=None, pixel_size=None, centre=None):
         If both or neither of ``extent`` and ``pixel_size`` are given, or the
         grid is invalid.
     """
+    if isinstance(shape, VoxelGrid):
+        if extent is not None or pixel_size is not None or centre is not None:
+            raise ValueError("a VoxelGrid is the whole grid: give no extent, pixel_size or centre with it")
+        shape, extent = shape
     if extent is not None and (pixel_size is not None or centre is not None):
         raise ValueError("give either extent or pixel_size (and centre), not both")
     if extent is None:
         if pixel_size is None:
             raise ValueError("the grid needs an extent or a pixel_size")
         extent = grid_extent(shape, pixel_size, centre)
-    return check_grid(shape, extent)
+    return VoxelGrid(*check_grid(shape, extent))
 
 
 def voxel_sizes(shape, extent):

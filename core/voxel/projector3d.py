@@ -44,7 +44,7 @@ import numpy as np
 from scipy import sparse
 
 from bubsub.core.projection.geometry import KINDS, ScanGeometry
-from bubsub.core.voxel.grid import resolve_grid, voxel_sizes
+from bubsub.core.voxel.grid import VoxelGrid, resolve_grid, voxel_sizes
 from bubsub.core.threads import thread_map
 from bubsub.core.validate import check_int
 from bubsub.core.voxel.splat import gather, splat
@@ -369,6 +369,7 @@ class VoxelProjector:
         self._is_2d = is_2d
         self.shape = shp3[1:] if is_2d else shp3
         self.extent = ext3[:4] if is_2d else ext3
+        self.grid = VoxelGrid(self.shape, self.extent)
         self.proj_shape = self.geometry.shape
         self._shape3 = shp3
         rows, cols = geom3.det_rows, geom3.det_cols

@@ -2,7 +2,7 @@
 
 ``python -m bubsub.bench analysis [--bubbles 150] [--seed 0] [--simulation DIR] [--reconstruction DIR]
 [--keep DIR] [--contact-gap MM] [--voxel-method cgls] [--cost-bubbles 150 600] [--repeats 3] [--no-foamquant]
-[--cost-only] [--shapes]``
+[--no-reconstruction] [--cost-only] [--shapes]``
 
 The foam is a simulated synchrotron column (:mod:`bubsub.core.foam.column`:
 rotated polydisperse ellipsoids in a liquid cylinder, gas fraction 0.4,
@@ -14,7 +14,8 @@ widest separation of parallel support planes, a concave maximisation;
 :func:`ellipsoid_gap`). The same scan is measured by
 
 * **bubsub**: ``bubsub reconstruct`` with its defaults (or the folder given by
-  ``--reconstruction``), then :func:`bubsub.clients.analysis.analyse`;
+  ``--reconstruction``; left out with ``--no-reconstruction``), then
+  :func:`bubsub.clients.analysis.analyse`;
 * **FoamQuant, voxel route**: a voxel reconstruction of the same scan
   (``--voxel-method``, default CGLS, 15 iterations, on the grid of two
   detector pixels the column's evaluation uses), FoamQuant's
@@ -54,6 +55,8 @@ scikit-image); without it the FoamQuant columns are left out.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import itertools
 import time
 from pathlib import Path
@@ -388,7 +391,11 @@ def foamquant_route(binary, extent, voxel, min_distance, gap, mask):
     t = time.perf_counter()
     labels = np.asarray(BubbleSegmentation(binary, SigSeeds=1, SigWatershed=1, watershed_line=False,
                                            esti_min_dist=int(min_distance)), dtype=np.int32)
-    prop = RegionProp(labels)
+    with contextlib.redirect_stdout(io.StringIO()) as said:  # a line per degenerate label, with every volume so far
+        prop = RegionProp(labels)
+    flat = said.getvalue().count("negative shape value")
+    if flat:
+        print(f"FoamQuant RegionProp: {flat} labels without an ellipsoid (their shape columns are left empty)")
     lab, cen, vol, sph = np.array(prop[0]), np.array(prop[1], dtype=float).reshape(-1, 3), np.array(prop[2]), \
         np.array(prop[5], dtype=float)
     axes = np.stack([np.array(prop[k], dtype=float) for k in (9, 8, 7)], axis=1) * voxel  # descending
@@ -458,8 +465,8 @@ def _folders(a):
     if not a.simulation:
         ph = column_phantom(a.bubbles, seed=a.seed)
         write_column(sim, ph, simulate_column(ph))
-    if a.reconstruction:
-        return sim, Path(a.reconstruction), None
+    if a.reconstruction or a.no_reconstruction:
+        return sim, Path(a.reconstruction) if a.reconstruction else None, None
     t = time.perf_counter()
     rec = reconstruct(read_scan(sim / "scan.h5"), ReconstructionSettings(progress=False))
     write_outputs(work / "reconstruction", rec)
@@ -504,6 +511,8 @@ def main(argv=None):
     p.add_argument("--cost-bubbles", type=int, nargs="*", default=[150, 600])
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--no-foamquant", action="store_true", help="leave the FoamQuant columns out")
+    p.add_argument("--no-reconstruction", action="store_true",
+                   help="leave bubsub's reconstruction of the scan out (the truth and FoamQuant columns only)")
     p.add_argument("--cost-only", action="store_true", help="only the cost table")
     p.add_argument("--shapes", action="store_true", help="only the analysis' errors on analytic shapes (no column)")
     a = p.parse_args(argv)
@@ -525,21 +534,23 @@ def compare(a):
 
     sim, folder, rec_seconds = _folders(a)
     col = load_column(sim)
-    rec = read_reconstruction(folder)
-    gap = a.contact_gap or default_contact_gap(rec.report)
+    report = read_reconstruction(folder).report if folder else {"field_of_view_mm": {"radius": col["fov_radius"]}}
+    gap = a.contact_gap or default_contact_gap(report)
     t = time.perf_counter()
     truth = column_truth(col, gap)
     h = col["half_height"]
     print(f"column {sim}: {len(col['centres'])} bubbles in the rows ({int(col['cut'].sum())} cut), liquid fraction "
           f"{truth['liquid_fraction']:.4f}; contact gap {gap:.4f} mm: {len(truth['contacts'])} true contacts among "
           f"{len(truth['gaps'])} close pairs (truth {time.perf_counter() - t:.0f} s); bubsub reconstruction "
-          + (f"{rec_seconds:.0f} s, in {folder}" if rec_seconds is not None else f"read from {folder}"), flush=True)
+          + ("left out" if folder is None else f"{rec_seconds:.0f} s, in {folder}" if rec_seconds is not None
+             else f"read from {folder}"), flush=True)
     results = {}
-    t = time.perf_counter()
-    ours = analyse(folder, contact_gap=gap, radius=col["radius"])
-    results["bubsub (meshes of the scan)"] = score(
-        _from_snapshot({**ours.tables, "liquid_fraction": ours.summary["liquid_fraction"]}, time.perf_counter() - t),
-        truth, h)
+    if folder is not None:
+        t = time.perf_counter()
+        ours = analyse(folder, contact_gap=gap, radius=col["radius"])
+        results["bubsub (meshes of the scan)"] = score(
+            _from_snapshot({**ours.tables, "liquid_fraction": ours.summary["liquid_fraction"]},
+                           time.perf_counter() - t), truth, h)
     if not a.no_foamquant:
         try:
             import foamquant  # noqa: F401

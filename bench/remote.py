@@ -70,7 +70,7 @@ def case_2d(seed=7):
     ph = foam2d(seed, n_bubbles=40)
     g = default_geometry_2d(25)
     scan = simulate_2d(ph, g, method="mesh")
-    radii = [np.sqrt(b.area / np.pi) for b in ph.bubbles]
+    radii = [b.equivalent_radius for b in ph.bubbles]
     init = _initial_guess(np.random.default_rng(seed), [b.centroid for b in ph.bubbles], radii, ph.contrast,
                           lambda c, r, mu: circle_surface(c, r, mu, control=9))
     return Case("2D foam, 40 bubbles x 9 control pts, 25 x 2400", g, scan.data, scan.background, init)

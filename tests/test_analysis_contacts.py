@@ -1,5 +1,7 @@
 """bubsub.core.analysis.contacts: closest-surface gaps of subdivided meshes against analytic ellipsoids."""
 
+import functools
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -61,6 +63,7 @@ def icosphere_mesh():
     return icosphere(4)
 
 
+@functools.lru_cache(maxsize=None)  # built once for the tests that share it (read only)
 def small_foam(seed, n=22, max_gap=0.12):
     """Ellipsoids each placed at a random gap in [0, max_gap] from an earlier one, disjoint from all (>= 5 um)."""
     rng = np.random.default_rng(seed)

@@ -18,7 +18,7 @@ from bubsub.core.analysis.contacts import find_contacts  # noqa: E402
 from bubsub.core.foam.ellipsoids import ellipsoid_labels  # noqa: E402
 from test_analysis_contacts import small_foam, true_gap  # noqa: E402
 
-VOXEL, GAP = 0.03, 0.06
+VOXEL, GAP = 0.04, 0.06
 
 
 def test_foamquant_route_on_voxelised_ellipsoids_and_contacts_beside_bubsub():
@@ -32,7 +32,7 @@ def test_foamquant_route_on_voxelised_ellipsoids_and_contacts_beside_bubsub():
     hi = lo + n * VOXEL
     shape, extent = (n[2], n[1], n[0]), (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
     binary = (ellipsoid_labels(centre, axes, rot, shape, extent) > 0).astype(np.uint8)
-    m = foamquant_route(binary, extent, VOXEL, min_distance=5, gap=GAP, mask=np.ones(shape, bool))
+    m = foamquant_route(binary, extent, VOXEL, min_distance=4, gap=GAP, mask=np.ones(shape, bool))
 
     # every bubble found once, at its centre in mm (a voxel index read the wrong way round is millimetres off)
     match = _match(m["centroid"], {"centre": centre, "radius": np.cbrt(3 * volume / (4 * np.pi))})

@@ -181,3 +181,29 @@ def test_check_of_a_few_bubbles_finds_what_the_whole_check_finds_of_them():
     assert sorted(v.bubbles for v in check_bubbles(items, only=[3])) == [(2, 3)]
     assert sorted(v.bubbles for v in check_bubbles(items, only=[4])) == []
     assert sorted(v.bubbles for v in check_bubbles(items)) == [(0, 1), (2, 3)]
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_a_pair_still_sharing_gas_loses_a_few_per_cent_of_the_smaller_bubble_not_the_bubble(ndim):
+    from bubsub.clients.pipeline.repair import shrink_overlaps
+
+    make = sphere_surface if ndim == 3 else circle_surface
+    big, small, far = make([0.0] * ndim, 1.0, -0.1), make([1.7] + [0.0] * (ndim - 1), 0.8, -0.1), \
+        make([0.0, 5.0] + [0.0] * (ndim - 2), 0.5, -0.1)
+    items = [big, small, far]
+    found = check_bubbles(items)
+    assert [(v.kind, sorted(v.bubbles)) for v in found] == [("overlap", [0, 1])]
+    actions = []
+    out, remaining = shrink_overlaps(items, found, actions, 2)
+    assert remaining == [] and check_bubbles(out) == []
+    assert out[0] is big and out[2] is far  # only the smaller of the pair moves
+    (a,) = actions
+    assert a["action"] == "shrunk" and a["bubble"] == 1 and 0.8 <= a["factor"] < 1
+    size = (lambda s: s.fine().volume) if ndim == 3 else (lambda s: s.fine().area)
+    # scaled about its centre: its size by factor^ndim, its centre kept
+    assert size(out[1]) == pytest.approx(a["factor"] ** ndim * size(small), rel=1e-9)
+    np.testing.assert_allclose(out[1].fine().vertices.mean(axis=0), small.fine().vertices.mean(axis=0), atol=1e-12)
+    # a pair no step frees (one mostly inside the other) stays a violation for the caller to drop
+    deep = [big, make([0.3] + [0.0] * (ndim - 1), 0.9, -0.1)]
+    out, remaining = shrink_overlaps(deep, check_bubbles(deep), [], 2)
+    assert [v.kind for v in remaining] == ["overlap"] and out[1] is deep[1]

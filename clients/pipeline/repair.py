@@ -31,8 +31,10 @@ makes the repair move the neighbours' visible parts.
 
 Then a short refit lets the data reshape the repaired bubbles; the refit may
 undo a repair, so the check and the repairs run again (up to ``rounds``
-times) and the last round repairs without refitting. A bubble still invalid
-after that is dropped. Every action is recorded, and the final check's
+times) and the last round repairs without refitting. The smaller bubble of a
+pair still sharing gas after that is shrunk about its centre by a few per
+cent ("shrunk", :data:`SHRINK_STEPS`); a bubble still invalid after that is
+dropped. Every action is recorded, and the final check's
 violations are returned, so the report says what was wrong and what was done.
 """
 
@@ -44,6 +46,7 @@ from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.core.projection.validity import check_bubbles, self_crossing_vertices, self_crossings
 
 __all__ = ["check_and_repair", "merged_validity", "repair_bubbles", "rounded", "untangled", "separate", "continued",
+           "shrunk", "shrink_overlaps",
            "MIN_SEEN"]
 
 
@@ -322,6 +325,51 @@ def _repair_once(surfaces, violations, gap, actions, round_no):
     return surfaces, drop
 
 
+#: Scale factors tried, in turn, on the smaller bubble of a pair that still shares gas after the last separation.
+SHRINK_STEPS = (0.98, 0.96, 0.93, 0.9, 0.85, 0.8)
+
+
+def shrunk(surface, factor):
+    """``surface`` scaled by ``factor`` about the centroid of its fine vertices (its shape kept)."""
+    c = surface.fine().vertices.mean(axis=0)
+    return surface.with_vertices(c + factor * (surface.vertices - c))
+
+
+def shrink_overlaps(surfaces, violations, actions, round_no):
+    """Shrink the smaller bubble of each pair still sharing gas (:data:`SHRINK_STEPS`) until the pair is
+    valid; the violations that remain (the others, and pairs no step frees) are returned.
+
+    A separation that leaves a sliver of shared gas (a bubble pressed against
+    several neighbours, each separation moving it into the next) would
+    otherwise cost the bubble: dropping it loses its gas from the projection,
+    which no refit of its neighbours can restore.
+    """
+    surfaces = list(surfaces)
+    remaining, changed = [], set()
+    for v in violations:
+        if v.kind != "overlap" or len(v.bubbles) != 2:
+            remaining.append(v)
+            continue
+        i, j = v.bubbles
+        k, other = (i, j) if _size(surfaces[i]) < _size(surfaces[j]) else (j, i)
+        if changed & {i, j} and not check_bubbles([surfaces[k], surfaces[other]]):
+            continue  # freed by an earlier pair's shrinking
+        for factor in SHRINK_STEPS:
+            trial = shrunk(surfaces[k], factor)
+            if not check_bubbles([trial, surfaces[other]]):
+                surfaces[k] = trial
+                changed.add(k)
+                actions.append({"round": round_no, "action": "shrunk", "bubble": k, "factor": factor,
+                                "overlap": v.measure})
+                break
+        else:
+            remaining.append(v)
+    if changed:  # a shrunk bubble may still meet a third one: check again what involves them
+        keep = [v for v in remaining if not changed & set(v.bubbles)]
+        remaining = keep + check_bubbles(surfaces, only=sorted(changed))
+    return surfaces, remaining
+
+
 def repair_bubbles(surfaces, refit=None, *, gap=0.0, rounds=2):
     """Check fitted bubbles and repair what is invalid.
 
@@ -360,6 +408,9 @@ def repair_bubbles(surfaces, refit=None, *, gap=0.0, rounds=2):
         # every violating bubble was repaired (changed) or dropped: only the changed can still be invalid
         violations = check_bubbles(surfaces, only=[k for k, s in enumerate(surfaces) if s is not before[k]]) \
             if last else []
+        if last and violations:
+            # a pair still sharing gas: shrink the smaller about its centre rather than lose it
+            surfaces, violations = shrink_overlaps(surfaces, violations, actions, r)
         bad = {b for v in violations for b in v.bubbles}
         if last and bad:
             # still invalid after repairing without a refit: drop the offenders (the smaller of a pair)

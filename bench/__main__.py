@@ -15,6 +15,7 @@ BENCHMARKS = {
     "admission": ("admission", "the server's compute memory estimate against its measured peak, per job shape"),
     "scale": ("scale", "bubsub reconstruct on foam columns of ~150/600/2400 bubbles: phases, peak RSS, DDI, growth"),
     "analysis": ("analysis", "bubsub analyse against FoamQuant's voxel route on a simulated column, and its cost"),
+    "levels": ("levels", "the fit's data levels against a long full-detector fit from the same start: objective, cost"),
     "bubbles": ("bubbles", "BubSub on one experiment case, bubble by bubble: missed, merged, spurious, boundary error"),
 }
 

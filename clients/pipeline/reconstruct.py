@@ -51,7 +51,7 @@ __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "load_init
 class ReconstructionSettings:
     """What ``bubsub reconstruct`` can be told (defaults follow the paper)."""
 
-    iterations: int = 80  # each data level's cap (.optimise.levels); a level ends earlier on convergence
+    iterations: int = 80  # the full detector's cap, 3x on binned levels (.optimise.levels); a level ends earlier on convergence
     data_levels: int | None = None  # fit on 2^(k-1)-binned, ..., full pixels; default 2 for 3D detectors >= 96 px
     fit_rtol: float | None = 2e-4  # converged: objective down by < fit_rtol x itself over 5 iterations
     control_points: int | None = None  # 42 in 3D, 9 in 2D

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bubsub.bench.analysis import ellipsoid_gap, subdivided_ellipsoid
+from bubsub.bench.analysis_truth import ellipsoid_gap, subdivided_ellipsoid
 from bubsub.core.analysis.contacts import Surface, find_contacts, surface_distance
 from bubsub.core.projection.mesh import Mesh
 

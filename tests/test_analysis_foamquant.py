@@ -13,7 +13,8 @@ import pytest
 
 pytest.importorskip("foamquant")
 
-from bubsub.bench.analysis import _match, foamquant_route, subdivided_ellipsoid  # noqa: E402
+from bubsub.bench.analysis import _match, foamquant_route  # noqa: E402
+from bubsub.bench.analysis_truth import subdivided_ellipsoid  # noqa: E402
 from bubsub.core.analysis.contacts import find_contacts  # noqa: E402
 from bubsub.core.foam.ellipsoids import ellipsoid_labels  # noqa: E402
 from test_analysis_contacts import small_foam, true_gap  # noqa: E402

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bubsub.bench.analysis import ellipsoid_area, subdivided_ellipsoid
+from bubsub.bench.analysis_truth import ellipsoid_area, subdivided_ellipsoid
 from bubsub.core.analysis.shape import bubble_shape, solid_moments, strain_from_axes
 from bubsub.core.projection.subdivision import sphere_surface
 

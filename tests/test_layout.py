@@ -31,6 +31,20 @@ def test_readme_imports_work():
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
 
+def test_example_notebook_imports_work():
+    # a fast check of what tests/test_notebook.py finds only after minutes of running the notebook
+    import json
+
+    lines = []
+    for nb in sorted((ROOT / "examples").glob("*.ipynb")):
+        for cell in json.loads(nb.read_text())["cells"]:
+            if cell["cell_type"] == "code":
+                lines += [ln.strip() for ln in "".join(cell["source"]).splitlines()
+                          if re.match(r"\s*from bubsub[\w.]* import [^(]+$", ln)]
+    assert lines, "the example notebooks show no bubsub imports"
+    subprocess.run([sys.executable, "-c", "\n".join(sorted(set(lines)))], check=True, cwd=ROOT)
+
+
 def test_every_module_imports_first_without_a_cycle():
     # A cycle shows up as an ImportError only for some import orders, so each
     # module is imported first into an interpreter without any bubsub module.

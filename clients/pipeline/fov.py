@@ -8,10 +8,18 @@ Real scans cut bubbles: the detector's top and bottom, and the cylinder
   control vertices no ray sees (the fit leaves them where they started).
 * :func:`truncated_flags`, :func:`size_inside_fov`, :func:`fov_columns`: the
   ``bubbles.csv`` columns of cut bubbles (flag, measured part, whole size left empty).
-* :func:`preview_extension`: the optional preview beyond the field of view
-  (``ReconstructionSettings(fov_model=True)``, ``--fov-model``).
+* :func:`preview_extension`: the preview beyond the field of view's cylinder
+  where the data show bubbles there (the field-of-view model,
+  ``ReconstructionSettings(fov_model=True)``, the default; ``--no-fov-model``
+  switches it off).
 
-Measured with and without the model: docs/prepare.md, ``python -m bubsub.bench fov``.
+The model's other parts live where they act: the edge rows' seeds
+(:func:`bubsub.clients.pipeline.initial.edge_slices`), the topology rules at
+the edge (:mod:`bubsub.clients.pipeline.topology`), the unseen parts'
+continuation (:func:`bubsub.clients.pipeline.repair.continued`) and the
+refusal of laterally truncated scans
+(:func:`bubsub.clients.pipeline.checks.check_lateral_truncation`). Measured
+with and without the model: docs/prepare.md, ``python -m bubsub.bench fov``.
 """
 
 from __future__ import annotations
@@ -173,7 +181,9 @@ def unobserved_control(surface, geometry):
     BFGS (as L-BFGS) moves only along combinations of past gradients and
     their differences, so the fit leaves these vertices exactly where they
     started: the unseen part of a bubble keeps its initial (spherical)
-    shape instead of drifting. They are reported, not measured.
+    shape instead of drifting, and the validity step then continues it from
+    the fitted visible part (:func:`bubsub.clients.pipeline.repair.continued`).
+    They are reported, not measured.
 
     Parameters
     ----------

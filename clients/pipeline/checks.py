@@ -7,9 +7,10 @@ and never yields a silent wrong result.
 
 from __future__ import annotations
 
-import numbers
-
 import numpy as np
+
+from bubsub.core.contrast import signal_masses
+from bubsub.core.validate import check_int
 
 __all__ = ["check_settings", "check_bubble_signal", "check_lateral_truncation", "side_signal", "CONTROL_POINTS_3D",
            "MAX_LEVELS", "TRUNCATED_VIEWS"]
@@ -18,11 +19,6 @@ __all__ = ["check_settings", "check_bubble_signal", "check_lateral_truncation", 
 CONTROL_POINTS_3D = (12, 42, 162)
 #: Subdivision levels beyond this cost far more than they add (4**levels faces per control face).
 MAX_LEVELS = 4
-
-
-def _integer(value, name, least):
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
-        raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
 
 
 def check_settings(settings, ndim):
@@ -39,17 +35,17 @@ def check_settings(settings, ndim):
         Naming the setting (as its command-line option) and the allowed values.
     """
     s = settings
-    _integer(s.iterations, "--iterations", 0)
-    _integer(s.levels, "--levels", 0)
+    check_int(s.iterations, "--iterations", 0)
+    check_int(s.levels, "--levels", 0)
     if s.levels > MAX_LEVELS:
         raise ValueError(f"--levels must be at most {MAX_LEVELS} (each level multiplies the faces by 4), "
                          f"got {s.levels}")
-    _integer(s.supersampling, "--supersampling", 1)
+    check_int(s.supersampling, "--supersampling", 1)
     if s.control_points is not None:
         if ndim == 3 and s.control_points not in CONTROL_POINTS_3D:
             raise ValueError(f"--control-points must be one of {list(CONTROL_POINTS_3D)} for a 3D scan "
                              f"(icosphere control meshes), got {s.control_points}")
-        _integer(s.control_points, "--control-points", 3)
+        check_int(s.control_points, "--control-points", 3)
     for name in ("radius", "voxel_size", "min_distance"):
         v = getattr(s, name)
         if v is not None and not (np.isfinite(v) and v > 0):
@@ -61,7 +57,7 @@ def check_settings(settings, ndim):
     if s.holdout not in (None, "odd", "even"):
         raise ValueError(f"--holdout must be 'odd' or 'even', got {s.holdout!r}")
     if s.data_levels is not None:
-        _integer(s.data_levels, "--data-levels", 1)
+        check_int(s.data_levels, "--data-levels", 1)
     if s.fit_rtol is not None and not (np.isfinite(s.fit_rtol) and 0 <= s.fit_rtol < 1):
         raise ValueError(f"--fit-rtol must be a number in [0, 1), got {s.fit_rtol!r}")
 
@@ -94,9 +90,7 @@ def check_bubble_signal(scan, *, background_subtracted=False):
     c = scan.bubble_contrast
     name = scan.path.name if scan.path is not None else "the scan"
     has_bg = scan.background is not None
-    signed = np.sign(c) * scan.bubble_data
-    above = float(np.sum(signed, where=signed > 0, dtype=np.float64))
-    below = float(-np.sum(signed, where=signed < 0, dtype=np.float64))
+    above, below = signal_masses(np.sign(c) * scan.bubble_data)
     prepare = "subtract the liquid's projection with `bubsub prepare --background auto`"
     if above == 0 and below == 0:
         raise ValueError(f"{name}: data - background is zero everywhere: there is no bubble signal to fit")

@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.core.io.atomic import atomic_path
-from bubsub.core.projection.mesh import Mesh
+from bubsub.core.projection.mesh import Mesh, equivalent_radius
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
@@ -373,7 +373,7 @@ def _bubble_heights(result, geometry):
     for s in result.surfaces:
         fine = s.fine()
         h = np.asarray(fine.vertices) @ axis
-        out.append((np.asarray(fine.centroid, dtype=float), float(np.cbrt(3 * abs(fine.volume) / (4 * np.pi))),
+        out.append((np.asarray(fine.centroid, dtype=float), equivalent_radius(abs(fine.volume), 3),
                     float(h.min()), float(h.max())))
     return out
 

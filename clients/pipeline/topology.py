@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bubsub.core.projection.mesh import bounding_box
+from bubsub.core.projection.mesh import bounding_box, equivalent_radius
 from bubsub.core.voxel.raster import bubble_mask
 from bubsub.core.voxel.grid import world_to_index
 
@@ -57,10 +57,6 @@ def _half_sq(r):
 def _size(s):
     fine = s.fine()
     return abs(fine.volume if s.ndim == 3 else fine.area)
-
-
-def _equivalent_radius(size, ndim):
-    return float(np.cbrt(3 * size / (4 * np.pi)) if ndim == 3 else np.sqrt(size / np.pi))
 
 
 def _centre(s):
@@ -133,7 +129,7 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
             own.append(cand, p)
             added += 1
             changes.append({"round": round_no, "change": "add", "centre": np.asarray(c).tolist(),
-                            "radius": float(_equivalent_radius(_size(cand), ndim)),
+                            "radius": float(equivalent_radius(_size(cand), ndim)),
                             "objective_before": f, "objective_after": f + g})
     return surfaces, own
 
@@ -173,7 +169,7 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         size = _size(surfaces[i]) + _size(surfaces[j])
         c = (_centre(surfaces[i]) * _size(surfaces[i]) + _centre(surfaces[j]) * _size(surfaces[j])) / size
         (pair, f_pair), (one, f_one) = local_fits(
-            projector, [[surfaces[i], surfaces[j]], [new_bubble(c, _equivalent_radius(size, ndim))]], target,
+            projector, [[surfaces[i], surfaces[j]], [new_bubble(c, equivalent_radius(size, ndim))]], target,
             iterations)
         if f_one < f_pair + cost:
             p = projector.forward(one).astype(np.float64)
@@ -254,7 +250,7 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         c, w, u = _axes(s)
         if w[0] > 0 and np.sqrt(w[-1] / w[0]) > ratio:
             axis = u[:, -1] * np.sqrt(w[-1])  # one standard deviation along the long axis
-            half = min(_equivalent_radius(_size(s) / 2, s.ndim), 0.95 * float(np.linalg.norm(axis)))
+            half = min(equivalent_radius(_size(s) / 2, s.ndim), 0.95 * float(np.linalg.norm(axis)))
             cand.append((-np.sqrt(w[-1] / w[0]), k, [(c - axis, half), (c + axis, half)]))
     surfaces = list(surfaces)
     extra = []
@@ -381,7 +377,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         # only the bubbles the round changed, and their neighbours, are refitted (on windows, the rest fixed)
         kept = {id(s) for s in surfaces}
         changed = [k for k, s in enumerate(surfaces) if id(s) not in start]
-        gone = [(_centre(s), _equivalent_radius(_size(s), s.ndim)) for i, s in start.items() if i not in kept]
+        gone = [(_centre(s), equivalent_radius(_size(s), s.ndim)) for i, s in start.items() if i not in kept]
         surfaces, residual, summary = local_refit(projector, surfaces, data, changed, iterations=iterations,
                                                   touch=touch, near=gone, residual=residual, penalty=penalty,
                                                   progress=progress, label=f"topology round {r + 1} refit")

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bubsub.core.projection.mesh import equivalent_radius
+
 __all__ = ["Step", "growth_rates", "fit_growth_law", "t1_events", "track_events", "size_tables"]
 
 
@@ -244,7 +246,7 @@ def track_events(steps):
 
 def _radii(step):
     v = step.volume[np.isfinite(step.volume)]
-    return np.cbrt(3.0 * v / (4.0 * np.pi))
+    return equivalent_radius(v, 3)
 
 
 def size_tables(steps, bins=None):

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bubsub.core.projection.mesh import equivalent_radius
+
 __all__ = ["solid_moments", "bubble_shape", "bubble_shapes", "strain_from_axes", "SHAPE_COLUMN_INFO", "SHAPE_COLUMNS"]
 
 
@@ -144,7 +146,7 @@ def bubble_shapes(meshes):
         axes = _axis_sign(vec[k])
         row = {"centroid_x_mm": centroid[k, 0], "centroid_y_mm": centroid[k, 1], "centroid_z_mm": centroid[k, 2],
                "volume_mm3": volume[k], "surface_area_mm2": area[k],
-               "equivalent_radius_mm": np.cbrt(3.0 * volume[k] / (4.0 * np.pi)),
+               "equivalent_radius_mm": equivalent_radius(volume[k], 3),
                "sphericity": np.pi ** (1 / 3) * (6.0 * volume[k]) ** (2 / 3) / area[k]}
         for i in range(3):
             row[f"shape_eigenvalue_{i + 1}_mm2"] = lam[k, i]

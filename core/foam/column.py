@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from bubsub.core.foam.checks import count, finite, frozen, nonneg, positive, rng_from_seed
 from bubsub.core.foam.ellipsoids import (contact_function, ellipsoid_mesh, ellipsoid_volumes, fraction_below,
                                          project_cylinder, project_ellipsoids, shape_matrices)
+from bubsub.core.projection.mesh import equivalent_radius
 
 __all__ = ["ColumnPhantom", "column_phantom", "column_geometry", "simulate_column", "write_column", "COLUMN_PRESETS",
            "TRUTH_COLUMN_INFO"]
@@ -416,7 +417,7 @@ def write_column(out, phantom, scan, *, truth_subdivisions=4, grid_voxel=None):
                **{f"semi_axis_{k + 1}_mm": float(phantom.axes[b, k]) for k in range(3)},
                **{f"rotation_{i + 1}{j + 1}": float(phantom.rotations[b, i, j]) for i in range(3) for j in range(3)},
                "volume_mm3": float(vol[b]), "volume_in_fov_mm3": float(vol[b] * in_fov[b]),
-               "equivalent_diameter_mm": float(np.cbrt(6.0 * vol[b] / np.pi)),
+               "equivalent_diameter_mm": 2.0 * equivalent_radius(vol[b], 3),
                "cut_top": int(top[b]), "cut_bottom": int(bottom[b])}
         rows.append(row)
     files = [write_scan(out / "scan.h5", scan)]

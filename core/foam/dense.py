@@ -107,10 +107,9 @@ def _dense(seed, ndim, n, box, film, rho, spacing, polydispersity, margin, max_a
         q = q[ConvexHull(q).vertices] if ndim == 2 else q
         v = _rounded(q, dirs, rho)
         b = Polygon(v, 0.0) if ndim == 2 else Mesh(v, faces, 0.0)
-        size = b.area if ndim == 2 else b.volume
         bubbles.append(b)
         centres.append(b.centroid)
-        radii.append(np.sqrt(size / np.pi) if ndim == 2 else np.cbrt(3 * size / (4 * np.pi)))
+        radii.append(b.equivalent_radius)
     return bubbles, np.array(centres), np.array(radii)
 
 

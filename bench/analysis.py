@@ -64,6 +64,7 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.bench.analysis_truth import column_truth, load_column, shape_table
+from bubsub.core.projection.mesh import equivalent_radius
 
 __all__ = ["score", "foamquant_route", "label_contacts", "compare", "cost_table", "main"]
 
@@ -123,7 +124,7 @@ def score(m, truth, fov_half_height):
         "found": f"{len(whole)} / {n_whole}",
         "spurious": len(m["centroid"]) - len(match),
         "volume": 100 * med(m["volume"][i] / truth["volume"][t] - 1),
-        "radius": 1000 * med(np.cbrt(3 * m["volume"][i] / (4 * np.pi)) - truth["radius"][t]),
+        "radius": 1000 * med(equivalent_radius(m["volume"][i], 3) - truth["radius"][t]),
         "sphericity": med(m["sphericity"][i] - truth["sphericity"][t]),
         "axes": 100 * med((m["axes"][i] / truth["axes"][t] - 1).ravel()),
         "strain": med(m["strain_vm"][i] - truth["strain_vm"][t]),

@@ -81,7 +81,7 @@ def case_3d(seed=7):
     ph = foam3d(seed, n_bubbles=8)
     g = default_geometry_3d(25, rows=128, cols=256)
     scan = simulate_3d(ph, g)
-    radii = [(3 * b.volume / (4 * np.pi)) ** (1 / 3) for b in ph.bubbles]
+    radii = [b.equivalent_radius for b in ph.bubbles]
     init = _initial_guess(np.random.default_rng(seed), [b.centroid for b in ph.bubbles], radii, ph.contrast,
                           lambda c, r, mu: sphere_surface(c, r, mu, control=42))
     return Case("3D foam, 8 bubbles x 42 control pts, 25 x 128 x 256", g, scan.data, scan.background, init)

@@ -92,8 +92,8 @@ def score(m, truth, fov_half_height):
     Parameters
     ----------
     m : dict
-        ``centroid`` (n, 3), ``volume``, ``sphericity``, ``axes`` (n, 3, descending), ``strain_vm``,
-        ``cut`` (n,) bool, ``pairs`` (k, 2) indices into the method's bubbles, ``points`` (k, 3),
+        ``centroid`` (n, 3), ``volume``, ``sphericity``, ``sphericity_ellipsoid``, ``axes`` (n, 3, descending),
+        ``strain_vm``, ``cut`` (n,) bool, ``pairs`` (k, 2) indices into the method's bubbles, ``points`` (k, 3),
         ``liquid_fraction``, ``seconds``.
     """
     match = _match(m["centroid"], truth)
@@ -126,6 +126,7 @@ def score(m, truth, fov_half_height):
         "volume": 100 * med(m["volume"][i] / truth["volume"][t] - 1),
         "radius": 1000 * med(equivalent_radius(m["volume"][i], 3) - truth["radius"][t]),
         "sphericity": med(m["sphericity"][i] - truth["sphericity"][t]),
+        "sphericity_ellipsoid": med(m["sphericity_ellipsoid"][i] - truth["sphericity"][t]),
         "axes": 100 * med((m["axes"][i] / truth["axes"][t] - 1).ravel()),
         "strain": med(m["strain_vm"][i] - truth["strain_vm"][t]),
         "precision": hit / len(found) if found else float("nan"),
@@ -147,7 +148,8 @@ def _from_snapshot(snap, seconds):
     index = {int(r["id"]): k for k, r in enumerate(b)}
     pairs = [(index[int(r["id_a"])], index[int(r["id_b"])]) for r in snap["contacts"]]
     return {"centroid": np.stack([col(f"centroid_{a}_mm", b) for a in "xyz"], axis=1), "volume": col("volume_mm3", b),
-            "sphericity": col("sphericity", b), "axes": np.stack([col(f"semi_axis_{k}_mm", b) for k in (1, 2, 3)], 1),
+            "sphericity": col("sphericity", b), "sphericity_ellipsoid": col("sphericity_ellipsoid", b),
+            "axes": np.stack([col(f"semi_axis_{k}_mm", b) for k in (1, 2, 3)], 1),
             "strain_vm": col("strain_von_mises", b), "cut": col("truncated", b) == 1,
             "pairs": np.array(pairs, dtype=int).reshape(-1, 2),
             "points": np.array([[float(r[f"contact_{a}_mm"]) for a in "xyz"] for r in snap["contacts"]]).reshape(-1, 3),
@@ -215,7 +217,8 @@ def foamquant_route(binary, extent, voxel, min_distance, gap, mask):
     points = 0.5 * (centroid[pairs[:, 0]] + centroid[pairs[:, 1]]) if len(pairs) else np.zeros((0, 3))
     strain = np.array(prop[22], dtype=float)
     seconds = time.perf_counter() - t
-    return {"centroid": centroid, "volume": vol * voxel ** 3, "sphericity": np.where(sph > 0, sph, np.nan),
+    sph = np.where(sph > 0, sph, np.nan)  # RegionProp's only sphericity is its ellipsoid's
+    return {"centroid": centroid, "volume": vol * voxel ** 3, "sphericity": sph, "sphericity_ellipsoid": sph,
             "axes": np.where(axes > 0, axes, np.nan), "strain_vm": np.where(strain >= 0, strain, np.nan),
             "cut": np.array([v in edge for v in lab]), "pairs": pairs, "points": points,
             "liquid_fraction": 1 - float(binary[mask].mean()), "seconds": seconds}
@@ -233,7 +236,8 @@ _ROWS = (("found", "bubbles found whole (of the whole truth bubbles)", "{}"),
          ("spurious", "measured bubbles matching no truth bubble", "{}"),
          ("volume", "median volume error (%)", "{:.2f}"),
          ("radius", "median equivalent-radius error (um)", "{:.2f}"),
-         ("sphericity", "median sphericity error", "{:.4f}"),
+         ("sphericity", "median sphericity error (bubsub: its surface; FoamQuant: its ellipsoid)", "{:.4f}"),
+         ("sphericity_ellipsoid", "median sphericity error, ellipsoid of the shape tensor (FoamQuant's)", "{:.4f}"),
          ("axes", "median semi-axis error, shape tensor (%)", "{:.2f}"),
          ("strain", "median internal-strain error (von Mises)", "{:.4f}"),
          ("precision", "contacts: precision", "{:.3f}"),

@@ -1,6 +1,10 @@
 """Shared fixtures and independent reference computations for the tests."""
 
+import shutil
+import subprocess
+import tempfile
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -56,3 +60,72 @@ def sphere_chords(centre, radius, origins, directions):
 def rng(request):
     """A generator seeded by the test's name: reproducible, different per test."""
     return np.random.default_rng(zlib.crc32(request.node.name.encode()))
+
+
+# --- tests whose work is one long subprocess ------------------------------------------------------
+# A few tests spend their time in one subprocess that needs nothing from the other tests (a compile with
+# bounds checks, every module imported into a fresh interpreter, a wheel served from a fresh venv).
+# Marked ``@pytest.mark.background(command=fn)`` (a keyword: a mark called with one function marks that
+# function instead), with ``fn(tmp)`` returning ``(args, env, cwd)``,
+# that subprocess starts as soon as the session's tests are collected, so it runs on the second core
+# beside the other tests instead of after them; the test (fixture ``background``) waits for it and
+# asserts on its exit status and output as it would on ``subprocess.run``'s.
+
+_BACKGROUND = {}
+
+
+class BackgroundRun:
+    """One started subprocess, its output going to files in its own temporary folder."""
+
+    def __init__(self, command):
+        self.tmp = Path(tempfile.mkdtemp(prefix="bubsub-test-bg-"))
+        args, env, cwd = command(self.tmp)
+        self._out, self._err = open(self.tmp / "stdout", "w+"), open(self.tmp / "stderr", "w+")
+        self.proc = subprocess.Popen(args, env=env, cwd=cwd, stdout=self._out, stderr=self._err, text=True)
+
+    def wait(self, timeout):
+        """The finished run as a ``subprocess.CompletedProcess`` (text output)."""
+        try:
+            code = self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.close()
+            raise
+        self._out.seek(0)
+        self._err.seek(0)
+        return subprocess.CompletedProcess(self.proc.args, code, self._out.read(), self._err.read())
+
+    def close(self):
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        self._out.close()
+        self._err.close()
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "background(command=fn): the test's subprocess starts when the tests are "
+                                       "collected (see tests/conftest.py)")
+
+
+def pytest_collection_finish(session):
+    for item in session.items:
+        marker = item.get_closest_marker("background")
+        if marker is not None and item.nodeid not in _BACKGROUND:
+            _BACKGROUND[item.nodeid] = BackgroundRun(marker.kwargs["command"])
+
+
+def pytest_sessionfinish(session):
+    for run in _BACKGROUND.values():
+        run.close()
+    _BACKGROUND.clear()
+
+
+@pytest.fixture
+def background(request):
+    """The :class:`BackgroundRun` of the test's ``background`` marker (started at collection)."""
+    run = _BACKGROUND.get(request.node.nodeid)
+    if run is None:
+        marker = request.node.get_closest_marker("background")
+        run = _BACKGROUND[request.node.nodeid] = BackgroundRun(marker.kwargs["command"])
+    return run

@@ -154,7 +154,7 @@ def simulate_expanding(foam, geometry, *, projections_per_subscan, photons=None,
     mid_times : (n_subscans,) float
         Each subscan's mid-time in [0, 1] (where its truth is taken).
     """
-    from bubsub.core.foam.simulate import _finish
+    from bubsub.core.foam.simulate import simulated_scan
     from bubsub.core.projection.projector import MeshProjector
 
     n = geometry.n_angles
@@ -171,7 +171,7 @@ def simulate_expanding(foam, geometry, *, projections_per_subscan, photons=None,
         proj = MeshProjector(geometry[i:i + 1], supersampling=supersampling)
         clean[i] = proj.forward(phantom.items)[0]
         background[i] = proj.forward([phantom.liquid])[0]
-    scan = _finish(foam.final, geometry, clean, background, photons, seed, "mesh",
+    scan = simulated_scan(foam.final, geometry, clean, background, photons, seed, "mesh",
                    {"dynamic": 1, "supersampling": supersampling})
     scan.time = np.arange(n) * float(seconds_per_projection)
     scan.projections_per_subscan = k

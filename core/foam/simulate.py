@@ -27,6 +27,7 @@ from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.foam.phantoms import FoamPhantom
 from bubsub.core.voxel.raster import check_grid
 from bubsub.core.io.scanfile import Scan
+from bubsub.core.validate import check_int
 
 __all__ = [
     "project_image",
@@ -35,6 +36,7 @@ __all__ = [
     "simulate_3d",
     "default_geometry_2d",
     "default_geometry_3d",
+    "simulated_scan",
     "ASTRA_PROJECTORS",
 ]
 
@@ -66,7 +68,7 @@ def default_geometry_2d(n_angles=100, *, det_count=2400, pixel_size=0.006):
     ScanGeometry
         Kind ``parallel_vec``, shape ``(n_angles, det_count)``.
     """
-    n = _count("n_angles", n_angles)
+    n = check_int(n_angles, "n_angles", 1)
     angles = np.linspace(0.0, np.pi, n, endpoint=False)
     return ScanGeometry.parallel(angles, pixel_size=pixel_size, cols=det_count)
 
@@ -103,8 +105,8 @@ def default_geometry_3d(
     ScanGeometry
         Kind ``cone_vec``, shape ``(n_angles, rows, cols)``.
     """
-    n = _count("n_angles", n_angles)
-    rows, cols = _count("rows", rows), _count("cols", cols)
+    n = check_int(n_angles, "n_angles", 1)
+    rows, cols = check_int(rows, "rows", 1), check_int(cols, "cols", 1)
     so, od = float(source_origin), float(origin_detector)
     if pixel_size is None:
         sx, sy, sz = (float(v) for v in np.broadcast_to(np.asarray(size, dtype=float), (3,)))
@@ -261,7 +263,7 @@ def simulate_2d(
         info = {}
     else:
         raise ValueError(f"method must be 'voxel' or 'mesh', got {method!r}")
-    return _finish(phantom, geometry, clean, background, photons, seed, method, info)
+    return simulated_scan(phantom, geometry, clean, background, photons, seed, method, info)
 
 
 def simulate_3d(phantom, geometry, *, photons=None, seed=0, supersampling=1, threads=None):
@@ -295,10 +297,29 @@ def simulate_3d(phantom, geometry, *, photons=None, seed=0, supersampling=1, thr
     proj = MeshProjector(geometry, supersampling=supersampling, threads=threads)
     clean = proj.forward(phantom.items)
     background = proj.forward([phantom.liquid])
-    return _finish(phantom, geometry, clean, background, photons, seed, "mesh", {"supersampling": supersampling})
+    return simulated_scan(phantom, geometry, clean, background, photons, seed, "mesh", {"supersampling": supersampling})
 
 
-def _finish(phantom, geometry, clean, background, photons, seed, method, info):
+def simulated_scan(phantom, geometry, clean, background, photons, seed, method, info):
+    """The :class:`Scan` of a simulation: its noisy data (Poisson at ``photons``, or ``clean`` itself),
+    the liquid alone as background, and the attributes that say how it was made.
+
+    Parameters
+    ----------
+    phantom : FoamPhantom
+        Its contrast, seed and bubble count go into the scan.
+    geometry : ScanGeometry
+    clean, background : (n_angles, [rows,] cols) float
+        Noise-free projections of the foam and of the liquid alone.
+    photons : float or None
+        Incident photons per pixel; None for no noise.
+    seed : int
+        Of the noise.
+    method : str
+        ``attrs["method"]``.
+    info : dict
+        More attributes.
+    """
     data = clean if photons is None else add_poisson_noise(clean, photons, seed)
     attrs = {"simulated": 1, "method": method, "photons": 0.0 if photons is None else float(photons)}
     if photons is not None:
@@ -323,10 +344,6 @@ def _check_phantom(phantom, ndim):
         raise ValueError(f"a {ndim}D simulation needs a {ndim}D phantom, got a {phantom.ndim}D one")
 
 
-def _count(name, value):
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
 
 
 def _rng(seed):

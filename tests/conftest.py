@@ -11,7 +11,6 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from bubsub.core import Mesh
-from kernel_paths import warm_up_command
 
 
 def convex_mesh(points, attenuation=1.0):
@@ -74,10 +73,6 @@ def rng(request):
 
 _BACKGROUND = {}
 
-#: From this many collected tests on, a warm-up subprocess compiles every kernel into numba's disk cache
-#: beside the first tests (``kernel_paths.py``); a single test's run goes without.
-WARM_UP_FROM = 20
-
 
 class BackgroundRun:
     """One started subprocess, its output going to files in its own temporary folder."""
@@ -114,8 +109,6 @@ def pytest_configure(config):
 
 
 def pytest_collection_finish(session):
-    if len(session.items) >= WARM_UP_FROM:
-        _BACKGROUND["kernel warm-up"] = BackgroundRun(warm_up_command)
     for item in session.items:
         marker = item.get_closest_marker("background")
         if marker is not None and item.nodeid not in _BACKGROUND:

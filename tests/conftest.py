@@ -3,6 +3,7 @@
 import shutil
 import subprocess
 import tempfile
+import threading
 import zlib
 from pathlib import Path
 
@@ -64,48 +65,74 @@ def rng(request):
 
 # --- tests whose work is one long subprocess ------------------------------------------------------
 # A few tests spend their time in one subprocess that needs nothing from the other tests (a compile with
-# bounds checks, every module imported into a fresh interpreter, a wheel served from a fresh venv).
-# Marked ``@pytest.mark.background(command=fn)`` (a keyword: a mark called with one function marks that
-# function instead), with ``fn(tmp)`` returning ``(args, env, cwd)``,
-# that subprocess starts as soon as the session's tests are collected, so it runs on the second core
-# beside the other tests instead of after them; the test (fixture ``background``) waits for it and
+# bounds checks, every module imported into a fresh interpreter, a wheel served from a fresh venv, the
+# example notebook's kernel). Marked ``@pytest.mark.background(command=fn)`` (a keyword: a mark called
+# with one function marks that function instead), with ``fn(tmp)`` returning ``(args, env, cwd)``, their
+# subprocesses run one after another, in the tests' order, from the moment the tests are collected: a
+# second lane beside the tests, which leave the machine's second core idle most of the time. The test
+# (fixture ``background``) starts its own at once if the lane has not reached it, waits for it and
 # asserts on its exit status and output as it would on ``subprocess.run``'s.
-
-_BACKGROUND = {}
 
 
 class BackgroundRun:
-    """One started subprocess, its output going to files in its own temporary folder."""
+    """One subprocess, started once, its output going to files in its own temporary folder."""
 
     def __init__(self, command):
-        self.tmp = Path(tempfile.mkdtemp(prefix="bubsub-test-bg-"))
-        args, env, cwd = command(self.tmp)
-        self._out, self._err = open(self.tmp / "stdout", "w+"), open(self.tmp / "stderr", "w+")
-        self.proc = subprocess.Popen(args, env=env, cwd=cwd, stdout=self._out, stderr=self._err, text=True)
+        self.command = command
+        self.tmp = self.proc = None
+        self._lock = threading.Lock()
+
+    def start(self):
+        """Start it unless it was (by the lane or by its test); returns the process."""
+        with self._lock:
+            if self.proc is None:
+                self.tmp = Path(tempfile.mkdtemp(prefix="bubsub-test-bg-"))
+                args, env, cwd = self.command(self.tmp)
+                self._out, self._err = open(self.tmp / "stdout", "w+"), open(self.tmp / "stderr", "w+")
+                self.proc = subprocess.Popen(args, env=env, cwd=cwd, stdout=self._out, stderr=self._err, text=True)
+            return self.proc
 
     def wait(self, timeout):
         """The finished run as a ``subprocess.CompletedProcess`` (text output)."""
+        proc = self.start()
         try:
-            code = self.proc.wait(timeout)
+            code = proc.wait(timeout)
         except subprocess.TimeoutExpired:
             self.close()
             raise
         self._out.seek(0)
         self._err.seek(0)
-        return subprocess.CompletedProcess(self.proc.args, code, self._out.read(), self._err.read())
+        return subprocess.CompletedProcess(proc.args, code, self._out.read(), self._err.read())
 
     def close(self):
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-        self._out.close()
-        self._err.close()
-        shutil.rmtree(self.tmp, ignore_errors=True)
+        with self._lock:
+            if self.proc is None:
+                self.proc = False  # never started, and now never will be
+                return
+            if self.proc is False:
+                return
+            if self.proc.poll() is None:
+                self.proc.kill()
+                self.proc.wait()
+            self._out.close()
+            self._err.close()
+            shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+_BACKGROUND = {}
+
+
+def _lane(runs):
+    for run in runs:
+        proc = run.start()
+        if proc is False:  # the session is over
+            return
+        proc.wait()
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", "background(command=fn): the test's subprocess starts when the tests are "
-                                       "collected (see tests/conftest.py)")
+    config.addinivalue_line("markers", "background(command=fn): the test's subprocess runs in a lane beside the "
+                                       "other tests from their collection on (see tests/conftest.py)")
 
 
 def pytest_collection_finish(session):
@@ -113,6 +140,9 @@ def pytest_collection_finish(session):
         marker = item.get_closest_marker("background")
         if marker is not None and item.nodeid not in _BACKGROUND:
             _BACKGROUND[item.nodeid] = BackgroundRun(marker.kwargs["command"])
+    if _BACKGROUND:
+        threading.Thread(target=_lane, args=(list(_BACKGROUND.values()),), name="bubsub-test-lane",
+                         daemon=True).start()
 
 
 def pytest_sessionfinish(session):
@@ -123,9 +153,9 @@ def pytest_sessionfinish(session):
 
 @pytest.fixture
 def background(request):
-    """The :class:`BackgroundRun` of the test's ``background`` marker (started at collection)."""
+    """The :class:`BackgroundRun` of the test's ``background`` marker (see above)."""
     run = _BACKGROUND.get(request.node.nodeid)
     if run is None:
-        marker = request.node.get_closest_marker("background")
-        run = _BACKGROUND[request.node.nodeid] = BackgroundRun(marker.kwargs["command"])
+        run = _BACKGROUND[request.node.nodeid] = BackgroundRun(request.node.get_closest_marker("background")
+                                                               .kwargs["command"])
     return run

@@ -174,7 +174,7 @@ def serve_the_wheel(tmp_path):
     assert exe and exe.startswith(str(env_dir)), exe
     proc = subprocess.Popen([exe, *cmd[1:]], env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
-        end = time.monotonic() + 60
+        end = time.monotonic() + 120  # a fresh install compiles its kernels first: over a minute on a busy machine
         while True:
             probe = subprocess.run([str(py) if health[0] == "python" else health[0], *health[1:]], env=env,
                                    cwd=tmp_path, capture_output=True)

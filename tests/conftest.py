@@ -3,7 +3,6 @@
 import shutil
 import subprocess
 import tempfile
-import threading
 import zlib
 from pathlib import Path
 
@@ -69,9 +68,11 @@ def rng(request):
 # example notebook's kernel). Marked ``@pytest.mark.background(command=fn)`` (a keyword: a mark called
 # with one function marks that function instead), with ``fn(tmp)`` returning ``(args, env, cwd)``, their
 # subprocesses run one after another, in the tests' order, from the moment the tests are collected: a
-# second lane beside the tests, which leave the machine's second core idle most of the time. The test
-# (fixture ``background``) starts its own at once if the lane has not reached it, waits for it and
-# asserts on its exit status and output as it would on ``subprocess.run``'s.
+# second lane beside the tests, which leave the machine's second core idle most of the time. The lane
+# moves on between tests, in pytest's own thread, so that no process is started (nor Python's garbage
+# collected by another thread) while a test runs native code. The test (fixture ``background``) starts its
+# own at once if the lane has not reached it, waits for it and asserts on its exit status and output as
+# it would on ``subprocess.run``'s.
 
 
 class BackgroundRun:
@@ -80,17 +81,18 @@ class BackgroundRun:
     def __init__(self, command):
         self.command = command
         self.tmp = self.proc = None
-        self._lock = threading.Lock()
 
     def start(self):
         """Start it unless it was (by the lane or by its test); returns the process."""
-        with self._lock:
-            if self.proc is None:
-                self.tmp = Path(tempfile.mkdtemp(prefix="bubsub-test-bg-"))
-                args, env, cwd = self.command(self.tmp)
-                self._out, self._err = open(self.tmp / "stdout", "w+"), open(self.tmp / "stderr", "w+")
-                self.proc = subprocess.Popen(args, env=env, cwd=cwd, stdout=self._out, stderr=self._err, text=True)
-            return self.proc
+        if self.proc is None:
+            self.tmp = Path(tempfile.mkdtemp(prefix="bubsub-test-bg-"))
+            args, env, cwd = self.command(self.tmp)
+            self._out, self._err = open(self.tmp / "stdout", "w+"), open(self.tmp / "stderr", "w+")
+            self.proc = subprocess.Popen(args, env=env, cwd=cwd, stdout=self._out, stderr=self._err, text=True)
+        return self.proc
+
+    def running(self):
+        return bool(self.proc) and self.proc.poll() is None
 
     def wait(self, timeout):
         """The finished run as a ``subprocess.CompletedProcess`` (text output)."""
@@ -105,29 +107,25 @@ class BackgroundRun:
         return subprocess.CompletedProcess(proc.args, code, self._out.read(), self._err.read())
 
     def close(self):
-        with self._lock:
-            if self.proc is None:
-                self.proc = False  # never started, and now never will be
-                return
-            if self.proc is False:
-                return
-            if self.proc.poll() is None:
-                self.proc.kill()
-                self.proc.wait()
-            self._out.close()
-            self._err.close()
-            shutil.rmtree(self.tmp, ignore_errors=True)
+        if not self.proc:
+            return
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        self._out.close()
+        self._err.close()
+        shutil.rmtree(self.tmp, ignore_errors=True)
 
 
 _BACKGROUND = {}
 
 
-def _lane(runs):
-    for run in runs:
-        proc = run.start()
-        if proc is False:  # the session is over
-            return
-        proc.wait()
+def _advance_lane():
+    """Start the lane's next run unless one of the runs is still going."""
+    if not any(run.running() for run in _BACKGROUND.values()):
+        waiting = [run for run in _BACKGROUND.values() if run.proc is None]
+        if waiting:
+            waiting[0].start()
 
 
 def pytest_configure(config):
@@ -140,9 +138,11 @@ def pytest_collection_finish(session):
         marker = item.get_closest_marker("background")
         if marker is not None and item.nodeid not in _BACKGROUND:
             _BACKGROUND[item.nodeid] = BackgroundRun(marker.kwargs["command"])
-    if _BACKGROUND:
-        threading.Thread(target=_lane, args=(list(_BACKGROUND.values()),), name="bubsub-test-lane",
-                         daemon=True).start()
+    _advance_lane()
+
+
+def pytest_runtest_teardown(item):
+    _advance_lane()
 
 
 def pytest_sessionfinish(session):

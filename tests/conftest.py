@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from bubsub.core import Mesh
+from kernel_paths import warm_up_command
 
 
 def convex_mesh(points, attenuation=1.0):
@@ -119,6 +120,10 @@ class BackgroundRun:
 
 _BACKGROUND = {}
 
+#: From this many collected tests on, the lane starts with a warm-up that compiles every kernel into
+#: numba's disk cache (``kernel_paths.py``) while the first tests run; a single test's run goes without.
+WARM_UP_FROM = 20
+
 
 def _advance_lane():
     """Start the lane's next run unless one of the runs is still going."""
@@ -134,6 +139,8 @@ def pytest_configure(config):
 
 
 def pytest_collection_finish(session):
+    if len(session.items) >= WARM_UP_FROM:
+        _BACKGROUND["kernel warm-up"] = BackgroundRun(warm_up_command)
     for item in session.items:
         marker = item.get_closest_marker("background")
         if marker is not None and item.nodeid not in _BACKGROUND:

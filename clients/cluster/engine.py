@@ -9,7 +9,7 @@ than having arrays shipped through the scheduler, and return small results
 
 Dask (``dask.distributed``) is imported only inside :func:`open_client` and
 only when a cluster is asked for; without one everything runs in this
-process, in task order, exactly as before.
+process, in task order.
 """
 
 from __future__ import annotations

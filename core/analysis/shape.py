@@ -27,7 +27,7 @@ Definitions (FoamQuant's, on a mesh instead of voxels)
   ellipsoid of the same shape tensor (volume ``4/3 pi a b c``, Knud Thomsen's
   area ``4 pi ((a^p b^p + a^p c^p + b^p c^p) / 3)^(1/p)``, ``p = 1.6``): the
   number to set beside FoamQuant's, equal to ``sphericity`` for an ellipsoid
-  (to Thomsen's approximation, at most about 1 %) and above it for any shape
+  (to Thomsen's approximation, at most about 1 %) and usually above it for a shape
   that departs from its ellipsoid;
 * shape tensor ``M = (1/V) integral (x - c)(x - c)^T dV`` (mm^2), the second central
   moment of the solid. An ellipsoid of semi-axes ``a >= b >= c`` has eigenvalues

@@ -137,13 +137,14 @@ def test_idle_jobs_expire():
     # compile the projector's kernels for these arrays first (a cold numba cache takes longer than the TTL)
     for dtype in (np.float32, np.float64):
         MeshProjector(p.geometry).objective(p.init, p.data.astype(dtype))
-    with ServerThread(job_ttl_seconds=0.4, sweep_interval_seconds=0.05) as s:
+    # uses 0.2 s apart keep it alive past its 1 s TTL (0.8 s of slack for a busy machine); then 2 s idle expire it
+    with ServerThread(job_ttl_seconds=1.0, sweep_interval_seconds=0.05) as s:
         with ProjectorClient(s.url) as c:
             job = c.create_job(p.geometry, data=p.data, surfaces=p.init)
-            for _ in range(4):  # use keeps it alive
+            for _ in range(8):
                 time.sleep(0.2)
                 job.objective(p.init)
-            time.sleep(0.8)
+            time.sleep(2.0)
             r = httpx.get(f"{s.url}/v1/jobs/{job.id}")
             assert r.status_code == 404 and r.json()["code"] == "unknown_job"
             assert s.state.store.expired_total == 1 and len(s.state.store) == 0

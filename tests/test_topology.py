@@ -112,6 +112,22 @@ def test_topology_splits_a_bubble_that_covers_two():
     assert len(kept) == 2 and check_bubbles(kept) == []
 
 
+def test_a_bubble_holding_two_preview_blobs_is_tried_before_an_elongated_one():
+    # an elongated true bubble (axis ratio 2, one bubble: its split is rejected) and a round bubble that covers
+    # two true discs; with one try, the split that the preview's two blobs call for must be the one tried
+    ellipse = circle_surface([-1.3, 0.0], 0.5, MU, control=32, levels=3)
+    ellipse = ellipse.with_vertices((ellipse.vertices - [-1.3, 0.0]) * [1.0, 0.5] + [-1.3, 0.0])
+    truth = [ellipse, circle_surface([1.0, -0.52], 0.45, MU, control=32, levels=3),
+             circle_surface([1.0, 0.52], 0.45, MU, control=32, levels=3)]
+    geometry, data = _scan(truth, n_angles=16)
+    image = voxel_preview(data, geometry, MU, voxel_size=0.05)
+    start = [ellipse, circle_surface([1.0, 0.0], 0.8, MU)]
+    kept, summary = _adapt(start, data, geometry, steps=("split",), image=image, max_tries=1)
+    splits = [c for c in summary["changes"] if c["change"] == "split"]
+    assert splits and np.allclose(splits[0]["centre"], [1.0, 0.0], atol=0.1)
+    assert len(kept) == 3 and check_bubbles(kept) == []
+
+
 def test_topology_merges_two_halves_of_one_bubble_and_leaves_a_good_fit_alone():
     truth = [circle_surface([0.0, 0.0], 0.8, MU, control=32, levels=3)]
     geometry, data = _scan(truth)

@@ -235,6 +235,9 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     Candidates: a bubble holding two or more ``blobs`` (centres, radii of the
     preview's blobs; the two strongest become the new bubbles), or an
     elongated one (axis ratio above ``ratio``; two bubbles along its long axis).
+    The ``max_tries`` tried are the blob candidates first (two blobs in one
+    bubble are the stronger evidence: in a foam of elongated bubbles the
+    elongated candidates alone would fill the tries), then the most elongated.
     """
     cand = []
     for k, s in enumerate(surfaces):
@@ -245,7 +248,7 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
                 gap = float(np.linalg.norm(a - b))
                 # never overlapping each other
                 scale = min(1.0, 0.95 * gap / (ra + rb))
-                cand.append((0.0, k, [(a, ra * scale), (b, rb * scale)]))
+                cand.append((-np.inf, k, [(a, ra * scale), (b, rb * scale)]))
                 continue
         c, w, u = _axes(s)
         if w[0] > 0 and np.sqrt(w[-1] / w[0]) > ratio:

@@ -193,13 +193,7 @@ def register(sub):
                    help="URL of a bubsub projector server to fit against (default: local); checked at start")
     p.add_argument("--token", help="bearer token for --server")
     p.add_argument("--quiet", action="store_true", help="no progress bars or phase lines")
-    g = p.add_argument_group("slabs (parallel-beam 3D scans; docs/scale.md)")
-    g.add_argument("--slabs", type=slabs_argument, default="auto", metavar="N|auto",
-                   help="reconstruct the scan in N slabs of detector rows, each read and fitted on its own "
-                        "(default auto: one slab per about 3 million detector pixels read; 1: the whole scan)")
-    g.add_argument("--slab-halo", type=positive_int, metavar="ROWS",
-                   help="rows read above and below each slab's own rows (default: 1.5 x the largest bubble "
-                        "radius in a preview of the central rows)")
+    g = add_slab_arguments(p, "the scan")
     g.add_argument("--resume", action="store_true",
                    help="reuse the finished slabs in --out/slabs of an earlier run with the same scan and settings")
     add_cluster_arguments(p)
@@ -211,3 +205,24 @@ def slabs_argument(text):
     if text == "auto":
         return None
     return positive_int(text)
+
+
+def add_slab_arguments(parser, what, halo_default="a preview of the central rows"):
+    """Add the group of ``--slabs N|auto`` and ``--slab-halo ROWS`` to ``parser`` and return it.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+    what : str
+        What the slabs cut, as the help names it (``"the scan"``, ``"each subscan"``).
+    halo_default : str
+        Where the default halo's bubble radius comes from.
+    """
+    g = parser.add_argument_group("slabs (parallel-beam 3D scans; docs/large-scans.md)")
+    g.add_argument("--slabs", type=slabs_argument, default="auto", metavar="N|auto",
+                   help=f"reconstruct {what} in N slabs of detector rows, each read and fitted on its own "
+                        f"(default auto: one slab per about 3 million detector pixels read; 1: {what} whole)")
+    g.add_argument("--slab-halo", type=positive_int, metavar="ROWS",
+                   help=f"rows read above and below each slab's own rows (default: 1.5 x the largest bubble "
+                        f"radius in {halo_default})")
+    return g

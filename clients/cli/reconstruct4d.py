@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from bubsub.clients.cli.args import add_output_arguments, positive_int
+from bubsub.clients.cli.reconstruct import add_slab_arguments
 from bubsub.clients.cluster.engine import add_cluster_arguments
 
 
@@ -21,7 +22,7 @@ def cmd_reconstruct4d(args):
     scan = read_scan(args.scan)
     settings = DynamicSettings(iterations=args.iterations, control_points=args.control_points, levels=args.levels,
                                holdout=args.holdout, voxel_baseline=args.voxel_baseline, warm_rtol=args.warm_rtol,
-                               progress=not args.quiet)
+                               slabs=args.slabs, slab_halo=args.slab_halo, progress=not args.quiet)
     with open_client(spec_from_args(args)) as client:
         report = reconstruct_dynamic(scan, out, settings, projections_per_subscan=args.projections_per_subscan,
                                      subscans=args.subscans, resume=args.resume, overwrite=args.overwrite,
@@ -65,5 +66,8 @@ def register(sub):
     p.add_argument("--chunks", type=positive_int, default=1, metavar="K",
                    help="cut the subscan chain into K chunks run in parallel, each cold-started at its last "
                         "subscan, bubble ids linked where neighbouring chunks overlap (default 1: one chain)")
+    # a subscan is one task already: its slabs run in that task, one after another
+    add_slab_arguments(p, "each subscan", halo_default="a preview of the central rows or, in a warm-started "
+                       "subscan, of its starting bubbles")
     add_cluster_arguments(p)
     p.set_defaults(func=cmd_reconstruct4d)

@@ -8,6 +8,15 @@ then BFGS; no voxel preview. Bubbles only shrink and vanish going backwards:
 a bubble that collapses (or whose warm start cannot be built) ends its track,
 the others keep their ids.
 
+A large parallel-beam subscan goes through slabs of detector rows with the
+rules of ``bubsub reconstruct`` (:mod:`bubsub.clients.pipeline.slabs`: one
+slab per about 3 million pixels read by default; cone-beam and 2D subscans,
+and ``holdout``, whole), one slab after another in this process: the cold
+start is reconstructed slab by slab and stitched, the warm starts are fitted
+slab by slab (:func:`~bubsub.clients.pipeline.slabs.fit_known`), each bubble
+kept, with its track id, from the slab whose core holds its warm start's
+centroid.
+
 Two layers, so that another engine can run the same step on workers:
 
 * :func:`reconstruct_subscan` -- one subscan: a pure, picklable function
@@ -38,6 +47,8 @@ from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.pipeline.fov import fov_report
 from bubsub.clients.pipeline.preview import preview_voxel_size
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
+from bubsub.clients.pipeline.slabs import (OBJECTIVE_NOTE, fit_known, known_halo, plan_slabs, reconstruct_slabs,
+                                           slab_count, slab_totals)
 from bubsub.clients.pipeline.voxel4d import voxel_baseline
 
 __all__ = ["DynamicSettings", "STATIC_FIELDS", "BubbleState", "SubscanResult", "reconstruct_subscan", "run_chain"]
@@ -79,6 +90,13 @@ class DynamicSettings:
         lowered the objective by less than ``warm_rtol`` of its value (it
         starts near the optimum and would spend its remaining iterations on
         the noise); ``warm_rtol=0`` always runs ``iterations``.
+    slabs : int, optional
+        Slabs of detector rows per subscan (``--slabs``); None: as ``bubsub
+        reconstruct`` chooses (:func:`~bubsub.clients.pipeline.slabs.slab_count`).
+    slab_halo : int, optional
+        Halo rows of the slabs (``--slab-halo``); None: the cold start's
+        :func:`~bubsub.clients.pipeline.slabs.estimate_halo`, a warm start's
+        :func:`~bubsub.clients.pipeline.slabs.known_halo` of its successor's bubbles.
     """
 
     static: ReconstructionSettings
@@ -87,9 +105,11 @@ class DynamicSettings:
     voxel_baseline: bool = False
     warm_rtol: float = 1e-3
     warm_window: int = 5
+    slabs: int | None = None
+    slab_halo: int | None = None
 
     def __init__(self, static=None, *, shrink=SHRINK, min_radius=None, voxel_baseline=False, warm_rtol=1e-3,
-                 warm_window=5, **static_fields):
+                 warm_window=5, slabs=None, slab_halo=None, **static_fields):
         unknown = sorted(set(static_fields) - STATIC_FIELDS)
         if unknown:
             raise TypeError(f"DynamicSettings got unknown settings {unknown}")
@@ -98,11 +118,15 @@ class DynamicSettings:
             static = dataclasses.replace(static, **static_fields)
         for name, value in (("static", static), ("shrink", shrink), ("min_radius", min_radius),
                             ("voxel_baseline", voxel_baseline), ("warm_rtol", warm_rtol),
-                            ("warm_window", warm_window)):
+                            ("warm_window", warm_window), ("slabs", slabs), ("slab_halo", slab_halo)):
             object.__setattr__(self, name, value)
         check_int(static.iterations, "iterations", 0)
         if static.holdout not in (None, "odd", "even"):
             raise ValueError(f"holdout must be None, 'odd' or 'even', got {static.holdout!r}")
+        if slabs is not None and check_int(slabs, "slabs", 1) > 1 and static.holdout is not None:
+            raise ValueError("holdout needs every subscan reconstructed whole (--slabs 1)")
+        if slab_halo is not None:
+            check_int(slab_halo, "slab_halo", 0)
         if not warm_rtol >= 0:
             raise ValueError(f"warm_rtol must be >= 0, got {warm_rtol!r}")
         if not 0 < shrink <= 1.5:
@@ -213,8 +237,18 @@ def _split(scan, holdout):
     return split_holdout(scan.geometry, scan.bubble_data, holdout)
 
 
+def _slab_count(scan, settings, halo=None):
+    """Slabs and halo rows of a subscan, by the rules of ``bubsub reconstruct``; ``halo``: the default halo when
+    ``settings.slab_halo`` is None (None: :func:`~bubsub.clients.pipeline.slabs.estimate_halo`)."""
+    halo = settings.slab_halo if settings.slab_halo is not None else halo
+    return slab_count(scan, scan.geometry, _static_settings(settings), settings.slabs, halo,
+                      whole_needed=settings.holdout is not None)
+
+
 def _cold(scan, settings):
-    rec = reconstruct(scan, _static_settings(settings))
+    slabs, halo = _slab_count(scan, settings)
+    static = _static_settings(settings)
+    rec = reconstruct(scan, static) if slabs == 1 else reconstruct_slabs(scan, static, slabs=slabs, halo=halo)
     r = rec.report
     report = {"start": "cold", "iterations": r["iterations"], "evaluations": r["evaluations"],
               "objective": r["final_objective"],
@@ -223,17 +257,16 @@ def _cold(scan, settings):
               # radius estimation, topology rounds, validity check and repair, held-out MSE: the rest
               "seconds_parts": {"preview_and_centres": r["seconds_initialisation"], "fit": r["seconds_fit"],
                                 "other": r["seconds_total"] - r["seconds_initialisation"] - r["seconds_fit"]}}
+    if slabs > 1:
+        report.update({k: r[k] for k in ("slabs", "slab_halo_rows", "stitch", "objective_note")})
     ids = range(len(rec.surfaces))
     return BubbleState.from_surfaces(ids, rec.surfaces, scan.bubble_contrast, settings.levels), report, \
         rec.preview, rec.preview_extent
 
 
-def _warm(scan, previous, settings):
-    g_fit, d_fit, _, _ = _split(scan, settings.holdout)
-    min_radius = settings.min_radius or preview_voxel_size(g_fit)
-    ended = {}
-    ids, starts = [], []
-    t0 = _time.perf_counter()
+def _warm_starts(scan, previous, settings):
+    """The successor's bubbles shrunk and remeshed: their ids, the starts, and the ids that have none."""
+    ids, starts, ended = [], [], {}
     for i, s in zip(previous.ids, previous.surfaces()):
         try:
             starts.append(warm_start(s.with_attenuation(scan.bubble_contrast), shrink=settings.shrink,
@@ -241,38 +274,86 @@ def _warm(scan, previous, settings):
             ids.append(i)
         except ValueError as exc:
             ended[i] = f"no warm start: {exc}"
+    return ids, starts, ended
+
+
+def _warm_fit(geometry, data, starts, settings):
+    """One warm fit: the fitted bubbles and its report (the static pipeline's coarse-to-fine data levels, each
+    ended on the warm plateau test).
+
+    Raises
+    ------
+    FloatingPointError
+        When the objective is not finite.
+    """
+    projector = MeshProjector(geometry, supersampling=settings.supersampling)
+    initial = float(projector.objective(starts, data)[0])
+    result, levels = fit_levels(projector, starts, data, factors=bin_factors(geometry), iterations=settings.iterations,
+                                rtol=settings.warm_rtol if settings.warm_rtol > 0 else None,
+                                rtol_window=settings.warm_window, progress=settings.progress)
+    if not np.isfinite(result.objective):
+        raise FloatingPointError(f"objective {result.objective}")
+    return list(result.surfaces), {
+        "iterations": result.iterations, "evaluations": result.evaluations, "final_objective": result.objective,
+        "initial_objective": initial, "interrupted": result.interrupted, "fit_levels": levels,
+        "stop_reason": "objective plateau" if result.stop_reason == "converged" else result.stop_reason,
+        "seconds_fit": result.seconds}
+
+
+_WARM_SUMMED = ("iterations", "evaluations", "final_objective", "initial_objective", "seconds_fit")
+
+
+def _warm_slabs(scan, previous, settings):
+    """A warm subscan's slabs and halo: unless ``--slab-halo``, the halo of its successor's bubbles, which the
+    fits grow its shrunk starts back toward (a warm subscan has no preview to estimate it from)."""
+    return _slab_count(scan, settings, halo=known_halo(previous.surfaces(), scan.geometry) if scan.ndim == 3 else None)
+
+
+def _fit_slabs(scan, starts, settings, slabs, halo):
+    """The warm starts fitted slab by slab (ownership: :func:`~bubsub.clients.pipeline.slabs.fit_known`), and the
+    fit's report fields: totals over the slabs, each slab's entry and the ownership summary."""
+    plan = plan_slabs(scan.geometry.det_rows, slabs, halo)
+    fitted, entries, summary = fit_known(scan, starts, lambda g, d, s: _warm_fit(g, d, s, settings), plan)
+    return fitted, dict(slab_totals(entries, _WARM_SUMMED), slabs=entries, slab_halo_rows=halo, stitch=summary,
+                        objective_note=OBJECTIVE_NOTE)
+
+
+def _warm(scan, previous, settings):
+    t0 = _time.perf_counter()
+    ids, starts, ended = _warm_starts(scan, previous, settings)
     report = {"start": "warm", "iterations": 0, "objective": None, "initial_objective": None,
               "interrupted": False, "diverged": False, "seconds_parts": {"remesh": _time.perf_counter() - t0}}
     if not starts:
         return BubbleState.from_surfaces([], [], scan.bubble_contrast, settings.levels), report, ended
-    projector = MeshProjector(g_fit, supersampling=settings.supersampling)
-    initial = float(projector.objective(starts, d_fit)[0])
+    slabs, halo = _warm_slabs(scan, previous, settings)  # before the fit: a refused slab setting is no divergence
     try:
-        # the static pipeline's coarse-to-fine data levels, each ended on the warm plateau test
-        result, levels = fit_levels(projector, starts, d_fit, factors=bin_factors(g_fit), iterations=settings.iterations,
-                                    rtol=settings.warm_rtol if settings.warm_rtol > 0 else None,
-                                    rtol_window=settings.warm_window, progress=settings.progress)
-        report["fit_levels"] = levels
-        if not np.isfinite(result.objective):
-            raise FloatingPointError(f"objective {result.objective}")
+        fitted, fields = _warm_fit(*_split(scan, settings.holdout)[:2], starts, settings) if slabs == 1 else \
+            _fit_slabs(scan, starts, settings, slabs, halo)
     except (RuntimeError, ValueError, FloatingPointError) as exc:
         # a diverged fit is kept and flagged; the chain goes on from the last good state
         report.update(diverged=True, error=str(exc))
         return previous, report, {}
-    report["seconds_parts"]["fit"] = result.seconds
-    report.update(iterations=result.iterations, evaluations=result.evaluations, objective=result.objective,
-                  interrupted=result.interrupted,
-                  stop_reason="objective plateau" if result.stop_reason == "converged" else result.stop_reason,
-                  initial_objective=initial)
+    report["seconds_parts"]["fit"] = fields.pop("seconds_fit")
+    report["objective"] = fields.pop("final_objective")
+    report.update(fields)
+    kept_ids, kept = _survivors(ids, fitted, scan, settings, ended)
+    return BubbleState.from_surfaces(kept_ids, kept, scan.bubble_contrast, settings.levels), report, ended
+
+
+def _survivors(ids, fitted, scan, settings, ended):
+    """The fitted bubbles that have not collapsed, and their ids; the others end, their reason put in ``ended``."""
+    # the geometry of the fitted projections; scan.data, whose split is a view, rather than a copy of bubble_data
+    min_radius = settings.min_radius or preview_voxel_size(split_holdout(scan.geometry, scan.data,
+                                                                         settings.holdout)[0])
     kept_ids, kept = [], []
-    for i, s in zip(ids, result.surfaces):
+    for i, s in zip(ids, fitted):
         r = s.fine().equivalent_radius
         if not np.all(np.isfinite(s.vertices)) or not r >= min_radius:
             ended[i] = f"collapsed (equivalent radius {r:.3g} mm < {min_radius:.3g} mm)"
         else:
             kept_ids.append(i)
             kept.append(s)
-    return BubbleState.from_surfaces(kept_ids, kept, scan.bubble_contrast, settings.levels), report, ended
+    return kept_ids, kept
 
 
 def reconstruct_subscan(scan, previous, settings, index=0, time=0.0):

@@ -30,7 +30,8 @@ def _run_record(scan, layout, settings):
     return {"scan": str(scan.path) if scan.path else None, "projections_per_subscan": layout.per_subscan,
             "subscans": [layout.selected.start, layout.selected.stop], "holdout": settings.holdout,
             "dimension": scan.ndim, "levels": settings.levels, "iterations": settings.iterations,
-            "warm_rtol": settings.warm_rtol, "warm_window": settings.warm_window}
+            "warm_rtol": settings.warm_rtol, "warm_window": settings.warm_window, "slabs": settings.slabs,
+            "slab_halo": settings.slab_halo}
 
 
 def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False,

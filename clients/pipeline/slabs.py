@@ -5,9 +5,10 @@ rotation axis, each row sees one slice of the sample, so the scan splits
 exactly into slabs of rows. Each slab is one task:
 
 1. it reads only its rows from the scan file (:func:`bubsub.core.io.scanfile.read_scan`
-   with ``rows=``: HDF5 hyperslabs; no process holds the whole scan): the rows
+   with ``rows=``: HDF5 hyperslabs; no process holds the whole scan), or cuts
+   them from a scan in memory (:meth:`Scan.row_window`, a 4D subscan): the rows
    it *owns* (its core) and a *halo* of rows above and below, at least the
-   largest bubble's radius wide;
+   largest bubble's radius wide (:func:`slab_scan`);
 2. it reconstructs them with the full pipeline (:func:`~bubsub.clients.pipeline.reconstruct.reconstruct`)
    in coordinates centred on the rows read (:meth:`ScanGeometry.translated`),
    so every stage sees an ordinary, smaller scan: bubbles reaching into the
@@ -25,16 +26,23 @@ duplicated or cut at a seam as long as the halo holds the bubbles whose
 centres are in the core (the report counts the kept bubbles that reach a
 slab's read edge, ``seam_cut``; zero says the halo was wide enough).
 
+Bubbles of known identity (the warm starts of a 4D subscan, each with its
+track id) are fitted slab by slab with :func:`fit_known`: each slab fits the
+bubbles whose starting centroid lies in its rows read, and keeps those whose
+starting centroid lies in its core. Ownership by the starting centroid needs
+no matching and gives every bubble exactly one slab however far its fit moves
+it: the cores partition the detector and each lies within its rows read.
+
 The slabs run one after another in this process (``client=None``) or as
 Dask tasks (:func:`bubsub.clients.cluster.engine.run_tasks`); each finished
 slab is written to ``OUT/slabs/`` at once, so ``resume=True`` continues
 after a crash or Ctrl-C from the slabs already done. Memory is one slab's,
 whatever the number of slabs.
 
-One module of about 620 lines on purpose: the plan, the slab task, the
-stitching rules and the checkpoints must agree on one slab layout (core,
-read rows, origin, ownership heights); keeping them together keeps it in
-one place.
+One module of about 800 lines on purpose: the plan, the slab task, the
+stitching and ownership rules and the checkpoints must agree on one slab
+layout (core, read rows, origin, ownership heights); keeping them together
+keeps it in one place.
 
 Cone beam: the rows of a cone-beam detector are not slices of the sample
 (the rays diverge), so :func:`check_slab_geometry` refuses it; such a scan
@@ -56,8 +64,8 @@ from bubsub.core.projection.mesh import Mesh, equivalent_radius
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
-           "auto_slabs", "slab_count", "estimate_halo", "run_slab", "stitch", "stitch_previews", "reconstruct_slabs",
-           "SLAB_PIXELS"]
+           "auto_slabs", "slab_count", "estimate_halo", "known_halo", "slab_scan", "slab_bounds", "run_slab", "stitch",
+           "stitch_previews", "fit_known", "slab_totals", "reconstruct_slabs", "SLAB_PIXELS", "OBJECTIVE_NOTE"]
 
 #: Detector pixels (projections x rows x columns) read by one slab when the number of slabs is chosen
 #: automatically: a slab of this size reconstructs in well under a gigabyte.
@@ -191,11 +199,16 @@ def auto_slabs(geometry, halo, pixels=SLAB_PIXELS):
     return max(1, int(round(geometry.det_rows / core)))
 
 
-def slab_count(scan_path, geometry, settings, slabs=None, halo=None, *, whole_needed=False):
-    """The number of slabs and halo rows a reconstruction of ``scan_path`` uses.
+def slab_count(source, geometry, settings, slabs=None, halo=None, *, whole_needed=False):
+    """The number of slabs and halo rows a reconstruction of ``source`` uses.
 
     Parameters
     ----------
+    source : str, Path or Scan
+        The scan file, or the scan in memory (for :func:`estimate_halo`).
+    geometry : ScanGeometry
+        The whole scan's.
+    settings : ReconstructionSettings
     slabs : int or None
         Asked for (``--slabs N``); None: :func:`auto_slabs`, one slab for scans of at most 1.5 x
         :data:`SLAB_PIXELS` pixels, cone-beam and 2D scans, and when ``whole_needed``.
@@ -224,7 +237,7 @@ def slab_count(scan_path, geometry, settings, slabs=None, halo=None, *, whole_ne
         raise ValueError("--init and --holdout need the scan reconstructed whole (--slabs 1)")
     check_slab_geometry(geometry)
     if halo is None:
-        halo = estimate_halo(scan_path, geometry, settings)
+        halo = estimate_halo(source, geometry, settings)
     return (auto_slabs(geometry, halo) if slabs is None else int(slabs)), int(halo)
 
 
@@ -241,22 +254,82 @@ def _row_height(geometry, slab, row):
     return (row - 0.5 * slab.detector_rows) * float(np.linalg.norm(geometry.vectors[0, 9:12]))
 
 
+def slab_bounds(geometry, slab):
+    """Heights along the row direction (mm, 0 at the detector's centre) of a slab's core and rows read:
+    ``(core_lo, core_hi, read_lo, read_hi)``, infinite where they reach the detector's edge (a centroid
+    beyond the first or last row still belongs to the end slab)."""
+    core_lo = -np.inf if slab.first else _row_height(geometry, slab, slab.core[0])
+    core_hi = np.inf if slab.last else _row_height(geometry, slab, slab.core[1])
+    read_lo = -np.inf if slab.read[0] == 0 else _row_height(geometry, slab, slab.read[0])
+    read_hi = np.inf if slab.read[1] == slab.detector_rows else _row_height(geometry, slab, slab.read[1])
+    return core_lo, core_hi, read_lo, read_hi
+
+
 def _axis(geometry):
     v = geometry.vectors[0, 9:12]
     return v / np.linalg.norm(v)
+
+
+def _pixel(geometry):
+    """A detector row's height, mm."""
+    return float(np.linalg.norm(geometry.vectors[0, 9:12]))
 
 
 def _moved(surface, offset):
     return surface.with_vertices(np.asarray(surface.vertices) + offset)
 
 
-def run_slab(scan_path, slab, settings, bubble_contrast=None, server=None, token=None):
+def _is_scan(source):
+    from bubsub.core.io.scanfile import Scan
+
+    return isinstance(source, Scan)
+
+
+def _geometry_of(source):
+    """The whole scan's geometry: of the scan in memory, or read from the file without its projections."""
+    from bubsub.core.io.scanfile import read_geometry
+
+    return source.geometry if _is_scan(source) else read_geometry(source)
+
+
+def slab_scan(source, slab, bubble_contrast=None):
+    """A slab's rows read, in its own coordinates (centred on them, :meth:`ScanGeometry.translated`).
+
+    Parameters
+    ----------
+    source : str, Path or Scan
+        A scan file, of which only the slab's rows are read (HDF5 hyperslabs), or a scan in memory, of
+        which :meth:`Scan.row_window` cuts the same rows.
+    slab : Slab
+    bubble_contrast : float, optional
+        As :func:`read_scan`'s.
+
+    Returns
+    -------
+    scan : Scan
+        ``path`` None.
+    origin : (3,) float
+        The slab's origin in world coordinates, mm (:func:`slab_origin`).
+    """
+    from bubsub.core.io.scanfile import read_scan
+
+    if _is_scan(source):
+        part = source.row_window(slab.read)
+        if bubble_contrast is not None:
+            part = replace(part, bubble_contrast=bubble_contrast)
+    else:
+        part = read_scan(source, bubble_contrast=bubble_contrast, rows=slab.read)
+    origin = slab_origin(part.geometry, slab)
+    return replace(part, geometry=part.geometry.translated(origin), path=None), origin
+
+
+def run_slab(source, slab, settings, bubble_contrast=None, server=None, token=None):
     """Reconstruct one slab (a task: module-level, picklable arguments, small result).
 
     Parameters
     ----------
-    scan_path : str or Path
-        The scan file; only the slab's rows are read.
+    source : str, Path or Scan
+        The scan file, of which only the slab's rows are read, or the scan in memory.
     slab : Slab
     settings : ReconstructionSettings
     bubble_contrast : float, optional
@@ -268,13 +341,9 @@ def run_slab(scan_path, slab, settings, bubble_contrast=None, server=None, token
     -------
     SlabResult
     """
-    from bubsub.core.io.scanfile import read_scan
-
     from bubsub.clients.pipeline.reconstruct import reconstruct
 
-    scan = read_scan(scan_path, bubble_contrast=bubble_contrast, rows=slab.read)
-    origin = slab_origin(scan.geometry, slab)
-    local = replace(scan, geometry=scan.geometry.translated(origin), path=None)
+    local, origin = slab_scan(source, slab, bubble_contrast)
     factory, client, jobs = None, None, []
     if server is not None:
         from bubsub.clients.remote.client import connect
@@ -296,7 +365,7 @@ def run_slab(scan_path, slab, settings, bubble_contrast=None, server=None, token
                     pass
             client.close()
     report = dict(rec.report, origin_mm=origin.tolist(), core_rows=list(slab.core), read_rows=list(slab.read))
-    part, extent = _core_preview(rec, scan.geometry, slab, origin)
+    part, extent = _core_preview(rec, local.geometry, slab, origin)
     return SlabResult(slab, [_moved(s, origin) for s in rec.surfaces], report, part, extent)
 
 
@@ -339,42 +408,72 @@ HALO_OVER_RADIUS = 1.5
 STRIP_ROWS = 96
 
 
-def estimate_halo(scan_path, geometry, settings, bubble_contrast=None):
+def estimate_halo(source, geometry, settings, bubble_contrast=None):
     """Halo rows for the slabs of a scan: :data:`HALO_OVER_RADIUS` times the largest bubble radius in a voxel
     preview of the detector's central :data:`STRIP_ROWS` rows (read alone), plus two rows.
+
+    Parameters
+    ----------
+    source : str, Path or Scan
+        The scan file (only the strip's rows are read) or the scan in memory.
+    geometry : ScanGeometry
+        The whole scan's.
+    settings : ReconstructionSettings
+    bubble_contrast : float, optional
 
     Returns
     -------
     int
     """
-    from bubsub.core.io.scanfile import read_scan
-
     from bubsub.clients.pipeline.initial import initial_centres
     from bubsub.clients.pipeline.preview import voxel_preview
 
     n = min(STRIP_ROWS, geometry.det_rows)
     start = (geometry.det_rows - n) // 2
     strip = Slab(0, (start, start + n), (start, start + n), geometry.det_rows)
-    scan = read_scan(scan_path, bubble_contrast=bubble_contrast, rows=strip.read)
-    local = scan.geometry.translated(slab_origin(scan.geometry, strip))
-    image, extent = voxel_preview(scan.bubble_data, local, scan.bubble_contrast, settings.voxel_size,
+    scan, _ = slab_scan(source, strip, bubble_contrast)
+    image, extent = voxel_preview(scan.bubble_data, scan.geometry, scan.bubble_contrast, settings.voxel_size,
                                   method=settings.preview)
     _, radii = initial_centres(image, extent, detector="dt", contrast=scan.bubble_contrast)
-    pixel = float(np.linalg.norm(geometry.vectors[0, 9:12]))
     if len(radii) == 0:
         return max(2, geometry.det_rows // 10)
-    return int(np.ceil(HALO_OVER_RADIUS * float(np.percentile(radii, 95)) / pixel)) + 2
+    return _halo_rows(float(np.percentile(radii, 95)), geometry)
 
 
-def _bubble_heights(result, geometry):
-    """Per bubble of a slab's result: centroid (mm), equivalent radius (mm), lowest and highest height."""
+def known_halo(surfaces, geometry):
+    """Halo rows for the slabs of a scan whose bubbles are known (the warm starts of a 4D subscan): the rule of
+    :func:`estimate_halo` with the bubbles' own extent for the preview's radii, :data:`HALO_OVER_RADIUS` times
+    the largest distance along the row direction from a bubble's centroid to its surface, plus two rows.
+
+    Parameters
+    ----------
+    surfaces : list of SubdivisionSurface
+        World coordinates.
+    geometry : ScanGeometry
+
+    Returns
+    -------
+    int
+    """
+    reach = max((max(hi - z, z - lo) for _, _, z, lo, hi in _bubble_heights(surfaces, geometry)), default=0.0)
+    return _halo_rows(reach, geometry)
+
+
+def _halo_rows(radius, geometry):
+    """:data:`HALO_OVER_RADIUS` times ``radius`` (mm) in detector rows, plus two."""
+    return int(np.ceil(HALO_OVER_RADIUS * radius / _pixel(geometry))) + 2
+
+
+def _bubble_heights(surfaces, geometry):
+    """Per bubble: centroid (mm), equivalent radius (mm), the heights along the row direction of its centroid
+    and of its lowest and highest points (mm)."""
     axis = _axis(geometry)
     out = []
-    for s in result.surfaces:
+    for s in surfaces:
         fine = s.fine()
+        c = np.asarray(fine.centroid, dtype=float)
         h = np.asarray(fine.vertices) @ axis
-        out.append((np.asarray(fine.centroid, dtype=float), equivalent_radius(abs(fine.volume), 3),
-                    float(h.min()), float(h.max())))
+        out.append((c, equivalent_radius(abs(fine.volume), 3), float(c @ axis), float(h.min()), float(h.max())))
     return out
 
 
@@ -399,18 +498,13 @@ def stitch(results, geometry):
         inside the detector: the halo was too narrow for them).
     """
     axis = _axis(geometry)
-    pixel = float(np.linalg.norm(geometry.vectors[0, 9:12]))
+    pixel = _pixel(geometry)
     rows = []  # (slab, index, centroid, radius, interior distance, owned, cut by an inner read edge)
     for res in results:
-        sl = res.slab
-        core_lo = -np.inf if sl.first else _row_height(geometry, sl, sl.core[0])
-        core_hi = np.inf if sl.last else _row_height(geometry, sl, sl.core[1])
-        read_lo = -np.inf if sl.read[0] == 0 else _row_height(geometry, sl, sl.read[0])
-        read_hi = np.inf if sl.read[1] == sl.detector_rows else _row_height(geometry, sl, sl.read[1])
-        for i, (c, r, lo, hi) in enumerate(_bubble_heights(res, geometry)):
-            z = float(c @ axis)
+        core_lo, core_hi, read_lo, read_hi = slab_bounds(geometry, res.slab)
+        for i, (c, r, z, lo, hi) in enumerate(_bubble_heights(res.surfaces, geometry)):
             interior = min(lo - read_lo, read_hi - hi)
-            rows.append((sl.index, i, c, r, interior, core_lo <= z < core_hi, interior < pixel))
+            rows.append((res.slab.index, i, c, r, interior, core_lo <= z < core_hi, interior < pixel))
     by_slab = {res.slab.index: res for res in results}
     owned = [row for row in rows if row[5]]
     # the same bubble owned by two neighbouring slabs (its centroid estimates on both sides of the seam)
@@ -439,6 +533,79 @@ def _same_bubble(row, kept):
     centres = np.array([k[2] for k in kept])
     radii = np.array([k[3] for k in kept])
     return bool(np.any(np.linalg.norm(centres - row[2], axis=1) < 0.5 * np.minimum(radii, row[3])))
+
+
+# -- bubbles of known identity ----------------------------------------------------------------------------
+def fit_known(source, surfaces, fit, plan):
+    """Fit bubbles of known identity slab by slab (the warm starts of a 4D subscan; rules in the module docstring).
+
+    Parameters
+    ----------
+    source : str, Path or Scan
+        The scan file or the scan in memory; each slab reads its rows (:func:`slab_scan`).
+    surfaces : list of SubdivisionSurface
+        The bubbles' starts, world coordinates.
+    fit : callable(geometry, data, surfaces) -> (list of SubdivisionSurface, dict)
+        Fits surfaces to data in a slab's coordinates; the dict is its report (``iterations``,
+        ``stop_reason``, ``interrupted``, ...). An error it raises ends the whole fit.
+    plan : list of Slab
+        :func:`plan_slabs` of the scan's rows.
+
+    Returns
+    -------
+    fitted : list of SubdivisionSurface
+        World coordinates, in the order of ``surfaces``, each from the slab that owns it; after an
+        interrupted slab, the bubbles of the slabs not fitted are their starts.
+    entries : list of dict
+        Per slab (up to an interrupted one): its rows, its fit's report, ``bubbles`` (owned),
+        ``bubbles_fitted`` (owned and from the halo), ``seconds_total`` (reading and fitting).
+    summary : dict
+        ``owned`` (bubbles kept from their slab), ``left_core`` (of them, fitted outside their slab's core:
+        kept all the same), ``seam_cut`` (kept bubbles reaching their slab's read edge inside the detector:
+        the halo was too narrow for them).
+    """
+    geometry = _geometry_of(source)
+    pixel = _pixel(geometry)
+    start = [z for _, _, z, _, _ in _bubble_heights(surfaces, geometry)]
+    bounds = [slab_bounds(geometry, sl) for sl in plan]
+    owner = [next(k for k, (lo, hi, _, _) in enumerate(bounds) if lo <= z < hi) for z in start]
+    fitted, entries, summary = list(surfaces), [], {"owned": 0, "left_core": 0, "seam_cut": 0}
+    for k, sl in enumerate(plan):
+        t0 = time.perf_counter()
+        core_lo, core_hi, read_lo, read_hi = bounds[k]
+        mine = [i for i, z in enumerate(start) if read_lo <= z < read_hi]
+        if mine:
+            local, origin = slab_scan(source, sl)
+            out, report = fit(local.geometry, local.bubble_data, [_moved(surfaces[i], -origin) for i in mine])
+        else:
+            out, report = [], {"iterations": 0, "stop_reason": "no bubbles"}
+        owned = [i for i in mine if owner[i] == k]
+        for i, s in zip(mine, out):
+            if owner[i] == k:
+                fitted[i] = _moved(s, origin)
+        for _, _, z, lo, hi in _bubble_heights([fitted[i] for i in owned], geometry):
+            summary["left_core"] += not core_lo <= z < core_hi
+            summary["seam_cut"] += min(lo - read_lo, read_hi - hi) < pixel
+        summary["owned"] += len(owned)
+        entries.append({**_rows_entry(sl), **report, "bubbles": len(owned), "bubbles_fitted": len(mine),
+                        "seconds_total": time.perf_counter() - t0})
+        if report.get("interrupted"):
+            break
+    return fitted, entries, summary
+
+
+def _rows_entry(slab):
+    """How a slab's entry in ``report.json`` names it."""
+    return {"index": slab.index, "core_rows": list(slab.core), "read_rows": list(slab.read)}
+
+
+def slab_totals(reports, keys):
+    """The slabs' reports summed over ``keys``, ``interrupted`` when one was, and their stop reasons joined."""
+    interrupted = any(r.get("interrupted") for r in reports)
+    totals = {k: sum(r.get(k) or 0 for r in reports) for k in keys}
+    totals.update(interrupted=interrupted, stop_reason="interrupted" if interrupted else
+                  "; ".join(sorted({str(r.get("stop_reason")) for r in reports})))
+    return totals
 
 
 # -- checkpoints ------------------------------------------------------------------------------------------
@@ -500,13 +667,15 @@ def read_slab(path, key=None):
 
 
 # -- the whole scan ---------------------------------------------------------------------------------------
-def reconstruct_slabs(scan_path, settings=None, *, slabs=None, halo=None, client=None, out=None, resume=False,
+def reconstruct_slabs(source, settings=None, *, slabs=None, halo=None, client=None, out=None, resume=False,
                       server=None, token=None, bubble_contrast=None):
-    """Reconstruct a scan file slab by slab and stitch the bubbles (see the module docstring).
+    """Reconstruct a scan slab by slab and stitch the bubbles (see the module docstring).
 
     Parameters
     ----------
-    scan_path : str or Path
+    source : str, Path or Scan
+        The scan file, of which each slab reads its rows, or a scan in memory (a 4D subscan), which every
+        task receives whole (on a cluster, give the file).
     settings : ReconstructionSettings, optional
         Each slab's.
     slabs : int, optional
@@ -516,7 +685,8 @@ def reconstruct_slabs(scan_path, settings=None, *, slabs=None, halo=None, client
     client : dask.distributed.Client, optional
         Run the slabs as tasks on its cluster; None runs them here, one after the other.
     out : str or Path, optional
-        Folder whose ``slabs/`` subfolder receives each finished slab's checkpoint.
+        Folder whose ``slabs/`` subfolder receives each finished slab's checkpoint (a scan file only: the
+        checkpoints' key names it).
     resume : bool
         Reuse the checkpoints in ``out/slabs`` made with the same scan, rows and settings.
     server, token : str, optional
@@ -529,7 +699,6 @@ def reconstruct_slabs(scan_path, settings=None, *, slabs=None, halo=None, client
         ``report["slabs"]`` has each slab's rows, bubbles, seconds and stop reason;
         ``report["stitch"]`` :func:`stitch`'s summary.
     """
-    from bubsub.core.io.scanfile import read_geometry
     from bubsub.clients.cluster.engine import run_tasks
     from bubsub.clients.pipeline.checks import check_settings
     from bubsub.clients.pipeline.fov import fov_report
@@ -538,18 +707,20 @@ def reconstruct_slabs(scan_path, settings=None, *, slabs=None, halo=None, client
 
     s = settings or ReconstructionSettings()
     t0 = time.perf_counter()
-    geometry = read_geometry(scan_path)
+    geometry = _geometry_of(source)
     check_settings(s, geometry.ndim)
     check_slab_geometry(geometry)
     if s.holdout is not None:
         raise ValueError("--holdout is not available with slabs; reconstruct the scan whole (--slabs 1)")
+    if out is not None and _is_scan(source):
+        raise ValueError("slab checkpoints (out=) need a scan file: their key is the file's")
     if halo is None:
-        halo = estimate_halo(scan_path, geometry, s, bubble_contrast)
+        halo = estimate_halo(source, geometry, s, bubble_contrast)
     if slabs is None:
         slabs = auto_slabs(geometry, halo)
     plan = plan_slabs(geometry.det_rows, slabs, halo)
     folder = None if out is None else Path(out) / "slabs"
-    keys = [slab_key(scan_path, sl, s) for sl in plan]
+    keys = [None if folder is None else slab_key(source, sl, s) for sl in plan]
     results = [None] * len(plan)
     if resume and folder is not None:
         for k, sl in enumerate(plan):
@@ -567,7 +738,8 @@ def reconstruct_slabs(scan_path, settings=None, *, slabs=None, halo=None, client
                 write_slab(folder / f"slab_{plan[k].index:03d}.npz", res, keys[k])
             bar.update(1, bubbles=sum(len(r.surfaces) for r in results if r is not None))
 
-        run_tasks(client, run_slab, [(str(scan_path), plan[k], task_settings, bubble_contrast, server, token)
+        task_source = source if _is_scan(source) else str(source)
+        run_tasks(client, run_slab, [(task_source, plan[k], task_settings, bubble_contrast, server, token)
                                      for k in todo], on_result=done)
     surfaces, summary = stitch(results, geometry)
     preview, extent = stitch_previews(results)
@@ -575,7 +747,11 @@ def reconstruct_slabs(scan_path, settings=None, *, slabs=None, halo=None, client
                                             time.perf_counter() - t0, fov_report(geometry)), preview, extent)
 
 
-_SUMMED = ("iterations", "evaluations", "final_objective", "initial_objective", "bubbles_initial", "bubbles_dropped")
+#: ``report.json``'s word on the objectives of a slabbed fit.
+OBJECTIVE_NOTE = "objectives are sums over the slabs' own objectives (halo rows counted in two slabs)"
+
+_SUMMED = ("iterations", "evaluations", "final_objective", "initial_objective", "bubbles_initial", "bubbles_dropped",
+           "seconds_initialisation", "seconds_fit")
 
 
 def _report(results, surfaces, summary, geometry, settings, halo, computed, seconds, fov):
@@ -583,8 +759,7 @@ def _report(results, surfaces, summary, geometry, settings, halo, computed, seco
     per_slab = []
     for res in results:
         r = res.report
-        per_slab.append({"index": res.slab.index, "core_rows": list(res.slab.core), "read_rows": list(res.slab.read),
-                         "bubbles": r["bubbles"], "stop_reason": r.get("stop_reason"),
+        per_slab.append({**_rows_entry(res.slab), "bubbles": r["bubbles"], "stop_reason": r.get("stop_reason"),
                          "seconds_total": r.get("seconds_total"), "seconds_parts": r.get("seconds_parts"),
                          "cpu_seconds_parts": r.get("cpu_seconds_parts"), "iterations": r.get("iterations"),
                          "final_objective": r.get("final_objective"), "fit_levels": r.get("fit_levels")})
@@ -594,8 +769,7 @@ def _report(results, surfaces, summary, geometry, settings, halo, computed, seco
             parts[name] = parts.get(name, 0.0) + v
         for name, v in (res.report.get("cpu_seconds_parts") or {}).items():
             cpu[name] = cpu.get(name, 0.0) + v
-    report = {k: sum(res.report.get(k) or 0 for res in results) for k in _SUMMED}
-    interrupted = any(res.report.get("interrupted") for res in results)
+    report = slab_totals([res.report for res in results], _SUMMED)
     report.update({
         "bubbles": len(surfaces),
         "dimension": 3,
@@ -603,10 +777,7 @@ def _report(results, surfaces, summary, geometry, settings, halo, computed, seco
         "slab_halo_rows": halo,
         "slabs_computed": computed,
         "stitch": summary,
-        "objective_note": "final_objective and initial_objective are sums over the slabs' own objectives "
-                          "(halo rows counted in two slabs)",
-        "interrupted": interrupted,
-        "stop_reason": "interrupted" if interrupted else "; ".join(sorted({str(p["stop_reason"]) for p in per_slab})),
+        "objective_note": OBJECTIVE_NOTE,
         "seconds_total": seconds,
         "seconds_parts": parts,
         "cpu_seconds_parts": cpu,

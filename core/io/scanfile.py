@@ -201,6 +201,30 @@ class Scan:
             time=None if self.time is None else self.time[idx],
         )
 
+    def row_window(self, rows):
+        """Detector rows ``rows = (start, stop)`` of a 3D scan: what :func:`read_scan` with ``rows=`` reads
+        of the scan's file.
+
+        Parameters
+        ----------
+        rows : (start, stop) int
+
+        Returns
+        -------
+        Scan
+            The geometry :meth:`ScanGeometry.window` of those rows (the same rays, in the same world
+            coordinates), data and background cut to them, every other field kept.
+
+        Raises
+        ------
+        ValueError
+            For a 2D scan, or rows that do not lie within the detector.
+        """
+        geometry = _row_window(self.geometry, rows, self.path.name if self.path is not None else "the scan")
+        cut = (slice(None), _rows_of(rows))
+        return dataclasses.replace(self, data=self.data[cut], geometry=geometry,
+                                   background=None if self.background is None else self.background[cut])
+
     def __repr__(self):
         bg = "yes" if self.background is not None else "no"
         return (
@@ -406,7 +430,8 @@ def read_scan(path, *, bubble_contrast=None, rows=None):
         (HDF5 hyperslabs of the projections, flats, darks and background), so
         that a slab of a large scan never holds the whole file in memory. The
         geometry is :meth:`ScanGeometry.window` of those rows: the same rays,
-        in the same world coordinates.
+        in the same world coordinates (:meth:`Scan.row_window` cuts a scan
+        in memory alike).
 
     Returns
     -------
@@ -440,7 +465,7 @@ def read_scan(path, *, bubble_contrast=None, rows=None):
         geometry = _read_geometry(f, p)
         full = geometry
         if rows is not None:
-            geometry = _row_window(geometry, rows, p)
+            geometry = _row_window(geometry, rows, p.name)
         if "exchange/data" not in f or not isinstance(f["exchange/data"], h5py.Dataset):
             raise ValueError(f"{p.name}: missing dataset '/exchange/data' (the projections)")
         raw = "exchange/data_white" in f
@@ -518,16 +543,18 @@ def _read_per_projection(f, name, geometry, p):
     return arr
 
 
-def _row_window(geometry, rows, p):
-    """The geometry of detector rows ``rows = (start, stop)`` of ``geometry`` (3D only)."""
+def _row_window(geometry, rows, where):
+    """The geometry of detector rows ``rows = (start, stop)`` of ``geometry`` (3D only); ``where`` names the
+    scan in the messages. The one check of a row window, of a file (:func:`read_scan`) or in memory
+    (:meth:`Scan.row_window`)."""
     if geometry.ndim != 3:
-        raise ValueError(f"{p.name}: reading a subset of detector rows needs a 3D scan")
+        raise ValueError(f"{where}: reading a subset of detector rows needs a 3D scan")
     try:
         start, stop = (int(r) for r in rows)
     except (TypeError, ValueError):
         raise ValueError(f"rows must be (start, stop), got {rows!r}") from None
     if not 0 <= start < stop <= geometry.det_rows:
-        raise ValueError(f"{p.name}: rows ({start}, {stop}) do not lie within the detector's {geometry.det_rows} rows")
+        raise ValueError(f"{where}: rows ({start}, {stop}) do not lie within the detector's {geometry.det_rows} rows")
     return geometry.window(start, 0, stop - start, geometry.det_cols)
 
 

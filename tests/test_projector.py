@@ -537,6 +537,28 @@ def test_gradient_is_the_same_from_stored_and_from_rasterised_crossings(rng, mon
             MeshProjector(g).objective(items, data)
 
 
+@pytest.mark.parametrize("kind, sub", [("cone", 1), ("parallel3d", 1), ("parallel3d", 2)])
+def test_objective_view_by_view_is_the_residual_of_forward_and_its_vjp(rng, monkeypatch, kind, sub):
+    """The raster objective takes each chunk of views' residual and face sums while its crossings are
+    stored (RasterBackend.objective); whatever the store holds (all, a view's worth or so, less than a
+    view, nothing), it is 0.5 |forward - data|^2 and the vjp of that residual, from separate passes."""
+    g = random_geometry(rng, kind, rows=24, cols=32, pixel=0.12, n_angles=7)
+    items = [sphere_surface(c, 0.5, -0.2) for c in ([-0.7, 0.1, 0.0], [0.6, -0.2, 0.1], [0.0, 0.3, -0.2])]
+    items = [s.with_vertices(s.vertices + 0.03 * rng.normal(size=s.vertices.shape)) for s in items]
+    P = MeshProjector(g, threads=2, supersampling=sub)
+    data = P.forward(items) * np.float32(0.9) + np.float32(0.01)
+    residual = P.forward(items).astype(np.float64) - data
+    f_ref, g_ref = 0.5 * float(np.sum(residual ** 2)), P.vjp(items, residual)
+    assert np.abs(g_ref[0]).max() > 0
+    view = P.trace(items).count * 32 / g.n_angles / 2**20
+    for mb in ("", f"{1.5 * view:.6f}", f"{0.3 * view:.6f}", "0"):
+        monkeypatch.setenv("BUBSUB_RASTER_STORE_MB", mb)
+        f, grads = P.objective(items, data)
+        assert f == pytest.approx(f_ref, rel=1e-12)
+        for x, y in zip(grads, g_ref):
+            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12 * np.abs(y).max())
+
+
 def test_a_reused_crossing_store_gives_the_same_objective(rng):
     """The raster backend hands a finished gradient's crossing store back and the next call reuses it;
     stale entries from a larger scene must not leak into a smaller one's gradient."""

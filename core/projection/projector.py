@@ -160,9 +160,17 @@ class MeshProjector:
         # value first cost a pass over the data at every evaluation of a fit)
         d = self._check_array(data, "data", finite=False)
         scene = self._scene(meshes, deadline)
+        flat = d.ravel() if d.dtype in (np.float32, np.float64) else d.ravel().astype(np.float64)
+        # view by view where the backend can: the crossings of a few views fit its store, those of the
+        # whole scan may not (the gradient then rasterised every view again)
+        fused = self._backend.objective(scene, self._frames, self._sub, self.threads, flat, deadline)
+        if fused is not None:
+            f, sums = fused
+            if not np.isfinite(f):
+                self._check_array(data, "data")
+            return f, scene.item_gradients(vertex_gradient(scene, sums))
         traversal = self._trace(scene, gradient=True, deadline=deadline)
         # the float32 projection is what forward() returns; f and the gradient use it too
-        flat = d.ravel() if d.dtype in (np.float32, np.float64) else d.ravel().astype(np.float64)
         values = traversal.values
         # the residual overwrites the traversal's values (never read again): no fresh 8-byte-per-pixel array
         residual = values if values.dtype == np.float64 and values.flags.writeable else np.empty(d.size)

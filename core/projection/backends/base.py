@@ -380,5 +380,28 @@ class Backend:
         """
         raise NotImplementedError
 
+    def objective(self, scene, frames, sub, threads, data, deadline=None):
+        """``f = 0.5 ||forward - data||^2`` and the face sums of its gradient in one pass, or None.
+
+        A backend that can take the residual view by view, while the crossings
+        it just found are still at hand, implements this; None (the default)
+        makes the projector trace the whole scan first and call
+        :meth:`Traversal.face_sums` after.
+
+        Parameters
+        ----------
+        scene, frames, sub, threads, deadline
+            As :meth:`trace`.
+        data : (n_pixels,) float32 or float
+            The measured projections, flat.
+
+        Returns
+        -------
+        (f, sums) or None
+            ``f`` float; ``sums`` the ``(m, k)`` face sums of the residual's weights
+            (:meth:`Traversal.face_sums`).
+        """
+        return None
+
     def __repr__(self):
         return f"{type(self).__name__}()"

@@ -138,6 +138,38 @@ def test_topology_merges_two_halves_of_one_bubble_and_leaves_a_good_fit_alone():
     assert summary["changes"] == [] and len(again) == 1
 
 
+def test_a_merge_and_a_split_keep_the_residual_and_the_footprints_of_the_new_bubbles():
+    """merge_step and split_step add the new bubbles' own projections (on windows around them) to the
+    residual: afterwards it is the new scene's Proj - d, and each kept footprint the new bubble's own."""
+    from bubsub.clients.pipeline.local import Footprints, scene_residual
+    from bubsub.clients.pipeline.topology import merge_step, split_step
+
+    truth = [circle_surface([0.0, 0.0], 0.8, MU, control=32, levels=3),
+             circle_surface([-1.5, -1.6], 0.4, MU, control=32, levels=3),
+             circle_surface([1.6, 1.5], 0.4, MU, control=32, levels=3)]
+    geometry, data = _scan(truth)
+    projector = MeshProjector(geometry)
+    others = [circle_surface([-1.5, -1.6], 0.4, MU), circle_surface([1.6, 1.5], 0.4, MU)]
+    halves = [circle_surface([-0.42, 0.0], 0.4, MU), circle_surface([0.42, 0.0], 0.4, MU)] + others
+    stretched = circle_surface([0.0, 0.0], 0.8, MU)
+    stretched = [stretched.with_vertices(stretched.vertices * [1.6, 0.7])] + others
+    new = lambda c, r: circle_surface(c, r, MU)  # noqa: E731
+    # a split of the stretched bubble is the two true halves of the merge test, set apart
+    truth_two = [circle_surface([-0.6, 0.0], 0.55, MU, control=32, levels=3),
+                 circle_surface([0.6, 0.0], 0.55, MU, control=32, levels=3)] + truth[1:]
+    data_two = projector.forward(truth_two)
+    for step, start, d, kw in ((merge_step, halves, data, dict(touch=0.1)),
+                               (split_step, stretched, data_two, dict(ratio=1.6))):
+        residual, own, changes = scene_residual(projector, start, d), Footprints(projector, start), []
+        out, own = step(projector, start, residual, own, d, new, changes, 0, iterations=15, max_tries=4, **kw)
+        assert len(changes) == 1 and len(out) == len(start) + (1 if step is split_step else -1)
+        # to float32 rounding: the residual sums bubbles' projections rounded one by one, the scene's rounds the sum
+        np.testing.assert_allclose(residual, scene_residual(projector, out, d), rtol=0, atol=1e-6)
+        for k, s in enumerate(out):
+            np.testing.assert_allclose(own[k].values.sum(), projector.forward([s]).astype(np.float64).sum(),
+                                       rtol=1e-12)
+
+
 @pytest.mark.parametrize("make, ndim", [(dense_foam2d, 2), (dense_foam3d, 3)])
 def test_dense_foam_is_dense_disjoint_and_keeps_its_films(make, ndim):
     kw = {"n_bubbles": 12, "size": 5.0} if ndim == 2 else {"n_bubbles": 8, "size": (5.0, 5.0, 3.0), "subdivisions": 2,

@@ -16,7 +16,8 @@ import numpy as np
 
 from bubsub.clients.optimise.fit import fit
 
-__all__ = ["Footprint", "Footprints", "Window", "others_removed", "local_fits", "local_refit", "touching_groups"]
+__all__ = ["Footprint", "Footprints", "Window", "footprint", "scene_residual", "others_removed", "local_fits",
+           "local_refit", "touching_groups"]
 
 
 class Footprint:
@@ -116,6 +117,12 @@ class Window:
         return Footprint.from_window(part, self.starts, self.full_shape)
 
 
+def footprint(projector, surface):
+    """``surface``'s own projection by ``projector`` as a :class:`Footprint`, projected onto a window around
+    its shadow (:class:`Window`): the cost and memory of its pixels, not of the detector's."""
+    return Window(projector, [surface]).footprint(surface)
+
+
 class Footprints:
     """The bubbles of a scene and their own projections, each computed when first asked for.
 
@@ -148,8 +155,7 @@ class Footprints:
         """Bubble ``k``'s :class:`Footprint`, not kept."""
         if self._kept[k] is not None:
             return self._kept[k]
-        s = self.surfaces[k]
-        return Window(self.projector, [s]).footprint(s)
+        return footprint(self.projector, self.surfaces[k])
 
     def set(self, k, surface, footprint=None):
         """Replace bubble ``k`` (its footprint given, or computed when asked for)."""
@@ -164,6 +170,16 @@ class Footprints:
         out = Footprints(self.projector, [self.surfaces[k] for k in keep])
         out._kept = [self._kept[k] for k in keep]
         return out
+
+
+def scene_residual(projector, surfaces, data):
+    """``Proj(surfaces) - data`` in float64, formed in place: one array of the detector's size beside the
+    float32 projection, where ``forward(...).astype(float) - data`` held two."""
+    if not surfaces:
+        return -np.asarray(data, dtype=np.float64)
+    residual = projector.forward(surfaces).astype(np.float64)
+    residual -= data
+    return residual
 
 
 def others_removed(residual, *own):
@@ -278,8 +294,7 @@ def local_refit(projector, surfaces, data, changed, *, iterations, touch, near=(
     surfaces = list(surfaces)
     groups = touching_groups(surfaces, changed, touch, near=near)
     if residual is None:
-        residual = projector.forward(surfaces).astype(np.float64) - np.asarray(data, dtype=np.float64) \
-            if surfaces else -np.asarray(data, dtype=np.float64)
+        residual = scene_residual(projector, surfaces, data)
     summary = {"groups": len(groups), "bubbles": 0, "evaluations": 0, "pixels": 0,
                "scan_pixels": int(np.prod(projector.geometry.shape))}
     from bubsub.clients.progress import phase
@@ -301,7 +316,7 @@ def _refit_group(projector, surfaces, group, residual, iterations, penalty, summ
               penalty=penalty)
     for k, s, o in zip(group, res.surfaces, old):
         o.add_to(residual, -1.0)
-        Window(projector, [s]).footprint(s).add_to(residual)  # it may have moved out of the group's window
+        footprint(projector, s).add_to(residual)  # it may have moved out of the group's window
         surfaces[k] = s
     summary["bubbles"] += len(group)
     summary["evaluations"] += res.evaluations

@@ -40,7 +40,8 @@ from bubsub.core.voxel.raster import bubble_mask
 from bubsub.core.voxel.grid import world_to_index
 
 from bubsub.clients.pipeline.blobs import log_blobs
-from bubsub.clients.pipeline.local import Footprint, Footprints, Window, local_fits, local_refit, others_removed
+from bubsub.clients.pipeline.local import (Footprints, footprint, local_fits, local_refit, others_removed,
+                                           scene_residual)
 
 __all__ = ["adapt_topology", "adapt_bubbles"]
 
@@ -118,7 +119,7 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
         best = None
         for scale in (0.7, 1.0, 1.3):
             cand = new_bubble(c, r * scale)
-            p = Window(projector, [cand]).footprint(cand)
+            p = footprint(projector, cand)
             g = p.addition_gain(residual)
             if best is None or g < best[0]:
                 best = (g, cand, p)
@@ -172,12 +173,14 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
             projector, [[surfaces[i], surfaces[j]], [new_bubble(c, equivalent_radius(size, ndim))]], target,
             iterations)
         if f_one < f_pair + cost:
-            p = projector.forward(one).astype(np.float64)
-            residual += p
+            # the new bubble's own projection on its window, not the whole detector's (three arrays of
+            # the scan's size, the pipeline's peak memory on a ~600-bubble column)
+            p = footprint(projector, one[0])
+            p.add_to(residual)
             own[i].add_to(residual, -1.0)
             own[j].add_to(residual, -1.0)
             surfaces[i] = one[0]
-            own.set(i, one[0], Footprint(p))
+            own.set(i, one[0], p)
             gone.add(j)
             changes.append({"round": round_no, "change": "merge", "centres": [_centre(pair[0]).tolist(),
                             _centre(pair[1]).tolist()], "objective_before": f_pair, "objective_after": f_one})
@@ -263,12 +266,13 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         (single, f_single), (two, f_two) = local_fits(
             projector, [[s], [new_bubble(c, r) for c, r in children]], target, iterations)
         if f_two < f_single - cost:
-            p0, p1 = (projector.forward([t]).astype(np.float64) for t in two)
-            residual += p0 + p1
+            p0, p1 = (footprint(projector, t) for t in two)  # on their windows, as in merge_step
+            p0.add_to(residual)
+            p1.add_to(residual)
             own[k].add_to(residual, -1.0)
             surfaces[k] = two[0]
-            own.set(k, two[0], Footprint(p0))
-            extra.append((two[1], Footprint(p1)))
+            own.set(k, two[0], p0)
+            extra.append((two[1], p1))
             changes.append({"round": round_no, "change": "split", "centre": _centre(s).tolist(),
                             "objective_before": f_single, "objective_after": f_two})
     for s, p in extra:
@@ -355,7 +359,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         n_before = len(changes)
         start = {id(s): s for s in surfaces}
         own = Footprints(projector, surfaces)
-        residual = projector.forward(surfaces).astype(np.float64) - data if surfaces else -data.astype(np.float64)
+        residual = scene_residual(projector, surfaces, data)
         cost = complexity * unknowns * 2 * _half_sq(residual) / residual.size
         if "remove" in steps:
             # unknowns no ray sees cost nothing to remove: a cut bubble is charged for its visible ones only

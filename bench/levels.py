@@ -37,7 +37,7 @@ def start(scan):
     """The pipeline's initial bubbles of ``scan`` (:class:`bubsub.core.io.scanfile.Scan`), radius-fitted."""
     from bubsub.core import MeshProjector, ScanGeometry
     from bubsub.clients.optimise.fit import estimate_radii
-    from bubsub.clients.optimise.levels import bin_factors
+    from bubsub.clients.optimise.levels import bin_factors, coarse_surfaces
     from bubsub.clients.pipeline.initial import initial_surfaces
     from bubsub.clients.pipeline.preview import voxel_preview
 
@@ -45,7 +45,10 @@ def start(scan):
     image, extent = voxel_preview(d, g, c)
     surfaces = initial_surfaces(image, extent, c, detector="dt")
     f = bin_factors(g)[0]
-    return estimate_radii(MeshProjector(g.binned(f)), surfaces, ScanGeometry.bin_projections(d, f))
+    levels = [s.levels for s in surfaces]
+    coarse = coarse_surfaces(surfaces, f, levels)
+    return coarse_surfaces(estimate_radii(MeshProjector(g.binned(f)), coarse, ScanGeometry.bin_projections(d, f)),
+                           1, levels)
 
 
 def run(scan, surfaces, *, factors, iterations, coarse, rtol):

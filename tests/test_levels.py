@@ -6,7 +6,7 @@ import pytest
 from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
 from bubsub.core.projection.subdivision import circle_surface
 from bubsub.clients.optimise.fit import fit
-from bubsub.clients.optimise.levels import bin_factors, fit_levels
+from bubsub.clients.optimise.levels import bin_factors, coarse_surfaces, fit_levels
 
 ANGLES = np.linspace(0, np.pi, 6, endpoint=False)
 
@@ -59,12 +59,27 @@ def test_fit_levels_reports_each_level_and_reaches_the_full_resolution_fit():
     assert [lv["bin"] for lv in levels] == [2, 1] and levels[0]["detector"] == [24, 32]
     assert result.iterations == sum(lv["iterations"] for lv in levels)
     assert result.evaluations == sum(lv["evaluations"] for lv in levels)
+    # the binned level fits one Loop step fewer; the result is at the surfaces' own subdivision
+    assert [lv["subdivision"] for lv in levels] == [1, 2] and [s.levels for s in result.surfaces] == [2, 2]
     assert all(lv["stop_reason"] in ("converged", "iteration limit") and lv["seconds"] > 0 for lv in levels)
     reference = fit(P, start, data, iterations=150, progress=False)
     f0 = float(P.objective(start, data)[0])
     assert result.objective < 0.2 * f0
     # the issue's bar: within 1 % of a long fit on the full detector
     assert result.objective <= 1.01 * reference.objective
+
+
+def test_coarse_surfaces_drop_a_loop_step_per_binning_and_keep_the_control_vertices():
+    s = [sphere_surface([0, 0, 0], 0.4, -0.1, levels=n) for n in (3, 2, 1, 0)]
+    levels = [x.levels for x in s]
+    for factor, want in ((1, [3, 2, 1, 0]), (2, [2, 1, 1, 0]), (4, [1, 1, 1, 0])):
+        out = coarse_surfaces(s, factor, levels)
+        assert [x.levels for x in out] == want
+        assert all(np.array_equal(x.vertices, y.vertices) for x, y in zip(out, s))
+    back = coarse_surfaces(coarse_surfaces(s, 4, levels), 1, levels)
+    assert [x.levels for x in back] == levels
+    # a projected face of the coarse surface covers about as many binned pixels as the fine one full pixels
+    assert len(coarse_surfaces(s[:1], 2, [3])[0].fine().faces) * 4 == len(s[0].fine().faces)
 
 
 def test_rtol_ends_a_stalled_fit_before_its_cap():

@@ -221,7 +221,7 @@ def add_slab_arguments(parser, what, halo_default="a preview of the central rows
     g = parser.add_argument_group("slabs (parallel-beam 3D scans; docs/large-scans.md)")
     g.add_argument("--slabs", type=slabs_argument, default="auto", metavar="N|auto",
                    help=f"reconstruct {what} in N slabs of detector rows, each read and fitted on its own "
-                        f"(default auto: one slab per about 3 million detector pixels read; 1: {what} whole)")
+                        f"(default auto: one slab per about 8 million detector pixels read; 1: {what} whole)")
     g.add_argument("--slab-halo", type=positive_int, metavar="ROWS",
                    help=f"rows read above and below each slab's own rows (default: 1.5 x the largest bubble "
                         f"radius in {halo_default})")

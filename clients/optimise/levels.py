@@ -6,8 +6,9 @@ binned by ``2^(k-1)``, ..., 2, then 1 (:meth:`ScanGeometry.binned`, the mean
 of each block of pixels: a binned pixel holds the mean line integral of the
 pixels it joins), each level warm-started from the one before and ended on
 convergence (:func:`bubsub.clients.optimise.fit.fit`'s ``rtol``) or its
-iteration cap. A binned level costs about a quarter of the next one's
-evaluations, so it may take :data:`COARSE_ITERATIONS` times as many
+iteration cap. A binned level's surfaces are subdivided one Loop step
+fewer per halving of the detector (:func:`coarse_surfaces`). A binned level
+costs about a quarter of the next one's evaluations, so it may take :data:`COARSE_ITERATIONS` times as many
 iterations for 3/4 of the next level's cost: on a ~150-bubble column (40 x
 128 x 384 pixels, 16k unknowns) the two levels at 80 iterations each ended
 2.0 % above a 300-iteration fit on the full detector, at 240 + 80 iterations
@@ -19,11 +20,13 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from bubsub.core import MeshProjector, ScanGeometry
 
 from bubsub.clients.optimise.fit import STALL_ITERATIONS, fit
 
-__all__ = ["bin_factors", "fit_levels", "MIN_BINNED_PIXELS", "COARSE_ITERATIONS"]
+__all__ = ["bin_factors", "coarse_surfaces", "fit_levels", "MIN_BINNED_PIXELS", "COARSE_ITERATIONS"]
 
 #: A binned level's iteration cap, in units of the full detector's.
 COARSE_ITERATIONS = 3
@@ -59,6 +62,20 @@ def bin_factors(geometry, levels=None):
     return [2 ** k for k in range(n - 1, -1, -1)]
 
 
+def coarse_surfaces(surfaces, factor, levels):
+    """``surfaces`` with their control meshes subdivided ``log2(factor)`` fewer times than ``levels`` (one per
+    surface), and at least once (unless ``levels`` asks for fewer).
+
+    Binning the detector by 2 doubles the pixel and one Loop step fewer doubles the fine edges, so a
+    binned level's projected faces cover as many pixels as the full detector's: on the binned detector
+    most faces of the full subdivision hit one lattice point or none and the projection's cost is
+    theirs (the ~600-bubble column of ``bubsub bench scale``, 2 x 2 binned: 0.32 s per objective at
+    one level against 0.48 s at two). The control vertices, the unknowns, are the same at every level.
+    """
+    drop = int(round(np.log2(factor)))
+    return [s.with_levels(max(min(n, 1), n - drop)) for s, n in zip(surfaces, levels)]
+
+
 def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, penalty=None, progress=False,
                factory=None, rtol_window=STALL_ITERATIONS):
     """Fit ``surfaces`` level by level (see the module docstring).
@@ -85,14 +102,17 @@ def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, pen
     result : FitResult
         The last level's, with ``iterations`` and ``evaluations`` summed over the levels.
     levels : list of dict
-        Per level: ``bin``, ``detector`` (rows, cols), ``iterations``, ``evaluations``, ``seconds``,
+        Per level: ``bin``, ``detector`` (rows, cols), ``subdivision`` (Loop levels of the fitted
+        surfaces: :func:`coarse_surfaces`), ``iterations``, ``evaluations``, ``seconds``,
         ``stop_reason``, ``objective``.
     """
     geometry = projector.geometry if hasattr(projector, "geometry") else None
+    final_levels = [s.levels for s in surfaces]
     summary, result = [], None
     total_it = total_ev = 0
     for f in factors:
         t0 = time.perf_counter()
+        surfaces = coarse_surfaces(surfaces, f, final_levels)
         if f == 1:  # a remote job (made by ``factory``) holds its own data
             level_projector, level_data = projector, (None if factory is not None else data)
         else:
@@ -114,10 +134,12 @@ def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, pen
         total_it += result.iterations
         total_ev += result.evaluations
         shape = level_projector.geometry.shape[1:] if hasattr(level_projector, "geometry") else None
-        summary.append({"bin": f, "detector": list(shape) if shape else None, "iterations": result.iterations,
+        summary.append({"bin": f, "detector": list(shape) if shape else None,
+                        "subdivision": max((s.levels for s in surfaces), default=None), "iterations": result.iterations,
                         "evaluations": result.evaluations, "seconds": time.perf_counter() - t0,
                         "stop_reason": result.stop_reason, "objective": result.objective})
         if result.interrupted:
             break
     result.iterations, result.evaluations = total_it, total_ev
+    result.surfaces = coarse_surfaces(result.surfaces, 1, final_levels)  # an interrupted binned level's too
     return result, summary

@@ -10,7 +10,7 @@ the others keep their ids.
 
 A large parallel-beam subscan goes through slabs of detector rows with the
 rules of ``bubsub reconstruct`` (:mod:`bubsub.clients.pipeline.slabs`: one
-slab per about 3 million pixels read by default; cone-beam and 2D subscans,
+slab per about 8 million pixels read by default; cone-beam and 2D subscans,
 and ``holdout``, whole), one slab after another in this process: the cold
 start is reconstructed slab by slab and stitched, the warm starts are fitted
 slab by slab (:func:`~bubsub.clients.pipeline.slabs.fit_known`), each bubble

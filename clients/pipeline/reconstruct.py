@@ -35,7 +35,7 @@ from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 from bubsub.clients.optimise.fit import estimate_radii
-from bubsub.clients.optimise.levels import bin_factors, fit_levels
+from bubsub.clients.optimise.levels import bin_factors, coarse_surfaces, fit_levels
 from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
 from bubsub.clients.pipeline.fov import fov_report, preview_extension, unobserved_control
 from bubsub.clients.pipeline.initial import choose_initial, default_detector
@@ -182,9 +182,12 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     factors = bin_factors(g_fit, s.data_levels)
     if s.estimate_radii and init is None and detector != "auto":
         # on the coarsest level's pixels: the radii need not see every pixel
+        # (and at that level's subdivision, as the fit's binned level: .optimise.levels.coarse_surfaces)
         coarse = MeshProjector(g_fit.binned(factors[0]), supersampling=s.supersampling)
-        surfaces = estimate_radii(coarse, surfaces, ScanGeometry.bin_projections(d_fit, factors[0]),
-                                  progress=s.progress)
+        levels = [x.levels for x in surfaces]
+        surfaces = coarse_surfaces(estimate_radii(coarse, coarse_surfaces(surfaces, factors[0], levels),
+                                                  ScanGeometry.bin_projections(d_fit, factors[0]),
+                                                  progress=s.progress), 1, levels)
     clock.mark("radius_estimation")
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     penalty = _separation(s, d_fit, len(surfaces), voxel) if fit_data is not None else None

@@ -65,11 +65,18 @@ from bubsub.core.projection.subdivision import SubdivisionSurface
 
 __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
            "auto_slabs", "slab_count", "estimate_halo", "known_halo", "slab_scan", "slab_bounds", "run_slab", "stitch",
-           "stitch_previews", "fit_known", "slab_totals", "reconstruct_slabs", "SLAB_PIXELS", "OBJECTIVE_NOTE"]
+           "stitch_previews", "fit_known", "slab_totals", "reconstruct_slabs", "SLAB_PIXELS", "WHOLE_SCAN_SLABS",
+           "OBJECTIVE_NOTE"]
 
 #: Detector pixels (projections x rows x columns) read by one slab when the number of slabs is chosen
-#: automatically: a slab of this size reconstructs in well under a gigabyte.
-SLAB_PIXELS = 3_000_000
+#: automatically. A slab of this size with ~600 bubbles reconstructs in under a gigabyte (the ~600-bubble
+#: column of ``bubsub bench scale``, 7.9 million pixels, whole: docs/scale.md); smaller slabs cost more
+#: than they save: each reads its halos again and fits the bubbles there a second time (that column in
+#: three slabs of 3 million pixels took twice as long as whole, for 7 % less memory).
+SLAB_PIXELS = 8_000_000
+
+#: A scan of up to this many times :data:`SLAB_PIXELS` pixels is one slab by default.
+WHOLE_SCAN_SLABS = 1.25
 
 #: Least core rows of a slab, in halos: thinner slabs spend most of their work on the halo.
 MIN_CORE_HALOS = 2
@@ -210,8 +217,8 @@ def slab_count(source, geometry, settings, slabs=None, halo=None, *, whole_neede
         The whole scan's.
     settings : ReconstructionSettings
     slabs : int or None
-        Asked for (``--slabs N``); None: :func:`auto_slabs`, one slab for scans of at most 1.5 x
-        :data:`SLAB_PIXELS` pixels, cone-beam and 2D scans, and when ``whole_needed``.
+        Asked for (``--slabs N``); None: :func:`auto_slabs`, one slab for scans of at most
+        :data:`WHOLE_SCAN_SLABS` x :data:`SLAB_PIXELS` pixels, cone-beam and 2D scans, and when ``whole_needed``.
     halo : int or None
         Asked for (``--slab-halo``); None: :func:`estimate_halo` when there are several slabs.
     whole_needed : bool
@@ -231,7 +238,7 @@ def slab_count(source, geometry, settings, slabs=None, halo=None, *, whole_neede
         return 1, 0
     if slabs is None:
         if whole_needed or geometry.ndim != 3 or geometry.is_cone or \
-                geometry.n_angles * geometry.det_rows * geometry.det_cols <= 1.5 * SLAB_PIXELS:
+                geometry.n_angles * geometry.det_rows * geometry.det_cols <= WHOLE_SCAN_SLABS * SLAB_PIXELS:
             return 1, 0
     elif whole_needed:
         raise ValueError("--init and --holdout need the scan reconstructed whole (--slabs 1)")

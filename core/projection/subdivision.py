@@ -357,6 +357,10 @@ class SubdivisionSurface:
     def with_attenuation(self, attenuation):
         return SubdivisionSurface(self.control.with_attenuation(attenuation), _topology=self._topo)
 
+    def with_levels(self, levels):
+        """The same control mesh subdivided ``levels`` times."""
+        return self if levels == self.levels else SubdivisionSurface(self.control, levels)
+
     def fine(self):
         """The subdivided Mesh or Polygon."""
         v = self._topo.S @ self.control.vertices

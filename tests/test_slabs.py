@@ -90,6 +90,30 @@ def test_plan_slabs_partitions_the_rows_and_clips_the_halos():
         plan_slabs(10, 2, -1)
 
 
+def test_auto_keeps_a_tomography_size_column_whole_and_spreads_it_over_workers():
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings
+    from bubsub.clients.pipeline.slabs import SLAB_PIXELS, WHOLE_SCAN_SLABS, slab_count
+
+    settings = ReconstructionSettings()
+    column = _parallel(rows=256, cols=768, n=40)  # 7.9 million pixels: the ~600-bubble column's detector
+    assert column.n_angles * column.det_rows * column.det_cols <= WHOLE_SCAN_SLABS * SLAB_PIXELS
+    assert slab_count(None, column, settings, halo=40) == (1, 0)
+    assert slab_count(None, column, settings, halo=40, workers=1) == (1, 0)
+    # a cluster of 2 or 3 workers gets a slab each; of more, as many as keep cores of two halos
+    assert slab_count(None, column, settings, halo=40, workers=2) == (2, 40)
+    assert slab_count(None, column, settings, halo=40, workers=3) == (3, 40)
+    assert slab_count(None, column, settings, halo=40, workers=16) == (256 // 80, 40)
+    assert slab_count(None, column, settings, 1, halo=40, workers=2) == (1, 0)  # --slabs 1 is honoured
+    # four times taller: about one slab per SLAB_PIXELS read
+    tall = _parallel(rows=1024, cols=768, n=40)
+    n, halo = slab_count(None, tall, settings, halo=40)
+    per_slab = tall.n_angles * (tall.det_rows / n + 2 * halo) * tall.det_cols
+    assert n > 1 and halo == 40 and 0.7 * SLAB_PIXELS < per_slab < 1.4 * SLAB_PIXELS
+    cone = ScanGeometry.cone(np.linspace(0, 2 * np.pi, 40, endpoint=False), source_origin=300.0,
+                             origin_detector=10.0, pixel_size=0.1, cols=768, rows=1024)
+    assert slab_count(None, cone, settings, halo=40, workers=4) == (1, 0)
+
+
 def test_cone_beam_slabs_are_refused():
     from bubsub.clients.pipeline.slabs import check_slab_geometry
 

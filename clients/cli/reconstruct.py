@@ -43,7 +43,7 @@ def cmd_reconstruct(args):
     check_settings(settings, geometry.ndim)
     spec = spec_from_args(args)
     slabs, halo = slab_count(args.scan, geometry, settings, args.slabs, args.slab_halo,
-                             whole_needed=bool(args.init or args.holdout))
+                             whole_needed=bool(args.init or args.holdout), workers=spec.workers)
     if slabs > 1 or not spec.in_process:
         if args.init:
             raise ValueError("--init needs the scan reconstructed whole (--slabs 1)")

@@ -206,7 +206,7 @@ def auto_slabs(geometry, halo, pixels=SLAB_PIXELS):
     return max(1, int(round(geometry.det_rows / core)))
 
 
-def slab_count(source, geometry, settings, slabs=None, halo=None, *, whole_needed=False):
+def slab_count(source, geometry, settings, slabs=None, halo=None, *, whole_needed=False, workers=None):
     """The number of slabs and halo rows a reconstruction of ``source`` uses.
 
     Parameters
@@ -223,6 +223,10 @@ def slab_count(source, geometry, settings, slabs=None, halo=None, *, whole_neede
         Asked for (``--slab-halo``); None: :func:`estimate_halo` when there are several slabs.
     whole_needed : bool
         An option that needs the whole scan at once (``--init``, ``--holdout``).
+    workers : int, optional
+        Workers of the cluster the slabs will run on: ``auto`` then gives the scan at least one slab per
+        worker (each core still at least :data:`MIN_CORE_HALOS` halos), so that ``--workers N`` spreads
+        a scan that would be one slab in this process.
 
     Returns
     -------
@@ -236,16 +240,23 @@ def slab_count(source, geometry, settings, slabs=None, halo=None, *, whole_neede
     """
     if slabs == 1:
         return 1, 0
+    spread = slabs is None and workers is not None and workers > 1
     if slabs is None:
-        if whole_needed or geometry.ndim != 3 or geometry.is_cone or \
-                geometry.n_angles * geometry.det_rows * geometry.det_cols <= WHOLE_SCAN_SLABS * SLAB_PIXELS:
+        if whole_needed or geometry.ndim != 3 or geometry.is_cone:
+            return 1, 0
+        if not spread and geometry.n_angles * geometry.det_rows * geometry.det_cols <= WHOLE_SCAN_SLABS * SLAB_PIXELS:
             return 1, 0
     elif whole_needed:
         raise ValueError("--init and --holdout need the scan reconstructed whole (--slabs 1)")
     check_slab_geometry(geometry)
     if halo is None:
         halo = estimate_halo(source, geometry, settings)
-    return (auto_slabs(geometry, halo) if slabs is None else int(slabs)), int(halo)
+    if slabs is not None:
+        return int(slabs), int(halo)
+    n = auto_slabs(geometry, halo)
+    if spread:
+        n = max(n, min(int(workers), geometry.det_rows // max(1, MIN_CORE_HALOS * halo)))
+    return (n, int(halo)) if n > 1 else (1, 0)
 
 
 def slab_origin(geometry, slab):

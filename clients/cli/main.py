@@ -67,9 +67,6 @@ def main(argv=None):
         return exc.code
     if args.command != "serve":  # the server sets its own (BUBSUB_BLAS_THREADS)
         _limit_blas()
-    from bubsub.core.malloc import release_large_arrays
-
-    release_large_arrays()
     try:
         return args.func(args)
     except KeyboardInterrupt:

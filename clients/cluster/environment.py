@@ -17,12 +17,8 @@ def pinned_environment(threads):
     -------
     dict of str to str
         ``BUBSUB_THREADS``, ``NUMBA_NUM_THREADS``, ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``,
-        ``MKL_NUM_THREADS``, each ``str(threads)``; and glibc's fixed mmap threshold, which a process
-        reads at its start (:func:`bubsub.core.malloc.environment`; the ``bubsub`` command sets it in
-        its own process).
+        ``MKL_NUM_THREADS``, each ``str(threads)``.
     """
-    from bubsub.core.malloc import environment
-
     n = str(int(threads))
     return {"BUBSUB_THREADS": n, "NUMBA_NUM_THREADS": n, "OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n,
-            "MKL_NUM_THREADS": n, **environment()}
+            "MKL_NUM_THREADS": n}

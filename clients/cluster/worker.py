@@ -26,10 +26,7 @@ class PinThreads(WorkerPlugin):
         return f"PinThreads({self.threads})"
 
     def setup(self, worker):
-        from bubsub.core.malloc import release_large_arrays
-
         os.environ.update(pinned_environment(self.threads))
-        release_large_arrays()  # the variable is read at a process's start: set in this one now
         try:
             from threadpoolctl import threadpool_limits
         except ImportError:  # pragma: no cover - a dependency of bubsub

@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from bubsub.core import MeshProjector, ScanGeometry
+from bubsub.core.malloc import release_free_memory
 
 from bubsub.clients.optimise.fit import STALL_ITERATIONS, fit
 
@@ -138,6 +139,7 @@ def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, pen
                         "subdivision": max((s.levels for s in surfaces), default=None), "iterations": result.iterations,
                         "evaluations": result.evaluations, "seconds": time.perf_counter() - t0,
                         "stop_reason": result.stop_reason, "objective": result.objective})
+        release_free_memory()  # the level's projector and binned data are gone
         if result.interrupted:
             break
     result.iterations, result.evaluations = total_it, total_ev

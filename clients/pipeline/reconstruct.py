@@ -31,6 +31,7 @@ import numpy as np
 
 from bubsub.core import MeshProjector, ScanGeometry
 from bubsub.core.io.meshio import read_ply, read_polygons_json
+from bubsub.core.malloc import release_free_memory
 from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
@@ -282,7 +283,9 @@ class _PhaseClock:
         self._parts = {}
 
     def mark(self, name):
-        """End the phase ``name`` now; the next one starts."""
+        """End the phase ``name`` now; the next one starts (with the phase's freed memory given back:
+        :func:`bubsub.core.malloc.release_free_memory`)."""
+        release_free_memory()
         wall, cpu = time.perf_counter(), time.process_time()
         self._parts[name] = (wall - self._wall, cpu - self._cpu)
         self._wall, self._cpu = wall, cpu

@@ -71,9 +71,11 @@ rasterises a chunk storing its crossings, takes the chunk's residual in
 place, and adds its face sums from the store at once. A scan's crossings
 rarely fit the store (a 40 x 178 x 768 slab of a ~600-bubble column has 53
 million, 1.7 GB), a few views' always do: a whole-scan trace then rasterised
-every view twice, and the objective of that slab took 3.9 s where it now
-takes 2.0 s (two threads; the same f and gradient to rounding). A chunk that
-overflows all the same rasterises again for its face sums.
+every view twice, and the objective of that slab took 1.9 s where it now
+takes 0.9 s (medians of three, two threads; the same f and gradient to
+rounding). A chunk that overflows all the same rasterises again for its
+face sums. The kernels see a chunk as a scan of its own views, so its
+projection needs a buffer of the chunk's pixels only.
 
 Threads: projections are split into contiguous groups, one per worker thread
 (compiled code releases the GIL); values are written per projection and face

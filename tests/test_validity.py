@@ -207,3 +207,26 @@ def test_a_pair_still_sharing_gas_loses_a_few_per_cent_of_the_smaller_bubble_not
     deep = [big, make([0.3] + [0.0] * (ndim - 1), 0.9, -0.1)]
     out, remaining = shrink_overlaps(deep, check_bubbles(deep), [], 2)
     assert [v.kind for v in remaining] == ["overlap"] and out[1] is deep[1]
+
+
+def test_thousands_of_ray_scenes_alive_at_once_share_one_device():
+    """A check of a 2400-bubble foam holds a ray-casting scene per bubble: with a device per scene, Embree
+    crashed the process (SIGSEGV) past about a thousand; on one shared device 1500 answer as one does."""
+    import subprocess
+    import sys
+
+    script = """
+import numpy as np
+from bubsub.core import sphere_surface
+from bubsub.core.projection.validity import _intersector
+keep = []
+for i in range(1500):
+    m = sphere_surface([3.0 * i, 0, 0], 1.0, -0.1, levels=1).fine()
+    r = _intersector(np.asarray(m.vertices), np.asarray(m.faces))
+    tri, ray = r.intersects_id(np.array([[3.0 * i, 0, -5.0]]), np.array([[0, 0, 1.0]]), multiple_hits=True)
+    assert len(tri) == 2, (i, tri)
+    keep.append(r)
+print("ok", len(keep))
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.split() == ["ok", "1500"], (out.returncode, out.stderr[-2000:])

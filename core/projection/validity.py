@@ -173,9 +173,53 @@ def _mesh_self_hits(vertices, faces):
 
 
 def _intersector(vertices, faces):
-    from trimesh.ray import ray_pyembree
+    """trimesh's embreex ray intersector of the mesh, its scene on the one shared Embree device."""
+    return _shared_device_intersector()(_trimesh(vertices, faces))
 
-    return ray_pyembree.RayMeshIntersector(_trimesh(vertices, faces))
+
+_SHARED = {}
+
+
+def _shared_device_intersector():
+    """The class of :func:`_intersector` (made once: it needs trimesh and embreex, imported on first use).
+
+    trimesh's intersector gives every scene an Embree device of its own, and
+    Embree fails (a null pointer, the process killed by SIGSEGV) once about a
+    thousand devices are alive at once: a repair's check of a foam of 2400
+    bubbles holds a scene per bubble. Scenes on one shared device have no
+    such bound (5000 alive were tested).
+    """
+    if "class" not in _SHARED:
+        from embreex import rtcore, rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+        from trimesh.ray import ray_pyembree
+
+        device = rtcore.EmbreeDevice()
+
+        class SharedScene:
+            """The scene and query scaling of trimesh's wrapper (float32 coordinates of the mesh moved to
+            its box's corner and scaled to about 100), on ``device``."""
+
+            def __init__(self, vertices, faces, scale):
+                v = np.asarray(vertices, dtype=np.float64)
+                self.origin, self.scale = v.min(axis=0), float(scale)
+                self.scene = rtcore_scene.EmbreeScene(device)
+                TriangleMesh(scene=self.scene, vertices=((v - self.origin) * self.scale).astype(np.float32),
+                             indices=np.asarray(faces).astype(np.int32))
+
+            def run(self, origins, directions, **kwargs):
+                o = (np.asarray(origins, dtype=np.float64) - self.origin) * self.scale
+                return self.scene.run(o.astype(np.float32), np.asarray(directions).astype(np.float32), **kwargs)
+
+        class Intersector(ray_pyembree.RayMeshIntersector):
+            @property
+            def _scene(self):
+                if "scene" not in self.__dict__:
+                    self.__dict__["scene"] = SharedScene(self.mesh.vertices, self.mesh.faces, self._scale)
+                return self.__dict__["scene"]
+
+        _SHARED["class"] = Intersector
+    return _SHARED["class"]
 
 
 def _mesh_self_crossings(vertices, faces):

@@ -159,7 +159,7 @@ def _units(report, rows, cols, n_angles):
     return units
 
 
-def project(report, shape, bubbles, tomo=TOMO_00080, tomo_bubbles=None, workers=(1, 16)):
+def project(report, shape, bubbles, tomo=TOMO_00080, tomo_bubbles=None, workers=(1, 16), halo_rows=None):
     """Projected wall seconds of one tomo_00080 subscan from a run's slabs (see the module docstring).
 
     Parameters
@@ -174,6 +174,9 @@ def project(report, shape, bubbles, tomo=TOMO_00080, tomo_bubbles=None, workers=
     tomo_bubbles : int, optional
         Bubbles in the subscan (default: the column's bubbles per ``rows x cols^2`` pixel volume, unbinned).
     workers : tuple of int
+    halo_rows : float, optional
+        Halo rows of the measured column for a run without slabs (a whole run has none, but the subscan's
+        slabs read them; default 0).
 
     Returns
     -------
@@ -185,7 +188,7 @@ def project(report, shape, bubbles, tomo=TOMO_00080, tomo_bubbles=None, workers=
     per_pb = np.median([t / (n_angles * read * cols * b) for t, _, read, b in units])
     per_p = np.median([t / (n_angles * read * cols) for t, _, read, _ in units])
     core = float(np.median([c for _, c, _, _ in units]))
-    halo = float(np.median([(r - c) / 2 for _, c, r, _ in units]))
+    halo = float(np.median([(r - c) / 2 for _, c, r, _ in units])) if report.get("slabs") else float(halo_rows or 0)
     t_angles, t_rows, t_cols = tomo
     b_tomo = tomo_bubbles or bubbles * (t_rows * t_cols**2) / (rows * cols**2)
     out = []
@@ -201,6 +204,17 @@ def project(report, shape, bubbles, tomo=TOMO_00080, tomo_bubbles=None, workers=
                     "slab_rows": core_t, "seconds": {m: {w: math.ceil(n_slabs / w) * s for w in workers}
                                                      for m, s in slab.items()}})
     return out
+
+
+def truth_halo(sim_dir):
+    """Halo rows the slabs of a simulated column would read: the rule of
+    :func:`bubsub.clients.pipeline.slabs.estimate_halo` on the 95th percentile of its true bubbles' radii."""
+    from bubsub.clients.pipeline.slabs import HALO_OVER_RADIUS
+
+    meta = json.loads((Path(sim_dir) / "phantom.json").read_text())
+    table = np.genfromtxt(Path(sim_dir) / "truth.csv", delimiter=",", names=True)
+    radius = 0.5 * float(np.percentile(np.atleast_1d(table["equivalent_diameter_mm"]), 95))
+    return math.ceil(HALO_OVER_RADIUS * radius / meta["column"]["pixel_size_mm"]) + 2
 
 
 def _hours(s):
@@ -337,7 +351,8 @@ def _print_projection(results, args):
         shape = (meta["angles"], meta["column"]["rows"], meta["column"]["cols"])
         median = sorted(runs, key=lambda r: r["wall"])[len(runs) // 2]
         measured = "slabs" if median["report"].get("slabs") else "whole run"
-        for p in project(median["report"], shape, meta["bubbles"], tomo_bubbles=args.tomo_bubbles):
+        for p in project(median["report"], shape, meta["bubbles"], tomo_bubbles=args.tomo_bubbles,
+                         halo_rows=truth_halo(sim)):
             for model, secs in p["seconds"].items():
                 rows.append([f"~{n} ({measured})", f"{p['binning']}x", " x ".join(map(str, p["shape"])),
                              f"{p['bubbles']:.0f}", f"{p['slabs']} of {p['slab_rows']:.0f} rows", model,
@@ -345,7 +360,8 @@ def _print_projection(results, args):
     print(table(["from case", "binning", "subscan", "bubbles", "slabs", "cost model", "1 worker", "16 workers"], rows))
     print("\ncost model 'pixels x bubbles': each slab costs the measured seconds per slab pixel and bubble; 'pixels': "
           "the measured seconds per slab pixel (work local to each bubble's footprint). A run without "
-          "report.json 'slabs' is one slab of all its rows.")
+          "report.json 'slabs' is one slab of all its rows; the subscan's slabs of as many rows read the halo "
+          "of the column's bubbles (truth_halo) as well.")
 
 
 if __name__ == "__main__":

@@ -77,6 +77,9 @@ def test_projection_from_slabs_and_from_a_whole_run():
     assert whole["slabs"] == math.ceil(1800 / 256) and whole["bubbles"] == pytest.approx(600 * 1800 * 2016**2
                                                                                           / (256 * 768**2))
     assert whole["seconds"]["pixels"][1] == pytest.approx(8 * 400 / (40 * 256 * 768) * 300 * 256 * 2016)
+    # the subscan's slabs of a whole run's rows read a halo as well
+    haloed = project({"seconds_total": 400.0, "bubbles": 600}, shape, 600, tomo=tomo, halo_rows=40)[0]
+    assert haloed["seconds"]["pixels"][1] == pytest.approx(8 * 400 / (40 * 256 * 768) * 300 * (256 + 80) * 2016)
 
 
 def test_watershed_splits_two_touching_balls():

@@ -7,9 +7,10 @@ of each block of pixels: a binned pixel holds the mean line integral of the
 pixels it joins), each level warm-started from the one before and ended on
 convergence (:func:`bubsub.clients.optimise.fit.fit`'s ``rtol``) or its
 iteration cap. A binned level's surfaces are subdivided one Loop step
-fewer per halving of the detector (:func:`coarse_surfaces`). A binned level
-costs about a quarter of the next one's evaluations, so it may take :data:`COARSE_ITERATIONS` times as many
-iterations for 3/4 of the next level's cost: on a ~150-bubble column (40 x
+fewer per halving of the detector (:func:`coarse_surfaces`). A binned
+level costs about a quarter of the next one's evaluations, so it may take
+:data:`COARSE_ITERATIONS` times as many iterations for 3/4 of the next
+level's cost: on a ~150-bubble column (40 x
 128 x 384 pixels, 16k unknowns) the two levels at 80 iterations each ended
 2.0 % above a 300-iteration fit on the full detector, at 240 + 80 iterations
 0.7 % above it, for 144 full-detector evaluations instead of 313

@@ -26,8 +26,9 @@ print((before - p.memory_info().rss) / 2**20)
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
 def test_a_freed_array_below_a_live_one_is_given_back_on_release():
-    back = {mode: float(subprocess.run([sys.executable, "-c", SCRIPT, mode], check=True, capture_output=True,
-                                       text=True).stdout) for mode in ("kept", "released")}
-    assert back["kept"] < 2  # the 16 MB stayed resident on the heap
-    assert back["released"] > 14
+    # without the release the 16 MB usually stay resident (not always: where the heap's layout leaves the
+    # freed array at its top, glibc trims it itself), with it they never do
+    back = float(subprocess.run([sys.executable, "-c", SCRIPT, "released"], check=True, capture_output=True,
+                                text=True).stdout)
+    assert back > 14
 

@@ -269,7 +269,7 @@ def slab_origin(geometry, slab):
 def _row_height(geometry, slab, row):
     """Height along the row direction of the edge between rows ``row - 1`` and ``row`` (mm, 0 at the
     detector's centre)."""
-    return (row - 0.5 * slab.detector_rows) * float(np.linalg.norm(geometry.vectors[0, 9:12]))
+    return (row - 0.5 * slab.detector_rows) * _pixel(geometry)
 
 
 def slab_bounds(geometry, slab):

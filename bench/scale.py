@@ -209,12 +209,12 @@ def project(report, shape, bubbles, tomo=TOMO_00080, tomo_bubbles=None, workers=
 def truth_halo(sim_dir):
     """Halo rows the slabs of a simulated column would read: the rule of
     :func:`bubsub.clients.pipeline.slabs.estimate_halo` on the 95th percentile of its true bubbles' radii."""
-    from bubsub.clients.pipeline.slabs import HALO_OVER_RADIUS
+    from bubsub.clients.pipeline.slabs import halo_rows
 
     meta = json.loads((Path(sim_dir) / "phantom.json").read_text())
     table = np.genfromtxt(Path(sim_dir) / "truth.csv", delimiter=",", names=True)
     radius = 0.5 * float(np.percentile(np.atleast_1d(table["equivalent_diameter_mm"]), 95))
-    return math.ceil(HALO_OVER_RADIUS * radius / meta["column"]["pixel_size_mm"]) + 2
+    return halo_rows(radius, meta["column"]["pixel_size_mm"])
 
 
 def _hours(s):

@@ -64,7 +64,7 @@ from bubsub.core.projection.mesh import Mesh, equivalent_radius
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
-           "auto_slabs", "slab_count", "estimate_halo", "known_halo", "slab_scan", "slab_bounds", "run_slab", "stitch",
+           "auto_slabs", "slab_count", "estimate_halo", "known_halo", "halo_rows", "slab_scan", "slab_bounds", "run_slab", "stitch",
            "stitch_previews", "fit_known", "slab_totals", "reconstruct_slabs", "SLAB_PIXELS", "WHOLE_SCAN_SLABS",
            "OBJECTIVE_NOTE"]
 
@@ -455,7 +455,7 @@ def estimate_halo(source, geometry, settings, bubble_contrast=None):
     _, radii = initial_centres(image, extent, detector="dt", contrast=scan.bubble_contrast)
     if len(radii) == 0:
         return max(2, geometry.det_rows // 10)
-    return _halo_rows(float(np.percentile(radii, 95)), geometry)
+    return halo_rows(float(np.percentile(radii, 95)), _pixel(geometry))
 
 
 def known_halo(surfaces, geometry):
@@ -474,12 +474,13 @@ def known_halo(surfaces, geometry):
     int
     """
     reach = max((max(hi - z, z - lo) for _, _, z, lo, hi in _bubble_heights(surfaces, geometry)), default=0.0)
-    return _halo_rows(reach, geometry)
+    return halo_rows(reach, _pixel(geometry))
 
 
-def _halo_rows(radius, geometry):
-    """:data:`HALO_OVER_RADIUS` times ``radius`` (mm) in detector rows, plus two."""
-    return int(np.ceil(HALO_OVER_RADIUS * radius / _pixel(geometry))) + 2
+def halo_rows(radius, pixel):
+    """Halo rows for bubbles of up to ``radius`` (mm) on rows ``pixel`` (mm) high: :data:`HALO_OVER_RADIUS`
+    times the radius in rows, plus two (the rule of :func:`estimate_halo` and :func:`known_halo`)."""
+    return int(np.ceil(HALO_OVER_RADIUS * radius / pixel)) + 2
 
 
 def _bubble_heights(surfaces, geometry):

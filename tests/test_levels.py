@@ -6,7 +6,7 @@ import pytest
 from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
 from bubsub.core.projection.subdivision import circle_surface
 from bubsub.clients.optimise.fit import fit
-from bubsub.clients.optimise.levels import bin_factors, coarse_surfaces, fit_levels
+from bubsub.clients.optimise.levels import bin_factors, coarse_surfaces, fit_levels, level_rtol
 
 ANGLES = np.linspace(0, np.pi, 6, endpoint=False)
 
@@ -91,3 +91,18 @@ def test_rtol_ends_a_stalled_fit_before_its_cap():
     assert stopped.stop_reason == "converged" and stopped.iterations < 60
     h = [x["objective"] for x in stopped.history]
     assert h[-6] - h[-1] <= 1e-2 * h[-1]
+
+
+def test_a_binned_level_is_held_to_the_full_detectors_relative_progress():
+    # the premise of level_rtol: binning by f divides the noise floor by f^4 and a move's fall by about f^2
+    g, _, start = _scene()
+    truth = [s.with_vertices(s.vertices + [0.02, 0.0, 0.01]) for s in start]
+    P, Pb = MeshProjector(g, supersampling=2), MeshProjector(g.binned(2), supersampling=2)
+    noise = np.random.default_rng(1).normal(0, 0.003, g.shape)
+    half_sq = lambda a: 0.5 * float(np.vdot(a, a))  # noqa: E731
+    assert half_sq(ScanGeometry.bin_projections(noise, 2)) / half_sq(noise) == pytest.approx(1 / 16, rel=0.1)
+    fall = half_sq(P.forward(start) - P.forward(truth))
+    fall_binned = half_sq(Pb.forward(start) - Pb.forward(truth))
+    # about 1/f^2, a little less: the mean of f^2 pixels smooths a change finer than itself
+    assert 0.15 < fall_binned / fall <= 0.25 * 1.05
+    assert level_rtol(2e-4, 2) == pytest.approx(8e-4) and level_rtol(2e-4, 1) == 2e-4 and level_rtol(None, 2) is None

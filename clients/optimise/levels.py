@@ -5,8 +5,8 @@ pixel: they need not see every pixel. :func:`fit_levels` fits the detector
 binned by ``2^(k-1)``, ..., 2, then 1 (:meth:`ScanGeometry.binned`, the mean
 of each block of pixels: a binned pixel holds the mean line integral of the
 pixels it joins), each level warm-started from the one before and ended on
-convergence (:func:`bubsub.clients.optimise.fit.fit`'s ``rtol``) or its
-iteration cap. A binned level's surfaces are subdivided one Loop step
+convergence (:func:`bubsub.clients.optimise.fit.fit`'s ``rtol``, times
+``f^2`` on a level binned by ``f``: :func:`level_rtol`) or its iteration cap. A binned level's surfaces are subdivided one Loop step
 fewer per halving of the detector (:func:`coarse_surfaces`). A binned
 level costs about a quarter of the next one's evaluations, so it may take
 :data:`COARSE_ITERATIONS` times as many iterations for 3/4 of the next
@@ -28,7 +28,7 @@ from bubsub.core.malloc import release_free_memory
 
 from bubsub.clients.optimise.fit import STALL_ITERATIONS, fit
 
-__all__ = ["bin_factors", "coarse_surfaces", "fit_levels", "MIN_BINNED_PIXELS", "COARSE_ITERATIONS"]
+__all__ = ["bin_factors", "coarse_surfaces", "fit_levels", "level_rtol", "MIN_BINNED_PIXELS", "COARSE_ITERATIONS"]
 
 #: A binned level's iteration cap, in units of the full detector's.
 COARSE_ITERATIONS = 3
@@ -64,6 +64,22 @@ def bin_factors(geometry, levels=None):
     return [2 ** k for k in range(n - 1, -1, -1)]
 
 
+def level_rtol(rtol, factor):
+    """The convergence test of a level binned by ``factor``: ``rtol x factor^2`` (None stays None).
+
+    The test compares the objective's fall over a few iterations with the objective itself. Binning by ``f``
+    leaves ``1/f^2`` as many values, each the mean of ``f^2`` pixels: the objective's fall for the same moves
+    of the bubbles is about ``1/f^2`` of the full detector's, but its noise floor, which dominates the objective
+    near convergence, ``1/f^4`` (``f^2`` fewer values, each with ``f^2`` less variance). So the same
+    progress is up to ``f^2`` times larger relative to a binned objective, and the same relative test held
+    a binned level to up to ``f^2`` times less progress than the full detector. On the ~600-bubble column
+    of ``bubsub bench scale`` the 2 x 2 level ran to its cap of 240 iterations with ``rtol``; with
+    ``4 rtol`` it converged in 113, the full detector then took 49 iterations instead of 54, and the final
+    objective was 0.2 % higher (``python -m bubsub.bench levels``; docs/scale.md).
+    """
+    return None if rtol is None else float(rtol) * factor ** 2
+
+
 def coarse_surfaces(surfaces, factor, levels):
     """``surfaces`` with their control meshes subdivided ``log2(factor)`` fewer times than ``levels`` (one per
     surface), and at least once (unless ``levels`` asks for fewer).
@@ -94,7 +110,8 @@ def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, pen
     iterations : int
         The full detector's iteration cap; a binned level's is :data:`COARSE_ITERATIONS` times this.
     rtol, rtol_window : float, int
-        Each level's convergence test (:func:`bubsub.clients.optimise.fit.fit`).
+        The full detector's convergence test (:func:`bubsub.clients.optimise.fit.fit`); a binned level's
+        is :func:`level_rtol`.
     factory : callable(geometry, data, surfaces) -> projector, optional
         Makes a binned level's projector holding its data (a remote job; ``projector`` is then the
         full detector's job, which holds its own); default a local MeshProjector.
@@ -131,7 +148,8 @@ def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, pen
             else "BubSub fit (full detector)"
         cap = iterations if f == 1 else COARSE_ITERATIONS * iterations
         result = fit(level_projector, surfaces, level_data, iterations=cap, progress=progress,
-                     penalty=penalty, rtol=rtol, rtol_window=rtol_window, label=label, catch_interrupt=True)
+                     penalty=penalty, rtol=level_rtol(rtol, f), rtol_window=rtol_window, label=label,
+                     catch_interrupt=True)
         surfaces = result.surfaces
         total_it += result.iterations
         total_ev += result.evaluations

@@ -64,11 +64,16 @@ def test_refit_of_square_bubbles_is_kept_and_fits_better():
     assert summary["objective_after"] == pytest.approx(float(projector.objective(out, data)[0]), rel=1e-9)
 
 
-def test_refit_of_round_bubbles_stops_after_the_trial_and_keeps_the_coarse_ones():
+def _round_bubbles():
+    """Two round bubbles' scan and their coarse fit."""
     truth = [circle_surface([-1.0, 0.2], 0.7, MU, control=64, levels=3), circle_surface([1.0, -0.3], 0.8, MU,
                                                                                         control=64, levels=3)]
     projector, data = _scan([t.fine() for t in truth])
-    coarse = _coarse_fit(projector, data, ([-1.0, 0.2], [1.0, -0.3]), 0.75)
+    return projector, data, _coarse_fit(projector, data, ([-1.0, 0.2], [1.0, -0.3]), 0.75)
+
+
+def test_refit_of_round_bubbles_stops_after_the_trial_and_keeps_the_coarse_ones():
+    projector, data, coarse = _round_bubbles()
     out, summary = refine_and_fit(projector, coarse, data, iterations=30, trial=5)
     assert not summary["kept"] and 2 <= summary["iterations"] <= 5  # the trial, or half of it (out_of_reach)
     assert out == coarse
@@ -132,10 +137,7 @@ def test_a_trial_stops_once_its_bar_is_out_of_reach_at_its_best_pace():
 
 
 def test_a_hopeless_refinement_stops_at_half_its_trial():
-    truth = [circle_surface([-1.0, 0.2], 0.7, MU, control=64, levels=3), circle_surface([1.0, -0.3], 0.8, MU,
-                                                                                        control=64, levels=3)]
-    projector, data = _scan([t.fine() for t in truth])
-    coarse = _coarse_fit(projector, data, ([-1.0, 0.2], [1.0, -0.3]), 0.75)
+    projector, data, coarse = _round_bubbles()
     out, summary = refine_and_fit(projector, coarse, data, iterations=30, trial=10)
     # round bubbles: the refined fit's best pace cannot pay for four times the unknowns
     assert not summary["kept"] and 5 <= summary["iterations"] < 10

@@ -2,9 +2,10 @@
 
 ``python -m bubsub.bench levels SCAN [--reference 300] [--iterations 80] [--coarse 1 3] [--cache FILE]``
 
-The start is the pipeline's: the voxel preview, the initial spheres
-(distance-transform centres) and the radius-only fit on the coarsest level's
-pixels, made once (``--cache`` keeps them for a second run). Then, each from
+The start is the pipeline's, with its default settings: the voxel preview,
+the initial spheres (distance-transform centres; the field-of-view model's
+edge seeds) and the radius-only fit on the coarsest level's pixels, made
+once (``--cache`` keeps them for a second run). Then, each from
 that start in the same process:
 
 * the reference: ``--reference`` iterations on the full detector, no
@@ -34,21 +35,21 @@ __all__ = ["main", "start", "run"]
 
 
 def start(scan):
-    """The pipeline's initial bubbles of ``scan`` (:class:`bubsub.core.io.scanfile.Scan`), radius-fitted."""
-    from bubsub.core import MeshProjector, ScanGeometry
-    from bubsub.clients.optimise.fit import estimate_radii
-    from bubsub.clients.optimise.levels import bin_factors, coarse_surfaces
-    from bubsub.clients.pipeline.initial import initial_surfaces
-    from bubsub.clients.pipeline.preview import voxel_preview
+    """The pipeline's initial bubbles of ``scan`` (:class:`bubsub.core.io.scanfile.Scan`), radius-fitted, with
+    the default settings (:mod:`bubsub.clients.pipeline.reconstruct`'s own steps)."""
+    from bubsub.core import MeshProjector
+    from bubsub.clients.optimise.levels import bin_factors
+    from bubsub.clients.pipeline.initial import default_detector
+    from bubsub.clients.pipeline.reconstruct import (ReconstructionSettings, coarse_radii, settings_initial,
+                                                     settings_preview)
 
+    s = ReconstructionSettings(progress=False)
     g, d, c = scan.geometry, scan.bubble_data, scan.bubble_contrast
-    image, extent = voxel_preview(d, g, c)
-    surfaces = initial_surfaces(image, extent, c, detector="dt")
-    f = bin_factors(g)[0]
-    levels = [s.levels for s in surfaces]
-    coarse = coarse_surfaces(surfaces, f, levels)
-    return coarse_surfaces(estimate_radii(MeshProjector(g.binned(f)), coarse, ScanGeometry.bin_projections(d, f)),
-                           1, levels)
+    image, extent = settings_preview(d, g, c, s)
+    surfaces, _ = settings_initial(image, extent, c, MeshProjector(g), d, s)
+    if s.estimate_radii and default_detector(s.detector, g.ndim) != "auto":  # "auto" fitted the radii already
+        surfaces = coarse_radii(surfaces, g, d, bin_factors(g)[0], s)
+    return surfaces
 
 
 def run(scan, surfaces, *, factors, iterations, coarse, rtol):

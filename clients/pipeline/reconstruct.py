@@ -45,7 +45,8 @@ from bubsub.clients.pipeline.refine import can_refine, coarse_rate, refine_and_c
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
-__all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "load_initial", "split_holdout", "prune"]
+__all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "load_initial", "split_holdout", "prune",
+           "settings_preview", "settings_initial", "coarse_radii"]
 
 
 @dataclass
@@ -160,17 +161,12 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     geometry = scan.geometry
     g_fit, d_fit, g_val, d_val = split_holdout(geometry, data, s.holdout)
 
-    image, extent = voxel_preview(d_fit, g_fit, contrast, s.voxel_size, progress=s.progress, method=s.preview,
-                                  extend=preview_extension(s.fov_model, d_fit, contrast))
+    image, extent = settings_preview(d_fit, g_fit, contrast, s)
     clock.mark("preview")
     local = MeshProjector(g_fit, supersampling=s.supersampling)
     detector, initialisation = default_detector(s.detector, g_fit.ndim), None
     if init is None:
-        # "auto" compares the candidate sets after their radius-only fits, here (a local projector)
-        surfaces, initialisation = choose_initial(
-            image, extent, contrast, local, d_fit, detector=detector, estimate=s.estimate_radii and detector == "auto",
-            progress=s.progress, control_points=s.control_points, levels=s.levels, radius=s.radius,
-            min_distance=s.min_distance, border_is_background=not s.fov_model)
+        surfaces, initialisation = settings_initial(image, extent, contrast, local, d_fit, s)
     else:
         surfaces = [x.with_attenuation(contrast) for x in init]
     if projector_factory is None:
@@ -182,13 +178,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     clock.mark("initial_bubbles")
     factors = bin_factors(g_fit, s.data_levels)
     if s.estimate_radii and init is None and detector != "auto":
-        # on the coarsest level's pixels: the radii need not see every pixel
-        # (and at that level's subdivision, as the fit's binned level: .optimise.levels.coarse_surfaces)
-        coarse = MeshProjector(g_fit.binned(factors[0]), supersampling=s.supersampling)
-        levels = [x.levels for x in surfaces]
-        surfaces = coarse_surfaces(estimate_radii(coarse, coarse_surfaces(surfaces, factors[0], levels),
-                                                  ScanGeometry.bin_projections(d_fit, factors[0]),
-                                                  progress=s.progress), 1, levels)
+        surfaces = coarse_radii(surfaces, g_fit, d_fit, factors[0], s)
     clock.mark("radius_estimation")
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     penalty = _separation(s, d_fit, len(surfaces), voxel) if fit_data is not None else None
@@ -261,6 +251,33 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     # wall and CPU seconds of each phase (CPU: this process, all threads)
     report["seconds_parts"], report["cpu_seconds_parts"] = clock.parts()
     return Reconstruction(kept, report, image, extent)
+
+
+def settings_preview(data, geometry, contrast, settings):
+    """The pipeline's voxel preview of ``data`` (bubbles positive): ``(image, extent)``."""
+    return voxel_preview(data, geometry, contrast, settings.voxel_size, progress=settings.progress,
+                         method=settings.preview, extend=preview_extension(settings.fov_model, data, contrast))
+
+
+def settings_initial(image, extent, contrast, projector, data, settings):
+    """The pipeline's initial bubbles in the preview (:func:`choose_initial` with ``settings``'s options):
+    ``(surfaces, summary)``. ``auto`` compares the candidate sets after their radius-only fits, here."""
+    detector = default_detector(settings.detector, projector.geometry.ndim)
+    return choose_initial(image, extent, contrast, projector, data, detector=detector,
+                          estimate=settings.estimate_radii and detector == "auto", progress=settings.progress,
+                          control_points=settings.control_points, levels=settings.levels, radius=settings.radius,
+                          min_distance=settings.min_distance, border_is_background=not settings.fov_model)
+
+
+def coarse_radii(surfaces, geometry, data, factor, settings):
+    """The radius-only pre-fit (:func:`estimate_radii`) on the detector binned by ``factor`` (the fit's
+    coarsest level: the radii need not see every pixel), at that level's subdivision
+    (:func:`coarse_surfaces`, as the fit's binned level); the surfaces come back at their own."""
+    coarse = MeshProjector(geometry.binned(factor), supersampling=settings.supersampling)
+    levels = [x.levels for x in surfaces]
+    return coarse_surfaces(estimate_radii(coarse, coarse_surfaces(surfaces, factor, levels),
+                                          ScanGeometry.bin_projections(data, factor), progress=settings.progress),
+                           1, levels)
 
 
 def _separation(settings, data, n_bubbles, voxel):

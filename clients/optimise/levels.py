@@ -10,11 +10,11 @@ convergence (:func:`bubsub.clients.optimise.fit.fit`'s ``rtol``, times
 fewer per halving of the detector (:func:`coarse_surfaces`). A binned
 level costs about a quarter of the next one's evaluations, so it may take
 :data:`COARSE_ITERATIONS` times as many iterations for 3/4 of the next
-level's cost: on a ~150-bubble column (40 x
-128 x 384 pixels, 16k unknowns) the two levels at 80 iterations each ended
-2.0 % above a 300-iteration fit on the full detector, at 240 + 80 iterations
-0.7 % above it, for 144 full-detector evaluations instead of 313
-(``python -m bubsub.bench levels``).
+level's cost. On the ~600-bubble column of ``bubsub bench scale`` (40 x 256
+x 768 pixels, 76k unknowns) both levels end on convergence (113 binned and
+49 full-detector iterations) 0.60 % above a 300-iteration fit on the full
+detector, for 81 full-detector evaluations instead of 302
+(``python -m bubsub.bench levels``; docs/large-scans.md).
 """
 
 from __future__ import annotations

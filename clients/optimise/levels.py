@@ -6,8 +6,9 @@ binned by ``2^(k-1)``, ..., 2, then 1 (:meth:`ScanGeometry.binned`, the mean
 of each block of pixels: a binned pixel holds the mean line integral of the
 pixels it joins), each level warm-started from the one before and ended on
 convergence (:func:`bubsub.clients.optimise.fit.fit`'s ``rtol``, times
-``f^2`` on a level binned by ``f``: :func:`level_rtol`) or its iteration cap. A binned level's surfaces are subdivided one Loop step
-fewer per halving of the detector (:func:`coarse_surfaces`). A binned
+``f^2`` on a level binned by ``f``: :func:`level_rtol`) or its iteration
+cap. A binned level's surfaces are subdivided one Loop step fewer per
+halving of the detector (:func:`coarse_surfaces`). A binned
 level costs about a quarter of the next one's evaluations, so it may take
 :data:`COARSE_ITERATIONS` times as many iterations for 3/4 of the next
 level's cost. On the ~600-bubble column of ``bubsub bench scale`` (40 x 256

@@ -300,3 +300,29 @@ def test_inside_matches_the_winding_number_of_every_point(ndim):
     got = _inside(s, points)
     assert got.dtype == bool and got.tolist() == truth
     assert 0 < got.sum() < len(points)
+
+
+def test_a_later_round_tries_removals_only_among_the_bubbles_the_last_refit_moved(monkeypatch):
+    from bubsub.clients.pipeline import topology
+
+    # two far-apart good bubbles and a spurious one: round 1 removes it and refits no one (nothing touches it);
+    # a missed bubble is added, refitted, and round 2 weighs the removal of that one only
+    truth = [circle_surface([-1.5, 0.5], 0.5, MU, control=32, levels=3),
+             circle_surface([1.5, -0.5], 0.5, MU, control=32, levels=3),
+             circle_surface([0.0, -1.6], 0.4, MU, control=32, levels=3)]
+    geometry, data = _scan(truth)
+    start = [circle_surface([-1.5, 0.5], 0.5, MU), circle_surface([1.5, -0.5], 0.5, MU),
+             circle_surface([0.3, 1.8], 0.3, MU)]
+    weighed = []
+    real = topology.remove_step
+
+    def spy(surfaces, residual, own, changes, round_no, cost=0.0, only=None):
+        weighed.append(len(surfaces) if only is None else len(only))
+        return real(surfaces, residual, own, changes, round_no, cost, only=only)
+
+    monkeypatch.setattr(topology, "remove_step", spy)
+    kept, summary = _adapt(start, data, geometry, steps=("remove", "add"))
+    assert [c["change"] for c in summary["changes"] if c["round"] == 0] == ["remove", "add"]
+    assert summary["rounds"] == 2 and weighed[0] == 3
+    # round 2: only the bubbles round 1's refit moved (the added one and its neighbours), not all three
+    assert weighed[1] == summary["refits"][0]["bubbles"] < len(kept) == 3

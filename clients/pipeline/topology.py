@@ -26,7 +26,9 @@ improves:
 Then the bubbles the round changed, and their neighbours, are refitted on
 detector windows with the rest of the scene held fixed
 (:func:`bubsub.clients.pipeline.local.local_refit`: the cost of a round
-follows what it changed, not the scan's size), and the next round starts. Every
+follows what it changed, not the scan's size), and the next round starts;
+it tries removals, merges and splits among the refitted bubbles only (the
+rest of the scene is as the round before left it, which tried them). Every
 accepted change is recorded with its objective before and after.
 """
 
@@ -64,16 +66,18 @@ def _centre(s):
     return np.asarray(s.fine().centroid, dtype=float)
 
 
-def remove_step(surfaces, residual, own, changes, round_no, cost=0.0):
+def remove_step(surfaces, residual, own, changes, round_no, cost=0.0, only=None):
     """Greedy removal of bubbles whose removal raises ``0.5 ||r||^2`` by at most ``cost`` (in place on ``residual``).
 
     ``cost`` is one number, or one per bubble (a bubble cut by the field of
     view's edge is charged only for the unknowns the data see). Every
-    bubble's gain is computed once from its footprint (not kept); the
-    candidates' gains are computed again, best first, after each removal.
+    bubble's gain (of the bubbles ``only``, when given) is computed once from
+    its footprint (not kept); the candidates' gains are computed again, best
+    first, after each removal.
     """
     limit = np.broadcast_to(np.asarray(cost, dtype=float), (len(surfaces),))
-    candidates = [k for k in range(len(surfaces)) if own.compute(k).removal_gain(residual) <= limit[k]]
+    candidates = [k for k in (range(len(surfaces)) if only is None else sorted(only))
+                  if own.compute(k).removal_gain(residual) <= limit[k]]
     gone = set()
     while candidates:
         f = _half_sq(residual)
@@ -136,7 +140,7 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
 
 
 def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, touch, iterations,
-               max_tries, cost=0.0, at_edge=None):
+               max_tries, cost=0.0, at_edge=None, only=None):
     """Replace touching pairs by one bubble when that fits the data better than the pair.
 
     ``at_edge`` (one bool per bubble, optional): bubbles that reach the edge
@@ -144,7 +148,7 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     costs the objective nothing, so one round bubble of the pair's joint size
     can explain a cut bubble's visible part and its neighbour's about as well
     as the two (a neighbour absorbing a cut bubble): the comparison cannot
-    tell them apart there.
+    tell them apart there. ``only`` (indices, optional): pairs with one of these bubbles only.
     """
     if len(surfaces) < 2:
         return surfaces, own
@@ -156,6 +160,8 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         if np.linalg.norm(centres[i] - centres[j]) > radii[i] + radii[j] + touch:
             continue
         if at_edge is not None and (at_edge[i] or at_edge[j]):
+            continue
+        if only is not None and i not in only and j not in only:
             continue
         d = float(cKDTree(fines[i]).query(fines[j])[0].min())
         if d <= touch:
@@ -232,7 +238,7 @@ def _inside(surface, points):
 
 
 def split_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, ratio, iterations,
-               max_tries, cost=0.0, blobs=None):
+               max_tries, cost=0.0, blobs=None, only=None):
     """Replace a bubble by two when that fits the data better.
 
     Candidates: a bubble holding two or more ``blobs`` (centres, radii of the
@@ -241,9 +247,12 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     The ``max_tries`` tried are the blob candidates first (two blobs in one
     bubble are the stronger evidence: in a foam of elongated bubbles the
     elongated candidates alone would fill the tries), then the most elongated.
+    ``only`` (indices, optional): candidates among these bubbles only.
     """
     cand = []
     for k, s in enumerate(surfaces):
+        if only is not None and k not in only:
+            continue
         if blobs is not None and len(blobs[0]) > 1:
             inside = np.nonzero(_inside(s.fine(), blobs[0]))[0]
             if len(inside) >= 2:
@@ -279,6 +288,15 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         surfaces.append(s)
         own.append(s, p)
     return surfaces, own
+
+
+def _among(surfaces, ids):
+    """Indices of ``surfaces`` whose ids are in ``ids`` (None: all, as None).
+
+    A later topology round tries removals, merges and splits only where the last refit moved bubbles:
+    elsewhere the scene is as the round before left it, which chose and tried the same candidates.
+    """
+    return None if ids is None else {k for k, s in enumerate(surfaces) if id(s) in ids}
 
 
 def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius, max_radius, rounds=3,
@@ -355,16 +373,20 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
                           threshold=threshold)
     unknowns = new_bubble(np.zeros(surfaces[0].ndim if surfaces else data.ndim), 1.0).vertices.size
     refits = []
+    fresh = None  # after the first round: the bubbles the last refit moved (ids)
+    residual = None
     for r in range(rounds):
         n_before = len(changes)
         start = {id(s): s for s in surfaces}
+
         own = Footprints(projector, surfaces)
         residual = scene_residual(projector, surfaces, data)
         cost = complexity * unknowns * 2 * _half_sq(residual) / residual.size
         if "remove" in steps:
             # unknowns no ray sees cost nothing to remove: a cut bubble is charged for its visible ones only
             removal_cost = cost * _seen_unknowns(surfaces, projector.geometry) / unknowns if fov_edge else cost
-            surfaces, own = remove_step(surfaces, residual, own, changes, r, removal_cost)
+            surfaces, own = remove_step(surfaces, residual, own, changes, r, removal_cost,
+                                        only=_among(surfaces, fresh))
         if "add" in steps:
             surfaces, own = add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r,
                                      min_radius=min_radius, max_radius=max_radius, threshold=threshold,
@@ -373,11 +395,11 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
             at_edge = _at_edge(surfaces, projector.geometry) if fov_edge else None
             surfaces, own = merge_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
                                        touch=touch, iterations=local_iterations, max_tries=max_tries, cost=cost,
-                                       at_edge=at_edge)
+                                       at_edge=at_edge, only=_among(surfaces, fresh))
         if "split" in steps:
             surfaces, own = split_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
                                        ratio=split_ratio, iterations=local_iterations, max_tries=max_tries, cost=cost,
-                                       blobs=blobs)
+                                       blobs=blobs, only=_among(surfaces, fresh))
         done = r + 1
         if len(changes) == n_before or not surfaces:
             break
@@ -385,11 +407,14 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         kept = {id(s) for s in surfaces}
         changed = [k for k, s in enumerate(surfaces) if id(s) not in start]
         gone = [(_centre(s), equivalent_radius(_size(s), s.ndim)) for i, s in start.items() if i not in kept]
+        before_refit = {id(s) for s in surfaces}
         surfaces, residual, summary = local_refit(projector, surfaces, data, changed, iterations=iterations,
                                                   touch=touch, near=gone, residual=residual, penalty=penalty,
                                                   progress=progress, label=f"topology round {r + 1} refit")
+        fresh = {id(s) for s in surfaces if id(s) not in before_refit}
         refits.append(dict(summary, round=r))
-    objective = float(projector.objective(surfaces, data)[0]) if surfaces else _half_sq(data)
+    # the last round's residual is the returned scene's (kept up to date by every change and refit)
+    objective = _half_sq(residual) if residual is not None else _half_sq(scene_residual(projector, surfaces, data))
     return surfaces, {"changes": changes, "objective": objective, "rounds": done, "refits": refits}
 
 

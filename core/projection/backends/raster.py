@@ -68,7 +68,11 @@ Objective
 each thread takes its projections in chunks of as many views as its part of
 the store holds (learnt from the chunk before, with a tenth to spare),
 rasterises a chunk storing its crossings, takes the chunk's residual in
-place, and adds its face sums from the store at once. A scan's crossings
+place, and adds its face sums from the store at once. When a single view's
+crossings outgrow a thread's part of the store, the thread takes a store of
+its own holding one view (a quarter to spare, at most the whole budget):
+on the ~2400-bubble column (a view's 3 million crossings against 2.6
+million per thread) every view was otherwise rasterised twice. A scan's crossings
 rarely fit the store (a 40 x 178 x 768 slab of a ~600-bubble column has 53
 million, 1.7 GB), a few views' always do: a whole-scan trace then rasterised
 every view twice, and the objective of that slab took 1.9 s where it now
@@ -398,6 +402,12 @@ class _Job:
             else:
                 _state["raster3d"](0, q - p, *chunk, dummy1, values, acc, True, hit, face[:0], pix[:0], coef[:0],
                                    rl, pix_rl, *items, False, starts)
+                if q - p == 1 and int(1.25 * c) * 32 <= store_bytes():
+                    # one view outgrows the group's part of the store: a store of the group's own that holds
+                    # one view with a quarter to spare (within the whole budget), or every view is rasterised
+                    # twice (the ~2400-bubble column of bubsub bench scale: 6.1 s per objective, 2.8 s with)
+                    room = int(1.25 * c)
+                    face, pix, coef = np.empty(room, np.int32), np.empty(room, np.int32), np.empty((room, 3))
             # the next chunk: as many views as the store held of this one's, with a tenth to spare
             per_view = max(per_view, c / (q - p))
             size = max(1, int(0.9 * room / per_view)) if room and per_view > 0 else p1 - q

@@ -76,7 +76,7 @@ def level_rtol(rtol, factor):
     a binned level to up to ``f^2`` times less progress than the full detector. On the ~600-bubble column
     of ``bubsub bench scale`` the 2 x 2 level ran to its cap of 240 iterations with ``rtol``; with
     ``4 rtol`` it converged in 113, the full detector then took 49 iterations instead of 54, and the final
-    objective was 0.2 % higher (``python -m bubsub.bench levels``; docs/scale.md).
+    objective was 0.2 % higher (``python -m bubsub.bench levels``; docs/large-scans.md).
     """
     return None if rtol is None else float(rtol) * factor ** 2
 

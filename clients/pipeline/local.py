@@ -16,7 +16,7 @@ import numpy as np
 
 from bubsub.clients.optimise.fit import fit
 
-__all__ = ["Footprint", "Footprints", "Window", "footprint", "scene_residual", "others_removed", "local_fits",
+__all__ = ["Footprint", "Footprints", "Window", "footprint", "scene_residual", "scene_objective", "others_removed", "local_fits",
            "local_refit", "touching_groups"]
 
 
@@ -180,6 +180,12 @@ def scene_residual(projector, surfaces, data):
     residual = projector.forward(surfaces).astype(np.float64)
     residual -= data
     return residual
+
+
+def scene_objective(projector, surfaces, data):
+    """``0.5 ||Proj(surfaces) - data||^2`` from a projection (:func:`scene_residual`), no gradient."""
+    residual = scene_residual(projector, surfaces, data)
+    return 0.5 * float(np.vdot(residual, residual))
 
 
 def others_removed(residual, *own):

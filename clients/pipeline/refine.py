@@ -108,15 +108,13 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         ``control_vertices_before``/``after`` (per bubble, the first's), ``iterations``.
     """
     from bubsub.clients.optimise.fit import fit
-    from bubsub.clients.pipeline.local import scene_residual
+    from bubsub.clients.pipeline.local import scene_objective
 
     surfaces = list(surfaces)
     if not can_refine(surfaces):
         raise ValueError("refining needs surfaces with at least one subdivision level")
     data = np.asarray(data)
-    residual = scene_residual(projector, surfaces, data)  # a projection, no gradient
-    f0 = 0.5 * float(np.vdot(residual, residual))
-    del residual
+    f0 = scene_objective(projector, surfaces, data)
     if penalty is not None:
         f0 += float(penalty([s.vertices for s in surfaces])[0])
     refined = [refine_control(s) for s in surfaces]

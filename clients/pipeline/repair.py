@@ -470,7 +470,7 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
         return list(surfaces), {"violations_found": found, "actions": [], "violations_remaining": found,
                                 "dropped": 0, "repaired": False}
     from bubsub.clients.pipeline.fov import unobserved_control
-    from bubsub.clients.pipeline.local import local_refit, scene_residual
+    from bubsub.clients.pipeline.local import local_refit, scene_objective
 
     # the unseen parts first: they decide overlaps the data cannot
     before = list(surfaces)
@@ -486,8 +486,7 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
     summary["repaired"] = True
     summary["unseen_parts_continued"] = n_continued
     if summary["actions"] and kept:
-        residual = scene_residual(projector, kept, data)  # a projection, no gradient
-        summary["objective_after_repair"] = 0.5 * float(np.vdot(residual, residual))
+        summary["objective_after_repair"] = scene_objective(projector, kept, data)
     return kept, summary
 
 

@@ -43,7 +43,7 @@ from bubsub.core.voxel.grid import world_to_index
 
 from bubsub.clients.pipeline.blobs import log_blobs
 from bubsub.clients.pipeline.local import (Footprints, footprint, local_fits, local_refit, others_removed,
-                                           scene_residual)
+                                           scene_objective, scene_residual)
 
 __all__ = ["adapt_topology", "adapt_bubbles"]
 
@@ -414,7 +414,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         fresh = {id(s) for s in surfaces if id(s) not in before_refit}
         refits.append(dict(summary, round=r))
     # the last round's residual is the returned scene's (kept up to date by every change and refit)
-    objective = _half_sq(residual) if residual is not None else _half_sq(scene_residual(projector, surfaces, data))
+    objective = _half_sq(residual) if residual is not None else scene_objective(projector, surfaces, data)
     return surfaces, {"changes": changes, "objective": objective, "rounds": done, "refits": refits}
 
 

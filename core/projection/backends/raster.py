@@ -405,7 +405,7 @@ class _Job:
                 if q - p == 1 and int(1.25 * c) * 32 <= store_bytes():
                     # one view outgrows the group's part of the store: a store of the group's own that holds
                     # one view with a quarter to spare (within the whole budget), or every view is rasterised
-                    # twice (the ~2400-bubble column of bubsub bench scale: 6.1 s per objective, 2.8 s with)
+                    # twice (the ~2400-bubble column of bubsub bench scale: 6.1 s per objective, 3.4 s with)
                     room = int(1.25 * c)
                     face, pix, coef = np.empty(room, np.int32), np.empty(room, np.int32), np.empty((room, 3))
             # the next chunk: as many views as the store held of this one's, with a tenth to spare

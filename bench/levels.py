@@ -42,6 +42,7 @@ def start(scan):
     from bubsub.clients.pipeline.initial import default_detector
     from bubsub.clients.pipeline.reconstruct import (ReconstructionSettings, coarse_radii, settings_initial,
                                                      settings_preview)
+    from bubsub.clients.pipeline.resolution import levels_by_size
 
     s = ReconstructionSettings(progress=False)
     g, d, c = scan.geometry, scan.bubble_data, scan.bubble_contrast
@@ -49,7 +50,7 @@ def start(scan):
     surfaces, _ = settings_initial(image, extent, c, MeshProjector(g), d, s)
     if s.estimate_radii and default_detector(s.detector, g.ndim) != "auto":  # "auto" fitted the radii already
         surfaces = coarse_radii(surfaces, g, d, bin_factors(g)[0], s)
-    return surfaces
+    return levels_by_size(surfaces, g, s.levels, s.facet_pixels) if g.ndim == 3 else surfaces
 
 
 def run(scan, surfaces, *, factors, iterations, coarse, rtol):

@@ -45,6 +45,8 @@ def test_version(capsys):
     (["--levels", "x"], "--levels: must be an integer"),
     (["--radius", "0"], "--radius: must be positive"),
     (["--levels", "7"], "--levels must be at most 4"),
+    (["--facet-pixels", "-0.1"], "--facet-pixels must be a number of pixels >= 0"),
+    (["--facet-pixels", "nan"], "--facet-pixels must be a number of pixels >= 0"),
     (["--control-points", "2"], "--control-points must be an integer >= 3"),
     (["--token", "abc"], "--token is only used with --server"),
 ])

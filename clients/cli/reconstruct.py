@@ -33,7 +33,7 @@ def cmd_reconstruct(args):
         raise ValueError("--token is only used with --server")
     settings = ReconstructionSettings(
         iterations=args.iterations, control_points=args.control_points, levels=args.levels,
-        radius=args.radius, estimate_radii=not args.no_radius_estimation, supersampling=args.supersampling,
+        facet_pixels=args.facet_pixels, radius=args.radius, estimate_radii=not args.no_radius_estimation, supersampling=args.supersampling,
         holdout=args.holdout, progress=not args.quiet, background_subtracted=args.background_subtracted,
         preview=args.preview, detector=args.detector, topology=not args.no_topology, repair=not args.no_repair,
         fov_model=args.fov_model, separation=args.separation, refine=not args.no_refine,
@@ -151,7 +151,12 @@ def register(sub):
                    help="a fit level has converged when its objective fell by less than R times itself over 5 "
                         "iterations (default 2e-4; 0: run to --iterations)")
     p.add_argument("--levels", type=non_negative_int, default=2,
-                   help="Loop/curve subdivision levels of the fitted surface (0-4, default 2)")
+                   help="Loop/curve subdivision levels of the fitted surface (0-4, default 2); in 3D the most: "
+                        "each bubble takes as few as keep its faces within --facet-pixels")
+    p.add_argument("--facet-pixels", type=float, default=0.2, metavar="PX",
+                   help="3D: subdivide each bubble only until its flat faces stand at most PX detector pixels from "
+                        "a sphere of its size, at least once and at most --levels times (default 0.2; 0: every "
+                        "bubble at --levels; docs/scale.md)")
     p.add_argument("--radius", type=positive_float,
                    help="initial radius of every bubble in mm (default: from the voxel preview)")
     p.add_argument("--no-radius-estimation", action="store_true",

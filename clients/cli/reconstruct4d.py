@@ -21,7 +21,8 @@ def cmd_reconstruct4d(args):
     out = Path(args.out) if args.resume else check_output_folder(args.out, overwrite=args.overwrite)
     scan = read_scan(args.scan)
     settings = DynamicSettings(iterations=args.iterations, control_points=args.control_points, levels=args.levels,
-                               holdout=args.holdout, voxel_baseline=args.voxel_baseline, warm_rtol=args.warm_rtol,
+                               facet_pixels=args.facet_pixels, holdout=args.holdout,
+                               voxel_baseline=args.voxel_baseline, warm_rtol=args.warm_rtol,
                                slabs=args.slabs, slab_halo=args.slab_halo, progress=not args.quiet)
     with open_client(spec_from_args(args)) as client:
         report = reconstruct_dynamic(scan, out, settings, projections_per_subscan=args.projections_per_subscan,
@@ -54,7 +55,12 @@ def register(sub):
                    "and report their MSE")
     p.add_argument("--iterations", type=int, default=80, metavar="N", help="BFGS iterations per subscan (default 80)")
     p.add_argument("--control-points", type=positive_int, metavar="N", help="control points per bubble (3D default 42, 2D 9)")
-    p.add_argument("--levels", type=int, default=2, metavar="N", help="subdivision levels (default 2)")
+    p.add_argument("--levels", type=int, default=2, metavar="N",
+                   help="subdivision levels (default 2); in 3D the most, each bubble taking as few as keep its faces "
+                        "within --facet-pixels")
+    p.add_argument("--facet-pixels", type=float, default=0.2, metavar="PX",
+                   help="3D: subdivide each bubble only until its flat faces stand at most PX detector pixels from a "
+                        "sphere of its size (default 0.2; 0: every bubble at --levels)")
     p.add_argument("--warm-rtol", type=float, default=1e-3, metavar="R",
                    help="a warm-started fit stops once 5 iterations lowered the objective by less than this "
                         "fraction (default 1e-3; 0 runs all --iterations)")

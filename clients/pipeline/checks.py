@@ -40,6 +40,10 @@ def check_settings(settings, ndim):
     if s.levels > MAX_LEVELS:
         raise ValueError(f"--levels must be at most {MAX_LEVELS} (each level multiplies the faces by 4), "
                          f"got {s.levels}")
+    if isinstance(s.facet_pixels, bool) or not isinstance(s.facet_pixels, (int, float)) \
+            or not (np.isfinite(s.facet_pixels) and s.facet_pixels >= 0):
+        raise ValueError(f"--facet-pixels must be a number of pixels >= 0 (0: every bubble at --levels), "
+                         f"got {s.facet_pixels!r}")
     check_int(s.supersampling, "--supersampling", 1)
     if s.control_points is not None:
         if ndim == 3 and s.control_points not in CONTROL_POINTS_3D:

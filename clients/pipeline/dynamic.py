@@ -47,6 +47,7 @@ from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.pipeline.fov import fov_report
 from bubsub.clients.pipeline.preview import preview_voxel_size
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
+from bubsub.clients.pipeline.resolution import levels_by_size
 from bubsub.clients.pipeline.slabs import (OBJECTIVE_NOTE, fit_known, known_halo, plan_slabs, reconstruct_slabs,
                                            slab_count, slab_totals)
 from bubsub.clients.pipeline.voxel4d import voxel_baseline
@@ -152,38 +153,38 @@ class BubbleState:
     faces : tuple of (m_k, 3) int arrays, or of None in 2D
     attenuation : float
         1/mm (the bubble contrast).
-    levels : int
+    levels : tuple of int
+        Subdivision levels of each bubble (in 3D they follow its size: :mod:`.resolution`).
     """
 
     ids: tuple
     vertices: tuple
     faces: tuple
     attenuation: float
-    levels: int
+    levels: tuple
 
     @classmethod
-    def from_surfaces(cls, ids, surfaces, attenuation=None, levels=2):
+    def from_surfaces(cls, ids, surfaces, attenuation=None):
         surfaces = list(surfaces)
         if surfaces:
             attenuation = surfaces[0].attenuation if attenuation is None else attenuation
-            levels = surfaces[0].levels
         return cls(tuple(int(i) for i in ids), tuple(np.array(s.vertices) for s in surfaces),
                    tuple(None if s.ndim == 2 else np.array(s.control_faces) for s in surfaces),
-                   float(attenuation if attenuation is not None else np.nan), int(levels))
+                   float(attenuation if attenuation is not None else np.nan), tuple(int(s.levels) for s in surfaces))
 
     def surfaces(self):
         """The bubbles as SubdivisionSurface, in ``ids`` order."""
         out = []
-        for v, f in zip(self.vertices, self.faces):
+        for v, f, n in zip(self.vertices, self.faces, self.levels):
             control = Polygon(v, self.attenuation) if f is None else Mesh(v, f, self.attenuation)
-            out.append(SubdivisionSurface(control, self.levels))
+            out.append(SubdivisionSurface(control, n))
         return out
 
     def __len__(self):
         return len(self.ids)
 
     def __repr__(self):
-        return f"BubbleState(ids={list(self.ids)!r}, attenuation={self.attenuation!r}, levels={self.levels})"
+        return f"BubbleState(ids={list(self.ids)!r}, attenuation={self.attenuation!r}, levels={list(self.levels)!r})"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -260,7 +261,7 @@ def _cold(scan, settings):
     if slabs > 1:
         report.update({k: r[k] for k in ("slabs", "slab_halo_rows", "stitch", "objective_note")})
     ids = range(len(rec.surfaces))
-    return BubbleState.from_surfaces(ids, rec.surfaces, scan.bubble_contrast, settings.levels), report, \
+    return BubbleState.from_surfaces(ids, rec.surfaces, scan.bubble_contrast), report, \
         rec.preview, rec.preview_extent
 
 
@@ -324,7 +325,9 @@ def _warm(scan, previous, settings):
     report = {"start": "warm", "iterations": 0, "objective": None, "initial_objective": None,
               "interrupted": False, "diverged": False, "seconds_parts": {"remesh": _time.perf_counter() - t0}}
     if not starts:
-        return BubbleState.from_surfaces([], [], scan.bubble_contrast, settings.levels), report, ended
+        return BubbleState.from_surfaces([], [], scan.bubble_contrast), report, ended
+    if scan.ndim == 3:  # a bubble that grew or shrank since its successor's fit takes the levels of its size
+        starts = levels_by_size(starts, scan.geometry, settings.levels, settings.facet_pixels)
     slabs, halo = _warm_slabs(scan, previous, settings)  # before the fit: a refused slab setting is no divergence
     try:
         fitted, fields = _warm_fit(*_split(scan, settings.holdout)[:2], starts, settings) if slabs == 1 else \
@@ -337,7 +340,7 @@ def _warm(scan, previous, settings):
     report["objective"] = fields.pop("final_objective")
     report.update(fields)
     kept_ids, kept = _survivors(ids, fitted, scan, settings, ended)
-    return BubbleState.from_surfaces(kept_ids, kept, scan.bubble_contrast, settings.levels), report, ended
+    return BubbleState.from_surfaces(kept_ids, kept, scan.bubble_contrast), report, ended
 
 
 def _survivors(ids, fitted, scan, settings, ended):

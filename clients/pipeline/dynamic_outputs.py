@@ -71,7 +71,7 @@ def write_subscan(out, result, ndim, scan_path=None):
     partial = Path(out) / f".{final.name}.partial"
     if partial.exists():
         shutil.rmtree(partial)
-    report = dict(result.report, dimension=ndim, levels=result.state.levels, track_ids=list(result.state.ids))
+    report = dict(result.report, dimension=ndim, levels=list(result.state.levels), track_ids=list(result.state.ids))
     rec = Reconstruction(result.state.surfaces(), report, result.preview, result.preview_extent,
                          ids=list(result.state.ids))
     write_outputs(partial, rec, scan_path=scan_path)
@@ -85,12 +85,15 @@ def read_subscan_result(out, index, attenuation):
     """A completed subscan folder back as a :class:`~bubsub.clients.pipeline.dynamic.SubscanResult`."""
     d = subscan_dir(out, index)
     report = json.loads((d / "report.json").read_text())
-    levels = int(report.get("levels", 2))
     if report["dimension"] == 3:
         items, ids = read_ply(d / "control.ply", attenuation=attenuation, with_ids=True)
     else:
         items, ids = read_polygons_json(d / "control.json", attenuation=attenuation, with_ids=True)
-    state = BubbleState.from_surfaces(ids, [SubdivisionSurface(m, levels) for m in items], attenuation, levels)
+    levels = report.get("levels", 2)  # per bubble, or one number for all
+    levels = [int(levels)] * len(items) if np.isscalar(levels) else [int(n) for n in levels]
+    if len(levels) != len(items):
+        raise ValueError(f"{d / 'report.json'}: 'levels' has {len(levels)} entries for {len(items)} bubbles")
+    state = BubbleState.from_surfaces(ids, [SubdivisionSurface(m, n) for m, n in zip(items, levels)], attenuation)
     for k in ("dimension", "levels", "track_ids", "files", "scan"):
         report.pop(k, None)
     ended = tuple(int(i) for i in report.get("ended", {}))

@@ -43,6 +43,7 @@ from bubsub.clients.pipeline.initial import choose_initial, default_detector
 from bubsub.clients.pipeline.preview import voxel_preview
 from bubsub.clients.pipeline.refine import can_refine, coarse_rate, refine_and_check
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
+from bubsub.clients.pipeline.resolution import level_counts, levels_by_size
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "load_initial", "split_holdout", "prune",
@@ -57,7 +58,8 @@ class ReconstructionSettings:
     data_levels: int | None = None  # fit on 2^(k-1)-binned, ..., full pixels; default 2 for 3D detectors >= 96 px
     fit_rtol: float | None = 2e-4  # converged: objective down by < fit_rtol x itself over 5 iterations
     control_points: int | None = None  # 42 in 3D, 9 in 2D
-    levels: int = 2
+    levels: int = 2  # the most Loop levels; in 3D each bubble takes as few as keep its faces within facet_pixels
+    facet_pixels: float = 0.2  # .resolution: most a fine face may stand from a sphere of its bubble's size; 0: all at levels
     radius: float | None = None  # initial radius (mm); default: median from the distance transform
     estimate_radii: bool = True
     supersampling: int = 1
@@ -169,17 +171,19 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         surfaces, initialisation = settings_initial(image, extent, contrast, local, d_fit, s)
     else:
         surfaces = [x.with_attenuation(contrast) for x in init]
-    if projector_factory is None:
-        projector, fit_data = local, d_fit
-    else:
-        projector = projector_factory(g_fit, d_fit, surfaces)
-        fit_data = None
     t_init = time.perf_counter() - t0
     clock.mark("initial_bubbles")
     factors = bin_factors(g_fit, s.data_levels)
     if s.estimate_radii and init is None and detector != "auto":
         surfaces = coarse_radii(surfaces, g_fit, d_fit, factors[0], s)
+    if g_fit.ndim == 3:  # each bubble as finely as its size on the detector needs (.resolution)
+        surfaces = levels_by_size(surfaces, g_fit, s.levels, s.facet_pixels)
     clock.mark("radius_estimation")
+    if projector_factory is None:
+        projector, fit_data = local, d_fit
+    else:  # a remote job holds its surfaces' topology and levels: made once they are known
+        projector = projector_factory(g_fit, d_fit, surfaces)
+        fit_data = None
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     penalty = _separation(s, d_fit, len(surfaces), voxel) if fit_data is not None else None
     # the objective of the initial bubbles on the full detector (the levels' own objectives are on their pixels)
@@ -241,6 +245,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "holdout": s.holdout,
         "field_of_view_mm": fov_report(geometry),
         "unobserved_control_vertices": [int(unobserved_control(x, g_fit).sum()) for x in kept],
+        # bubbles per subdivision level (.resolution; the refinement moves one level into the control meshes)
+        "subdivision_levels": level_counts(kept),
         "settings": {k: v for k, v in s.__dict__.items() if k != "progress"},
     }
     if g_val is not None:

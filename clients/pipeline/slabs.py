@@ -63,6 +63,8 @@ from bubsub.core.io.atomic import atomic_path
 from bubsub.core.projection.mesh import Mesh, equivalent_radius
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
+from bubsub.clients.pipeline.resolution import level_counts
+
 __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
            "auto_slabs", "slab_count", "estimate_halo", "known_halo", "halo_rows", "slab_scan", "slab_bounds", "run_slab", "stitch",
            "stitch_previews", "fit_known", "slab_totals", "reconstruct_slabs", "SLAB_PIXELS", "WHOLE_SCAN_SLABS",
@@ -792,6 +794,7 @@ def _report(results, surfaces, summary, geometry, settings, halo, computed, seco
     report.update({
         "bubbles": len(surfaces),
         "dimension": 3,
+        "subdivision_levels": level_counts(surfaces),
         "slabs": per_slab,
         "slab_halo_rows": halo,
         "slabs_computed": computed,

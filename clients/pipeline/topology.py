@@ -442,18 +442,21 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     from bubsub.core.projection.subdivision import circle_surface, sphere_surface
     from bubsub.clients.pipeline.fov import preview_extension
     from bubsub.clients.pipeline.preview import preview_grid, resample_image, voxel_preview
+    from bubsub.clients.pipeline.resolution import levels_by_size
 
     ndim = surfaces[0].ndim
     k = len(surfaces[0].vertices)
-    levels = surfaces[0].levels
     if ndim == 2:
+        levels = surfaces[0].levels
+
         def new_bubble(c, r):
             return circle_surface(c, r, contrast, control=k, levels=levels)
     else:
         k = k if k in (12, 42, 162) else 42
 
-        def new_bubble(c, r):
-            return sphere_surface(c, r, contrast, control=k, levels=levels)
+        def new_bubble(c, r):  # subdivided by its size, as the fitted bubbles (.resolution)
+            return levels_by_size([sphere_surface(c, r, contrast, control=k, levels=settings.levels)], geometry,
+                                  settings.levels, settings.facet_pixels)[0]
 
     # In 3D the residual is reconstructed, and blobs are searched, on voxels twice as large:
     # an added bubble is at least 3 preview voxels in radius, and a full-size residual

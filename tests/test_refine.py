@@ -29,6 +29,8 @@ def test_refined_control_mesh_keeps_the_fine_surface_vertex_for_vertex(make, cen
     assert len(finer.vertices) > len(s.fine().vertices)
     assert size(finer) == pytest.approx(size(s.fine()), rel=0.02)
     assert not can_refine([refine_control(s, levels=0)])
+    # a 3D bubble keeps one subdivision level: one at a single level is not refined
+    assert can_refine([s.with_levels(2)]) and (can_refine([s.with_levels(1)]) == (s.ndim == 2))
 
 
 def _rounded_square(centre, half, rho, n=256):

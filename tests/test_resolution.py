@@ -7,7 +7,7 @@ from bubsub.core import ScanGeometry, sphere_surface
 from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
 from bubsub.clients.pipeline.dynamic_outputs import read_subscan_result, write_subscan
 from bubsub.clients.pipeline.resolution import (FACET_PIXELS, facet_depth, level_counts, levels_by_size,
-                                                pixels_per_mm, with_levels_kept)
+                                                pixels_per_mm)
 
 PIXEL = 0.012
 ANGLES = np.linspace(0, np.pi, 12, endpoint=False)
@@ -79,12 +79,12 @@ def test_a_new_level_keeps_the_fine_mesh_mean_radius_and_centre():
         return np.linalg.norm(v - v.mean(axis=0), axis=1).mean()
 
     for levels in (0, 1, 3):
-        t = with_levels_kept(s, levels)
+        t = s.with_levels(levels, keep_size=True)
         assert t.levels == levels
         assert radius(t) == pytest.approx(radius(s), rel=1e-12)
         assert np.allclose(t.vertices.mean(axis=0), s.vertices.mean(axis=0))
     assert abs(radius(s.with_levels(1)) / radius(s) - 1) > 1e-3  # without the scaling the size would change
-    assert with_levels_kept(s, 2) is s
+    assert s.with_levels(2, keep_size=True) is s
 
 
 def test_a_subscan_folder_keeps_each_bubbles_levels(tmp_path):

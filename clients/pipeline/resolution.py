@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FACET_PIXELS", "pixels_per_mm", "facet_depth", "levels_by_size", "with_levels_kept", "level_counts"]
+__all__ = ["FACET_PIXELS", "pixels_per_mm", "facet_depth", "levels_by_size", "level_counts"]
 
 #: Most a fine face may stand from a sphere of its bubble's size, in detector pixels (:func:`levels_by_size`).
 FACET_PIXELS = 0.2
@@ -86,21 +86,6 @@ def facet_depth(surface, levels, scale):
     return e * e / (8.0 * max(r, 1e-12))
 
 
-def with_levels_kept(surface, levels):
-    """``surface`` subdivided ``levels`` times, its control vertices scaled about their centre so that the
-    fine mesh keeps its mean radius (fewer levels shrink a convex mesh less)."""
-    if levels == surface.levels:
-        return surface
-
-    def radius(s):
-        fine = s.fine().vertices
-        return float(np.linalg.norm(fine - fine.mean(axis=0), axis=1).mean())
-
-    new = surface.with_levels(levels)
-    c = surface.vertices.mean(axis=0)
-    return new.with_vertices(c + (surface.vertices - c) * (radius(surface) / radius(new)))
-
-
 def levels_by_size(surfaces, geometry, max_levels, tolerance=FACET_PIXELS, least=1):
     """Each bubble with the fewest subdivision levels whose faces stand at most ``tolerance`` pixels from
     a sphere of its size (:func:`facet_depth`), at least ``least`` and at most ``max_levels``.
@@ -120,13 +105,13 @@ def levels_by_size(surfaces, geometry, max_levels, tolerance=FACET_PIXELS, least
     Returns
     -------
     list of SubdivisionSurface
-        Each at its levels (:func:`with_levels_kept`: the same mean radius).
+        Each at its levels, with the same mean radius (``SubdivisionSurface.with_levels(..., keep_size=True)``).
     """
     surfaces = list(surfaces)
     if not surfaces:
         return surfaces
     if not tolerance:
-        return [with_levels_kept(s, max_levels) for s in surfaces]
+        return [s.with_levels(max_levels, keep_size=True) for s in surfaces]
     if not tolerance > 0:
         raise ValueError(f"the facet tolerance must be a number of pixels >= 0, got {tolerance!r}")
     scale = pixels_per_mm(geometry, np.array([s.vertices.mean(axis=0) for s in surfaces]))
@@ -136,7 +121,7 @@ def levels_by_size(surfaces, geometry, max_levels, tolerance=FACET_PIXELS, least
         levels = low
         while levels < max_levels and facet_depth(s, levels, k) > tolerance:
             levels += 1
-        out.append(with_levels_kept(s, levels))
+        out.append(s.with_levels(levels, keep_size=True))
     return out
 
 

@@ -103,7 +103,7 @@ def mesh_section(mesh, axis, value):
     crosses = above[:, i] != above[:, j]
     with np.errstate(divide="ignore", invalid="ignore"):  # edges that do not cross are discarded below
         t = h[:, i] / (h[:, i] - h[:, j])
-    pts = tri[:, i] + t[:, :, None] * (tri[:, j] - tri[:, i])  # (k, 3 edges, 3)
+        pts = tri[:, i] + t[:, :, None] * (tri[:, j] - tri[:, i])  # (k, 3 edges, 3)
     first = np.argsort(~crosses, axis=1, kind="stable")[:, :2]
     return pts[np.arange(len(tri))[:, None], first][:, :, keep]
 

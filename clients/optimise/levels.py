@@ -89,13 +89,14 @@ def coarse_surfaces(surfaces, factor, levels):
     binned level's projected faces cover as many pixels as the full detector's: on the binned detector
     most faces of the full subdivision hit one lattice point or none and the projection's cost is
     theirs (the ~600-bubble column of ``bubsub bench scale``, 2 x 2 binned: 0.32 s per objective at
-    one level against 0.48 s at two). The control vertices, the unknowns, are the same at every level,
-    scaled about their centroid so that each fine mesh keeps its mean radius (``keep_size``): one level
-    fewer makes a sphere 1.7 % larger, and each level's fit first undid that for every bubble (on the
-    ~600-bubble column the binned level converged in 78 iterations where it took 140).
+    one level against 0.48 s at two). The control vertices, the unknowns, are the same at every level.
+    One level fewer makes a sphere 1.7 % larger; scaling the control vertices to keep each bubble's size
+    (``SubdivisionSurface.with_levels(keep_size=True)``) did not pay: on the ~600-bubble column of
+    ``bubsub bench scale`` the full-detector level then ran to its cap of 80 iterations (569.62, fit
+    173 s) where it converged in 43 (569.84, fit 120 s).
     """
     drop = int(round(np.log2(factor)))
-    return [s.with_levels(max(min(n, 1), n - drop), keep_size=True) for s, n in zip(surfaces, levels)]
+    return [s.with_levels(max(min(n, 1), n - drop)) for s, n in zip(surfaces, levels)]
 
 
 def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, penalty=None, progress=False,

@@ -352,8 +352,10 @@ def _refit_joint(projector, surfaces, members, residual, iterations, penalty, su
     items = [surfaces[k] for k in members]
     target = projector.forward(items).astype(np.float64)
     target -= residual  # the data minus every other bubble: the members' own projection minus the residual
+    # L-BFGS whatever the count: the groups' union can reach dense BFGS's 6000 unknowns, whose inverse Hessian
+    # (288 MB, and as much again while it is made) set the ~600-bubble column's peak memory
     res = fit(projector, items, target, iterations=iterations, progress=progress, catch_interrupt=False,
-              penalty=penalty, label=label)
+              penalty=penalty, label=label, method="lbfgs")
     for k, s in zip(members, res.surfaces):
         surfaces[k] = s
     np.subtract(projector.forward(res.surfaces), target, out=residual)

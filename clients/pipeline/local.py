@@ -316,8 +316,7 @@ def local_refit(projector, surfaces, data, changed, *, iterations, touch, near=(
     scan_pixels = int(np.prod(projector.geometry.shape))
     summary = {"groups": len(groups), "bubbles": 0, "evaluations": 0, "pixels": 0, "scan_pixels": scan_pixels,
                "joint": False}
-    windows = [Window(projector, [surfaces[k] for k in group]) for group in groups]
-    if len(groups) > 1 and sum(w.pixels for w in windows) > scan_pixels:
+    if len(groups) > 1 and sum(Window(projector, [surfaces[k] for k in g]).pixels for g in groups) > scan_pixels:
         summary["joint"] = True
         _refit_joint(projector, surfaces, sorted({k for g in groups for k in g}), residual, iterations, penalty,
                      summary, progress=progress, label=label)
@@ -325,8 +324,10 @@ def local_refit(projector, surfaces, data, changed, *, iterations, touch, near=(
     from bubsub.clients.progress import phase
 
     with phase(label, len(groups), unit="group", enabled=progress and bool(groups)) as bar:
-        for group, window in zip(groups, windows):
-            _refit_group(projector, surfaces, group, window, residual, iterations, penalty, summary)
+        for group in groups:
+            # its window from the bubbles as they are now: a bubble of two groups may have moved in the first
+            _refit_group(projector, surfaces, group, Window(projector, [surfaces[k] for k in group]), residual,
+                         iterations, penalty, summary)
             bar.update(1)
     return surfaces, residual, summary
 

@@ -78,3 +78,10 @@ def test_equivalent_radius_and_size_of_meshes_and_polygons():
     inside_out = square.with_vertices(square.vertices[::-1])  # a fit may turn a bubble clockwise
     assert inside_out.size == pytest.approx(-9.0) and inside_out.equivalent_radius == 0.0
     np.testing.assert_allclose(equivalent_radius(np.array([4 / 3 * np.pi, -1.0]), 3), [1.0, 0.0])
+
+
+def test_mean_edge_of_a_regular_tetrahedron_and_a_square():
+    v = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=float)  # every edge 2 sqrt(2)
+    f = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+    assert Mesh(v, f).mean_edge == pytest.approx(2 * np.sqrt(2))
+    assert Polygon(np.array([[0, 0], [2, 0], [2, 2], [0, 2]], dtype=float)).mean_edge == pytest.approx(2.0)

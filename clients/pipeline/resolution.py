@@ -62,18 +62,6 @@ def pixels_per_mm(geometry, points):
     return out / geometry.n_angles
 
 
-def _mean_edge(surface):
-    """Mean edge length of the control mesh (3D) or polygon (2D), mm."""
-    v = surface.vertices
-    if surface.ndim == 3:
-        f = surface.control_faces
-        edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    else:
-        i = np.arange(len(v))
-        edges = np.stack([i, np.roll(i, -1)], axis=1)
-    return float(np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1).mean())
-
-
 def facet_depth(surface, levels, scale):
     """How far a fine face of ``surface`` subdivided ``levels`` times stands from a sphere of its size, pixels.
 
@@ -82,7 +70,7 @@ def facet_depth(surface, levels, scale):
     """
     v = surface.vertices
     r = float(np.linalg.norm(v - v.mean(axis=0), axis=1).mean()) * scale
-    e = _mean_edge(surface) * scale / 2.0 ** levels
+    e = surface.control.mean_edge * scale / 2.0 ** levels
     return e * e / (8.0 * max(r, 1e-12))
 
 

@@ -137,6 +137,12 @@ class Mesh:
         return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
 
     @property
+    def mean_edge(self):
+        """Mean length of the triangles' edges, mm (each edge of a closed mesh counted once per side)."""
+        v, f = self.vertices, self.faces
+        return float(np.linalg.norm(v[f] - v[np.roll(f, -1, axis=1)], axis=2).mean())
+
+    @property
     def centroid(self):
         """Centroid of the enclosed solid, (3,) mm."""
         a, b, c = (self.vertices[self.faces[:, i]] for i in range(3))
@@ -255,6 +261,11 @@ class Polygon:
     def perimeter(self):
         """Length of the boundary, mm."""
         return float(np.linalg.norm(np.roll(self.vertices, -1, axis=0) - self.vertices, axis=1).sum())
+
+    @property
+    def mean_edge(self):
+        """Mean length of the boundary's segments, mm."""
+        return self.perimeter / len(self.vertices)
 
     @property
     def centroid(self):

@@ -69,11 +69,8 @@ def resample_polygon(vertices, n):
 @lru_cache(maxsize=8)
 def _edge_per_radius(control, levels):
     """Mean control edge length of the initial icosphere divided by its equivalent radius."""
-    s = sphere_surface(np.zeros(3), 1.0, 1.0, control=control, levels=levels)
-    v, f = s.vertices, s.control_faces
-    edges = np.concatenate([v[f[:, 0]] - v[f[:, 1]], v[f[:, 1]] - v[f[:, 2]], v[f[:, 2]] - v[f[:, 0]]])
-    r_eq = s.control.equivalent_radius
-    return float(np.linalg.norm(edges, axis=1).mean() / r_eq)
+    control = sphere_surface(np.zeros(3), 1.0, 1.0, control=control, levels=levels).control
+    return control.mean_edge / control.equivalent_radius
 
 
 def remesh_isotropic(mesh, edge_length, iterations=10):

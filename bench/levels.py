@@ -50,7 +50,7 @@ def start(scan):
     surfaces, _ = settings_initial(image, extent, c, MeshProjector(g), d, s)
     if s.estimate_radii and default_detector(s.detector, g.ndim) != "auto":  # "auto" fitted the radii already
         surfaces = coarse_radii(surfaces, g, d, bin_factors(g)[0], s)
-    return levels_by_size(surfaces, g, s.levels, s.facet_pixels) if g.ndim == 3 else surfaces
+    return levels_by_size(surfaces, g, s.levels, s.facet_pixels)
 
 
 def run(scan, surfaces, *, factors, iterations, coarse, rtol):

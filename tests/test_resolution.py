@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bubsub.core import ScanGeometry, sphere_surface
+from bubsub.core import ScanGeometry, circle_surface, sphere_surface
 from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
 from bubsub.clients.pipeline.dynamic_outputs import read_subscan_result, write_subscan
 from bubsub.clients.pipeline.resolution import (FACET_PIXELS, facet_depth, level_counts, levels_by_size,
@@ -65,6 +65,10 @@ def test_levels_follow_the_size_on_the_detector():
     assert [s.levels for s in levels_by_size(spheres, g, 0)] == [0, 0, 0, 0]
     assert level_counts(chosen) == {"1": 2, "2": 2}
     assert level_counts(levels_by_size(spheres[:1], g, 0)) == {"0": 1}
+    # 2D bubbles keep their levels
+    g2 = ScanGeometry.parallel(ANGLES, pixel_size=PIXEL, cols=256)
+    circles = [circle_surface([0.0, 0.0], 8 * PIXEL, -0.1, levels=2)]
+    assert levels_by_size(circles, g2, 2)[0] is circles[0]
     with pytest.raises(ValueError, match="facet tolerance"):
         levels_by_size(spheres, g, 2, tolerance=-1.0)
 

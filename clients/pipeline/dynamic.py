@@ -326,8 +326,8 @@ def _warm(scan, previous, settings):
               "interrupted": False, "diverged": False, "seconds_parts": {"remesh": _time.perf_counter() - t0}}
     if not starts:
         return BubbleState.from_surfaces([], [], scan.bubble_contrast), report, ended
-    if scan.ndim == 3:  # a bubble that grew or shrank since its successor's fit takes the levels of its size
-        starts = levels_by_size(starts, scan.geometry, settings.levels, settings.facet_pixels)
+    # a bubble that grew or shrank since its successor's fit takes the levels of its size
+    starts = levels_by_size(starts, scan.geometry, settings.levels, settings.facet_pixels)
     slabs, halo = _warm_slabs(scan, previous, settings)  # before the fit: a refused slab setting is no divergence
     try:
         fitted, fields = _warm_fit(*_split(scan, settings.holdout)[:2], starts, settings) if slabs == 1 else \

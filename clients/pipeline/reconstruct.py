@@ -176,8 +176,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     factors = bin_factors(g_fit, s.data_levels)
     if s.estimate_radii and init is None and detector != "auto":
         surfaces = coarse_radii(surfaces, g_fit, d_fit, factors[0], s)
-    if g_fit.ndim == 3:  # each bubble as finely as its size on the detector needs (.resolution)
-        surfaces = levels_by_size(surfaces, g_fit, s.levels, s.facet_pixels)
+    surfaces = levels_by_size(surfaces, g_fit, s.levels, s.facet_pixels)  # as finely as its size needs (3D)
     clock.mark("radius_estimation")
     if projector_factory is None:
         projector, fit_data = local, d_fit

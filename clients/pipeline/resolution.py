@@ -93,10 +93,11 @@ def levels_by_size(surfaces, geometry, max_levels, tolerance=FACET_PIXELS, least
     Returns
     -------
     list of SubdivisionSurface
-        Each at its levels, with the same mean radius (``SubdivisionSurface.with_levels(..., keep_size=True)``).
+        Each at its levels, with the same mean radius (``SubdivisionSurface.with_levels(..., keep_size=True)``);
+        2D bubbles as they are (a polygon's subdivision costs the projector little).
     """
     surfaces = list(surfaces)
-    if not surfaces:
+    if not surfaces or geometry.ndim != 3:
         return surfaces
     if not tolerance:
         return [s.with_levels(max_levels, keep_size=True) for s in surfaces]

@@ -162,3 +162,16 @@ def test_bad_input_is_refused_with_a_message(rec3d, tmp_path, capsys):
     (flat / "bubbles.json").write_text('{"bubbles": []}')
     refused([str(flat), "--out", out], "2D reconstruction")
     refused([str(rec3d / "bubbles.ply"), "--out", out], "is a file")
+
+
+def test_the_default_contact_gap_is_the_voxel_the_preview_used():
+    from bubsub.clients.analysis import default_contact_gap
+
+    fov = {"radius": 2.4}
+    assert default_contact_gap({"field_of_view_mm": fov}) == pytest.approx(2 * 2.4 / 160)  # the default preview
+    assert default_contact_gap({"field_of_view_mm": fov, "settings": {"voxel_size": 0.02}}) == 0.02  # asked for
+    # a preview made finer for small bubbles (.pipeline.preview.voxel_for_bubbles) says so in the report
+    assert default_contact_gap({"field_of_view_mm": fov, "settings": {"voxel_size": None},
+                                "preview": {"voxel_mm": 0.0181, "finer_for_bubbles": True}}) == 0.0181
+    with pytest.raises(ValueError, match="no field of view"):
+        default_contact_gap({"settings": {}})

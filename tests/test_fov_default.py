@@ -183,3 +183,26 @@ def test_topology_never_merges_a_bubble_that_reaches_the_edge_of_the_field_of_vi
                                     new_bubble=lambda c, r: sphere_surface(c, r, C), min_radius=0.05,
                                     max_radius=0.5, rounds=1, steps=("merge",), touch=0.05)
             assert len(out) == 1
+
+
+def test_prune_drops_a_sliver_at_the_detectors_edge_by_the_part_the_data_see():
+    from bubsub.core.projection.subdivision import sphere_surface
+    from bubsub.clients.pipeline.reconstruct import prune, seen_slab
+
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 20, endpoint=False), pixel_size=0.025, cols=64, rows=24)
+    half_z = field_of_view(g)[1]
+    assert seen_slab(g) == (np.inf, pytest.approx(half_z))
+    assert seen_slab(ScanGeometry.parallel(np.linspace(0, np.pi, 20), cols=64)) is None  # 2D: seen whole
+    r = 0.2
+    seen = lambda h: _cap(r, h)  # a cap h high below the top plane
+    sliver = sphere_surface([0.0, 0.0, half_z + r - 0.03], r, C, levels=3)  # 0.03 mm of it seen
+    cap = sphere_surface([0.3, 0.0, half_z + r - 0.1], r, C, levels=3)  # 0.1 mm seen
+    inside = sphere_surface([-0.3, 0.0, 0.0], 0.07, C, levels=3)  # whole, small
+    r_sliver = (3 * seen(0.03) / (4 * np.pi)) ** (1 / 3)  # 0.05 mm: the radius of a ball of what is seen
+    r_cap = (3 * seen(0.1) / (4 * np.pi)) ** (1 / 3)
+    assert r_sliver < 0.06 < r_cap
+    kept, dropped = prune([sliver, cap, inside], 0.06, fov=seen_slab(g))
+    assert dropped == 1 and kept[0] is cap and kept[1] is inside
+    # whole bubbles are judged whole, as before
+    assert prune([sliver, cap, inside], 0.06)[1] == 0
+    assert prune([sliver, cap, inside], 0.045, fov=seen_slab(g))[1] == 0

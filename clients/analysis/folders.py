@@ -10,9 +10,9 @@ descriptions, and a summary. :meth:`Analysis.write` writes them
 
 Default contact gap
 -------------------
-One voxel of the reconstruction's voxel preview (``settings.voxel_size`` of
-its report, or the default preview voxel: the field of view's diameter over
-160): films of wet foams (micrometres) are far thinner than any scan
+One voxel of the reconstruction's voxel preview (``preview.voxel_mm`` of its
+report; in reports that do not give it, ``settings.voxel_size`` or the default
+preview voxel, the field of view's diameter over 160): films of wet foams (micrometres) are far thinner than any scan
 resolves, so bubbles pressed against each other come out of ``bubsub
 reconstruct`` with a small gap (the fit keeps a quarter of a preview voxel
 between neighbours); one voxel is four times that, while bubbles apart across
@@ -201,7 +201,7 @@ def default_contact_gap(report):
     ValueError
         When the report gives neither the preview's voxel size nor the field of view.
     """
-    voxel = (report.get("settings") or {}).get("voxel_size")
+    voxel = (report.get("preview") or {}).get("voxel_mm") or (report.get("settings") or {}).get("voxel_size")
     if voxel:
         return float(voxel)
     fov = report.get("field_of_view_mm")

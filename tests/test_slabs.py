@@ -196,6 +196,8 @@ def test_a_bubble_across_the_seam_comes_out_once_as_in_the_whole_scan(seam_scan,
 
     rec = reconstruct_slabs(seam_scan, _quick(), slabs=2, halo=10, out=tmp_path)
     assert rec.report["stitch"]["seam_cut"] == 0 and len(rec.report["slabs"]) == 2
+    assert rec.report["preview"] == {"voxel_mm": pytest.approx(0.05), "finer_for_bubbles": False}
+    assert [s["preview"]["voxel_mm"] for s in rec.report["slabs"]] == [pytest.approx(0.05)] * 2
     assert len(rec.surfaces) == 3
     for (c, r), truth in zip(_summary(rec.surfaces), sorted(SEAM_TRUTH, key=lambda t: t[:3])):
         assert np.linalg.norm(np.subtract(c, truth[:3])) < 0.03 and abs(r - truth[3]) < 0.02

@@ -783,7 +783,8 @@ def _report(results, surfaces, summary, geometry, settings, halo, computed, seco
         per_slab.append({**_rows_entry(res.slab), "bubbles": r["bubbles"], "stop_reason": r.get("stop_reason"),
                          "seconds_total": r.get("seconds_total"), "seconds_parts": r.get("seconds_parts"),
                          "cpu_seconds_parts": r.get("cpu_seconds_parts"), "iterations": r.get("iterations"),
-                         "final_objective": r.get("final_objective"), "fit_levels": r.get("fit_levels")})
+                         "final_objective": r.get("final_objective"), "fit_levels": r.get("fit_levels"),
+                         "preview": r.get("preview")})
     parts, cpu = {}, {}
     for res in results:
         for name, v in (res.report.get("seconds_parts") or {}).items():
@@ -804,11 +805,24 @@ def _report(results, surfaces, summary, geometry, settings, halo, computed, seco
         "seconds_parts": parts,
         "cpu_seconds_parts": cpu,
         "field_of_view_mm": fov,
+        "preview": _stitched_preview(results),
         "projections_used": geometry.n_angles,
         "validity": _merged_validity(results),
         "settings": {k: v for k, v in vars(settings).items() if k != "progress"},
     })
     return report
+
+
+def _stitched_preview(results):
+    """The slabs' previews in one entry: the coarsest voxel (each slab chooses its own for its bubbles,
+    :func:`.preview.voxel_for_bubbles`; the coarsest is the resolution every slab's contacts rest on, and
+    ``bubsub analyse``'s default contact gap), and whether any slab made its preview finer; None for
+    reports without it."""
+    previews = [res.report.get("preview") for res in results]
+    if not previews or any(p is None for p in previews):
+        return None
+    return {"voxel_mm": max(p["voxel_mm"] for p in previews),
+            "finer_for_bubbles": any(p["finer_for_bubbles"] for p in previews)}
 
 
 def _merged_validity(results):

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-PHASES = ("preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity", "refine")
+PHASES = ("preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity", "refine", "edge_slivers")
 
 
 def cli_command(*args):

@@ -144,3 +144,22 @@ def test_a_hopeless_refinement_stops_at_half_its_trial():
     # round bubbles: the refined fit's best pace cannot pay for four times the unknowns
     assert not summary["kept"] and 5 <= summary["iterations"] < 10
     assert summary["stop_reason"] == "stopped by callback" and out == coarse
+
+
+def test_a_repairs_rise_in_the_objective_is_not_passed_off_as_the_refinements_gain():
+    from bubsub.clients.pipeline.local import scene_objective
+    from bubsub.clients.pipeline.repair import shrunk
+
+    projector, data, coarse = _round_bubbles()
+    reached = scene_objective(projector, coarse, data)
+    # a repair that moved a bubble off the data (as a separation from a neighbour does): any refit regains it
+    repaired = [shrunk(coarse[0], 0.9), coarse[1]]
+    rise = scene_objective(projector, repaired, data) - reached
+    assert rise > 0.5 * reached
+    # judged from the repaired objective, refining round bubbles looks worth its unknowns ...
+    _, naive = refine_and_fit(projector, repaired, data, iterations=30, trial=5)
+    assert naive["kept"] and naive["iterations"] > 5 and naive["objective_reached"] == naive["objective_before"]
+    # ... but not from what the coarse bubbles had before the repair
+    out, fair = refine_and_fit(projector, repaired, data, iterations=30, trial=5, reached=reached)
+    assert fair["objective_reached"] == pytest.approx(fair["objective_before"] - rise, rel=1e-9)
+    assert not fair["kept"] and fair["iterations"] <= 5 and out == repaired

@@ -42,6 +42,7 @@ from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
 from bubsub.clients.pipeline.fov import (field_of_view, fov_report, inside_fov, preview_extension, size_inside_fov,
                                          unobserved_control)
 from bubsub.clients.pipeline.initial import choose_initial, default_detector
+from bubsub.clients.pipeline.local import scene_objective
 from bubsub.clients.pipeline.preview import preview_grid, voxel_for_bubbles, voxel_preview
 from bubsub.clients.pipeline.refine import can_refine, coarse_rate, refine_and_check
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
@@ -216,13 +217,18 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
             return check_and_repair(items, checker, d_fit, repair=s.repair and not interrupted,
                                     iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
 
+        will_refine = s.refine and init is None and not interrupted
+        # the coarse bubbles' data term before the repair: the refinement's trial discounts the repair's rise in it
+        reached = None
+        if will_refine and kept:
+            reached = topology["objective"] if topology else scene_objective(local, kept, d_fit)
         kept, validity = checked(kept)
         clock.mark("validity")
-        if s.refine and init is None and can_refine(kept) and not interrupted:
+        if will_refine and can_refine(kept):
             # after the repair, so the refined fit also fills the gas of dropped bubbles; checked again
             kept, refinement, again = refine_and_check(local, kept, d_fit, checked, iterations=s.refine_iterations,
                                                        penalty=penalty, progress=s.progress, rtol=s.fit_rtol,
-                                                       coarse_rate=coarse_rate(result.history))
+                                                       coarse_rate=coarse_rate(result.history), reached=reached)
             if again is not None:
                 validity = merged_validity(validity, again)
         clock.mark("refine")

@@ -33,7 +33,8 @@ from bubsub.core.projection.subdivision import refine_control
 
 from bubsub.clients.optimise.criteria import akaike_score
 
-__all__ = ["refine_and_fit", "refine_and_check", "can_refine", "refinable", "coarse_rate", "out_of_reach"]
+__all__ = ["refine_and_fit", "refine_and_check", "can_refine", "refinable", "coarse_rate", "out_of_reach",
+           "penalised_objective"]
 
 
 def refinable(surface):
@@ -80,8 +81,30 @@ def out_of_reach(history, bar, left):
     return history[-1] - bar > left * max(best, 0.0)
 
 
+def penalised_objective(projector, surfaces, data, penalty=None, data_term=None):
+    """``0.5 ||Proj(S x) - d||^2`` of ``surfaces`` (``data_term`` when already known), plus ``penalty``'s term.
+
+    Parameters
+    ----------
+    projector : MeshProjector
+        Of ``data``.
+    surfaces : list of SubdivisionSurface
+    data : ndarray
+    penalty : callable, optional
+        As :func:`bubsub.clients.optimise.fit.fit`'s.
+    data_term : float, optional
+        The data term of ``surfaces``, if known (no projection is made then).
+    """
+    from bubsub.clients.pipeline.local import scene_objective
+
+    f = scene_objective(projector, surfaces, data) if data_term is None else float(data_term)
+    if penalty is not None and surfaces:
+        f += float(penalty([s.vertices for s in surfaces])[0])
+    return f
+
+
 def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=None, progress=False, rtol=None,
-                   coarse_rate=0.0):
+                   coarse_rate=0.0, reached=None):
     """Refine the control meshes once, fit, and keep the result if its Akaike score is lower.
 
     Parameters
@@ -109,13 +132,22 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         objective less ``trial`` times this: a coarse fit stopped by its
         iteration cap would gain as much by going on, and the refinement
         must be worth more than that.
+    reached : float, optional
+        The data term ``0.5 ||Proj(S x) - d||^2`` the coarse bubbles had before a
+        repair that preceded the refinement: the trial starts from their objective
+        less the repair's rise in that term. A repair's separations raise the data
+        term by what any refit regains, coarse or refined: on the ~2400-bubble
+        column of ``bubsub bench scale`` one raised it from 562 to 638, the refined
+        fit passed its trial on the way back and ran its 80 iterations over the
+        whole scan (280 s) to 555, and its own repair then cost it the advantage.
 
     Returns
     -------
     surfaces : list of SubdivisionSurface
         The refined bubbles, or ``surfaces`` unchanged.
     summary : dict
-        ``kept`` (bool), ``objective_before``/``after``, ``score_before``/``after``,
+        ``kept`` (bool), ``objective_before``/``after``, ``objective_reached`` (the trial's start:
+        ``objective_before`` less the repair's rise, with ``reached``), ``score_before``/``after``,
         ``bubbles_refined``, ``control_vertices_before``/``after`` (the most of a bubble), ``iterations``.
     """
     from bubsub.clients.optimise.fit import fit
@@ -125,15 +157,15 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
     if not can_refine(surfaces):
         raise ValueError("refining needs a surface with a subdivision level to spare (two in 3D)")
     data = np.asarray(data)
-    f0 = scene_objective(projector, surfaces, data)
-    if penalty is not None:
-        f0 += float(penalty([s.vertices for s in surfaces])[0])
+    data0 = scene_objective(projector, surfaces, data)
+    f0 = penalised_objective(projector, surfaces, data, penalty, data0)
     refined = [refine_control(s) if refinable(s) else s for s in surfaces]
     m, k = data.size, sum(s.vertices.size for s in refined)
     k0 = sum(s.vertices.size for s in surfaces)
     before = akaike_score(f0, m, k0)
     # what the coarse bubbles would reach in as many more iterations of their own fit
-    before_trial = akaike_score(max(f0 - trial * max(float(coarse_rate), 0.0), 1e-300), m, k0)
+    start = f0 if reached is None else f0 - max(0.0, data0 - float(reached))
+    before_trial = akaike_score(max(start - trial * max(float(coarse_rate), 0.0), 1e-300), m, k0)
 
     # the objective that scores before_trial with the refined unknowns (akaike_score solved for f)
     bar = 0.5 * m * np.exp((before_trial - 2.0 * k) / m)
@@ -151,7 +183,8 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
     after = akaike_score(result.objective, m, k)
     # a refinement stopped by the trial is judged by the trial's own bar
     kept = after < (before_trial if result.stop_reason == "stopped by callback" else before)
-    summary = {"kept": bool(kept), "objective_before": f0, "objective_after": result.objective,
+    summary = {"kept": bool(kept), "objective_before": f0, "objective_reached": start,
+               "objective_after": result.objective,
                "coarse_rate": float(coarse_rate), "stop_reason": result.stop_reason,
                "score_before": before, "score_after": after, "iterations": result.iterations,
                "bubbles_refined": sum(a is not b for a, b in zip(refined, surfaces)),
@@ -161,7 +194,7 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
 
 
 def refine_and_check(projector, surfaces, data, check, *, iterations, penalty=None, progress=False, rtol=None,
-                     coarse_rate=0.0):
+                     coarse_rate=0.0, reached=None):
     """:func:`refine_and_fit`, then ``check`` (the pipeline's validity check and repair) on a kept result,
     whose Akaike score must still beat the coarse one's afterwards (else the valid coarse bubbles stay).
 
@@ -179,13 +212,11 @@ def refine_and_check(projector, surfaces, data, check, *, iterations, penalty=No
         ``check``'s summary of the kept refined bubbles.
     """
     refined, summary = refine_and_fit(projector, surfaces, data, iterations=iterations, penalty=penalty,
-                                      progress=progress, rtol=rtol, coarse_rate=coarse_rate)
+                                      progress=progress, rtol=rtol, coarse_rate=coarse_rate, reached=reached)
     if not summary["kept"]:
         return surfaces, summary, None
     repaired, validity = check(refined)
-    f = float(projector.objective(repaired, data)[0]) if repaired else float("inf")
-    if penalty is not None and repaired:
-        f += float(penalty([s.vertices for s in repaired])[0])
+    f = penalised_objective(projector, repaired, data, penalty) if repaired else float("inf")
     summary["score_after_repair"] = akaike_score(f, np.asarray(data).size, sum(s.vertices.size for s in repaired))
     if not summary["score_after_repair"] < summary["score_before"]:
         summary["kept"] = False

@@ -90,8 +90,9 @@ def test_analyse_a_reconstruct_folder(rec3d, tmp_path, capsys):
     assert len(rows(out / "regions_grid.csv")) == 2
 
 
-def write_rec4d(folder):
-    """Three subscans: the T1 of four bubbles (0 -> 1), a growing bubble 5, bubble 6 gone at the last."""
+def write_rec4d(folder, cold_voxel=None):
+    """Three subscans: the T1 of four bubbles (0 -> 1), a growing bubble 5, bubble 6 gone at the last; with
+    ``cold_voxel`` the last one's report gives its preview's voxel (the cold start of ``reconstruct4d``)."""
     times = [0.0, 2.0, 4.0]
     results = []
     for k, t in enumerate(times):
@@ -103,6 +104,8 @@ def write_rec4d(folder):
         ids = sorted(surfaces)
         state = BubbleState.from_surfaces(ids, [surfaces[i] for i in ids])
         report = {"subscan": k, "time": t, "bubbles": len(ids), "field_of_view_mm": FOV}
+        if cold_voxel and k == len(times) - 1:
+            report["preview"] = {"voxel_mm": cold_voxel, "shape": [8, 8, 8], "finer_for_bubbles": True}
         result = SubscanResult(k, t, state, (), report)
         dynamic_outputs.write_subscan(folder, result, 3)
         results.append(result)
@@ -175,3 +178,13 @@ def test_the_default_contact_gap_is_the_voxel_the_preview_used():
                                 "preview": {"voxel_mm": 0.0181, "finer_for_bubbles": True}}) == 0.0181
     with pytest.raises(ValueError, match="no field of view"):
         default_contact_gap({"settings": {}})
+
+
+def test_a_4d_folders_default_contact_gap_is_its_cold_starts_preview_voxel(tmp_path):
+    from bubsub.clients.analysis import analyse
+
+    plain, cold = tmp_path / "plain", tmp_path / "cold"
+    write_rec4d(plain)
+    write_rec4d(cold, cold_voxel=0.021)
+    assert analyse(plain).summary["contact_gap_mm"] == pytest.approx(2 * FOV["radius"] / 160)
+    assert analyse(cold).summary["contact_gap_mm"] == pytest.approx(0.021)  # the warm subscans have no preview

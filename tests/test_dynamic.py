@@ -237,6 +237,9 @@ def test_reconstruct4d_outputs_and_tracks(sim, rec):
     assert report["engine"] == "local" and report["workers"] == 1
     per = {p["subscan"]: p for p in report["subscans"]}
     assert per[2]["start"] == "cold" and per[1]["start"] == per[0]["start"] == "warm"
+    # the cold start's preview voxel, which bubsub analyse takes for the folder's default contact gap
+    cold = json.loads((rec / "subscan_0002" / "report.json").read_text())
+    assert cold["preview"]["voxel_mm"] > 0 and "preview" not in per[0]
     assert all(p["holdout_mse"] < 1e-3 for p in per.values())
     assert all(0 < p["voxel_holdout_mse"] < 1e-2 for p in per.values())
     with open(rec / "tracks.csv") as fh:

@@ -11,8 +11,9 @@ descriptions, and a summary. :meth:`Analysis.write` writes them
 Default contact gap
 -------------------
 One voxel of the reconstruction's voxel preview (``preview.voxel_mm`` of its
-report; in reports that do not give it, ``settings.voxel_size`` or the default
-preview voxel, the field of view's diameter over 160): films of wet foams (micrometres) are far thinner than any scan
+report, in 4D the cold start's; in reports that do not give it,
+``settings.voxel_size`` or the default preview voxel, the field of view's
+diameter over 160): films of wet foams (micrometres) are far thinner than any scan
 resolves, so bubbles pressed against each other come out of ``bubsub
 reconstruct`` with a small gap (the fit keeps a quarter of a preview voxel
 between neighbours); one voxel is four times that, while bubbles apart across
@@ -297,6 +298,18 @@ def _time_unit(folder):
     return "s" if "time_s" in header else "subscan"
 
 
+def _subscans_contact_gap(found):
+    """The default contact gap of a 4D folder's subscans (``found``: ``(index, folder)``): that of the first
+    report giving its preview's voxel, the cold start's (warm subscans are fitted without a preview), else
+    the first subscan's (:func:`default_contact_gap`)."""
+    reports = []
+    for _, d in found:
+        path = d / "report.json"
+        reports.append(json.loads(path.read_text()) if path.is_file() else {})
+    previewed = [r for r in reports if (r.get("preview") or {}).get("voxel_mm")]
+    return default_contact_gap((previewed or reports)[0])
+
+
 def _analyse_4d(folder, gap, options, progress):
     default_gap = gap is None
     unit = _time_unit(folder)
@@ -304,10 +317,10 @@ def _analyse_4d(folder, gap, options, progress):
     t_col, t_info = spec["rates"]["time"][0], spec["rates"]["time"][1:]
     steps, per_table, summaries = [], {k: [] for k in SNAPSHOT_TABLES}, []
     found = _subscans(folder)
+    if gap is None:
+        gap = _subscans_contact_gap(found)
     for n, (index, d) in enumerate(found):
         rec = read_reconstruction(d)
-        if gap is None:
-            gap = default_contact_gap(rec.report)
         time = float(rec.report.get("time", index))
         snap = _snapshot(rec, gap, options)
         for name in SNAPSHOT_TABLES:

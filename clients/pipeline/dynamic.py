@@ -255,6 +255,8 @@ def _cold(scan, settings):
               "objective": r["final_objective"],
               "initial_objective": r["initial_objective"], "bubbles_dropped_at_start": r["bubbles_dropped"],
               "interrupted": r["interrupted"], "holdout_mse": r.get("holdout_mse"), "stop_reason": r.get("stop_reason"),
+              # the voxel the preview used: the default contact gap of bubsub analyse on the 4D folder
+              "preview": r.get("preview"),
               # radius estimation, topology rounds, validity check and repair, held-out MSE: the rest
               "seconds_parts": {"preview_and_centres": r["seconds_initialisation"], "fit": r["seconds_fit"],
                                 "other": r["seconds_total"] - r["seconds_initialisation"] - r["seconds_fit"]}}

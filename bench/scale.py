@@ -44,9 +44,6 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.bench.reconstruct import PHASES
-
-#: The phases after the fit (``report.json``'s ``seconds_parts``), whose sum issue 26 bounds by half the fit's.
-POST_FIT = ("topology", "validity", "refine", "edge_slivers")
 from bubsub.bench.reconstruct import cli_command as _cli
 from bubsub.core.foam.column import COLUMN_PRESETS
 
@@ -55,6 +52,9 @@ __all__ = ["main", "run_tree", "simulate_case", "score_case", "project", "table"
 #: One subscan of TomoBank tomo_00080: projections, detector rows, detector columns.
 TOMO_00080 = (300, 1800, 2016)
 POLL_SECONDS = 0.2
+
+#: The phases after the fit (``report.json``'s ``seconds_parts``), whose sum issue 26 bounds by half the fit's.
+POST_FIT = ("topology", "validity", "refine", "edge_slivers")
 
 
 def table(header, rows):

@@ -43,7 +43,7 @@ from bubsub.clients.pipeline.fov import (field_of_view, fov_report, inside_fov, 
                                          unobserved_control)
 from bubsub.clients.pipeline.initial import choose_initial, default_detector
 from bubsub.clients.pipeline.local import scene_objective
-from bubsub.clients.pipeline.preview import preview_grid, voxel_for_bubbles, voxel_preview
+from bubsub.clients.pipeline.preview import preview_voxel_size, voxel_for_bubbles, voxel_preview
 from bubsub.clients.pipeline.refine import can_refine, coarse_rate, refine_and_check
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
 from bubsub.clients.pipeline.resolution import level_counts, levels_by_size
@@ -172,7 +172,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         image, extent = settings_preview(d_fit, g_fit, contrast, s)
         clock.mark("preview")
         surfaces, initialisation = settings_initial(image, extent, contrast, local, d_fit, s)
-        finer = _finer_voxel(s, surfaces, g_fit, d_fit, contrast, extent, image.shape)
+        finer = _finer_voxel(s, surfaces, g_fit, d_fit, contrast)
         if finer is not None:  # bubbles a few voxels across: seeded again in a preview fine enough for them
             clock.mark("initial_bubbles")
             image, extent = settings_preview(d_fit, g_fit, contrast, replace(s, voxel_size=finer))
@@ -232,8 +232,9 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
             if again is not None:
                 validity = merged_validity(validity, again)
         clock.mark("refine")
-        if seen_slab(g_fit) is not None:  # slivers at the detector's edge, once every change is made
-            kept, late = prune(kept, min_radius=voxel, fov=seen_slab(g_fit))
+        edge = seen_slab(g_fit)
+        if edge is not None:  # slivers at the detector's edge, once every change is made
+            kept, late = prune(kept, min_radius=voxel, fov=edge)
             dropped += late
             clock.mark("edge_slivers")
     except KeyboardInterrupt:  # in the topology rounds, the repair or the refinement: report the bubbles as they were
@@ -308,17 +309,14 @@ def coarse_radii(surfaces, geometry, data, factor, settings):
                            1, levels)
 
 
-def _finer_voxel(settings, surfaces, geometry, data, contrast, extent=None, shape=None):
-    """:func:`voxel_for_bubbles` of ``surfaces`` (their equivalent radii) against the preview's voxel
-    (``extent`` and ``shape``, else the grid the settings would give); None when the voxel size is asked
-    for (``settings.voxel_size``) or the bubbles are wide enough in voxels."""
+def _finer_voxel(settings, surfaces, geometry, data, contrast):
+    """:func:`voxel_for_bubbles` of ``surfaces`` (their equivalent radii) against the default preview
+    voxel; None when the voxel size is asked for (``settings.voxel_size``) or the bubbles are wide enough
+    in voxels."""
     if settings.voxel_size is not None or not surfaces:
         return None
-    extend = preview_extension(settings.fov_model, data, contrast)
-    if extent is None:
-        shape, extent = preview_grid(geometry, None, extend)
-    voxel = (extent[1] - extent[0]) / shape[-1]
-    return voxel_for_bubbles([x.fine().equivalent_radius for x in surfaces], geometry, voxel, extend)
+    return voxel_for_bubbles([x.fine().equivalent_radius for x in surfaces], geometry, preview_voxel_size(geometry),
+                             preview_extension(settings.fov_model, data, contrast))
 
 
 def _separation(settings, data, n_bubbles, voxel):

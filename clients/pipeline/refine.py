@@ -137,9 +137,10 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         repair that preceded the refinement: the trial starts from their objective
         less the repair's rise in that term. A repair's separations raise the data
         term by what any refit regains, coarse or refined: on the ~2400-bubble
-        column of ``bubsub bench scale`` one raised it from 562 to 638, the refined
+        column of ``bubsub bench scale`` one raised it from 565 to 638, the refined
         fit passed its trial on the way back and ran its 80 iterations over the
-        whole scan (280 s) to 555, and its own repair then cost it the advantage.
+        whole scan to 555 (the refine phase: 305 s), and its own repair then cost
+        it the advantage.
 
     Returns
     -------

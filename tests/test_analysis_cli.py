@@ -14,7 +14,7 @@ from bubsub.clients.pipeline.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import Reconstruction
 from bubsub.core.io.atomic import atomic_write_text
 from bubsub.core.io.meshio import read_ply
-from bubsub.core.projection.subdivision import sphere_surface
+from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from test_analysis_dynamics import t1_centres
 
 C = -0.1
@@ -188,3 +188,19 @@ def test_a_4d_folders_default_contact_gap_is_its_cold_starts_preview_voxel(tmp_p
     write_rec4d(cold, cold_voxel=0.021)
     assert analyse(plain).summary["contact_gap_mm"] == pytest.approx(2 * FOV["radius"] / 160)
     assert analyse(cold).summary["contact_gap_mm"] == pytest.approx(0.021)  # the warm subscans have no preview
+
+
+def test_a_2d_reconstruct4d_folder_is_refused_as_2d(tmp_path, capsys):
+    """2D foams are not analysed: a 2D reconstruct4d folder says so in one line (not that no subscan is complete)."""
+    rec, out = tmp_path / "rec2d4d", tmp_path / "an"
+    results = []
+    for k in range(2):
+        surfaces = [circle_surface((-0.6, 0.0), 0.4, C), circle_surface((0.6, 0.1 * k), 0.35, C)]
+        state = BubbleState.from_surfaces([0, 1], surfaces)
+        results.append(SubscanResult(k, float(k), state, (), {"subscan": k, "time": float(k), "bubbles": 2}))
+        dynamic_outputs.write_subscan(rec, results[-1], 2)
+    dynamic_outputs.write_tracks(rec / "tracks.csv", results, "s")
+    assert main(["analyse", str(rec), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "2D reconstruct4d folder" in err and "not analysed" in err and "no complete" not in err
+    assert len(err.splitlines()) == 1 and not out.exists()

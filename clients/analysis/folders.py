@@ -128,15 +128,36 @@ def _problem(folder):
     return None
 
 
+#: What ``bubsub analyse`` says of 2D results: it measures 3D bubbles only.
+NOT_2D = "bubsub analyse measures 3D foams (bubbles.ply); 2D reconstructions are not analysed"
+
+
 def reconstruction_kind(folder):
+    """``"3d"`` for a ``bubsub reconstruct`` folder of 3D bubbles, ``"4d"`` for a 3D ``reconstruct4d`` folder.
+
+    Raises
+    ------
+    ValueError
+        One line: a 2D reconstruction (``bubbles.json``, or a ``reconstruct4d`` folder whose subscans
+        hold ``bubbles.json``), a 4D folder without its subscan folders, or no reconstruction at all.
+    """
     p = Path(folder)
-    if (p / "tracks.csv").is_file() and any(d.is_dir() and d.name.startswith("subscan_") for d in p.iterdir()):
-        return "4d"
+    subscans = [d for d in p.iterdir() if d.is_dir() and d.name.startswith("subscan_")] if p.is_dir() else []
+    if (p / "tracks.csv").is_file() and subscans:
+        if any((d / "bubbles.ply").is_file() for d in subscans):
+            return "4d"
+        if any((d / "bubbles.json").is_file() for d in subscans):
+            raise ValueError(f"{str(folder)!r} is a 2D reconstruct4d folder (its subscans hold bubbles.json); "
+                             f"{NOT_2D}")
+        raise ValueError(f"{str(folder)!r}: no complete subscan_NNNN folder with bubbles.ply (an interrupted "
+                         f"reconstruct4d run? finish it with bubsub reconstruct4d --resume)")
     if (p / "bubbles.ply").is_file():
         return "3d"
-    if (p / "bubbles.json").is_file() or (p / "tracks.csv").is_file():
-        raise ValueError(f"{str(folder)!r} holds a 2D reconstruction (bubbles.json) or a 4D one without its "
-                         f"subscan folders; bubsub analyse measures 3D bubbles (bubbles.ply)")
+    if (p / "bubbles.json").is_file():
+        raise ValueError(f"{str(folder)!r} holds a 2D reconstruction (bubbles.json); {NOT_2D}")
+    if (p / "tracks.csv").is_file():
+        raise ValueError(f"{str(folder)!r} has tracks.csv but no subscan_NNNN folders (a reconstruct4d folder "
+                         f"needs them); bubsub analyse measures their bubbles.ply")
     raise ValueError(f"{str(folder)!r} is not the output of bubsub reconstruct or reconstruct4d (it has neither "
                      f"bubbles.ply nor tracks.csv with subscan_NNNN folders)")
 

@@ -1,11 +1,18 @@
-"""Progress of the long phases (voxel preview, radius estimation, fit): a bar or one line per phase.
+"""Progress of the long phases (voxel preview, radius estimation, fit, topology rounds, subscans): a bar
+or one line per phase.
 
 On a terminal each phase shows a tqdm bar that ends with the reason it
 stopped (a fit that converges after 57 of 80 iterations ends at 57/57,
 "converged"). When stderr is not a terminal (redirected to a log file, a
-batch job, a notebook) each phase prints exactly one summary line when it
-ends, e.g. ``BubSub fit: 57 iterations, 12.3 s, converged, f = 1.23e-03``.
+batch job, a pipe, a notebook) no bar is drawn: each phase prints exactly
+one plain summary line when it ends, e.g.
+``BubSub fit: 57 iterations, 12.3 s, converged, f = 1.23e-03``; a phase made
+with ``each=True`` (the subscans of ``bubsub reconstruct4d``, hours long)
+also prints one line per finished step, so that a log shows how far it got.
 ``BUBSUB_PROGRESS=bar`` or ``=lines`` forces one of the two.
+
+Every progress display of the clients goes through :func:`phase`: a tqdm bar
+made elsewhere would write its carriage returns into log files.
 """
 
 from __future__ import annotations
@@ -33,9 +40,9 @@ class Phase:
     Ctrl-C). Disabled phases do nothing.
     """
 
-    def __init__(self, desc, total, unit, enabled, stream):
+    def __init__(self, desc, total, unit, enabled, stream, each=False):
         self.desc, self.total, self.unit = desc, total, unit
-        self.enabled, self.stream = enabled, stream
+        self.enabled, self.stream, self.each = enabled, stream, each
         self.n = 0
         self.postfix = {}
         self.t0 = time.perf_counter()
@@ -45,7 +52,7 @@ class Phase:
             from tqdm.auto import tqdm
 
             self.bar = tqdm(total=total, desc=desc, unit="it" if unit == "iteration" else unit, leave=True,
-                            file=stream)
+                            file=stream, dynamic_ncols=True)
 
     def __repr__(self):
         return f"phase({self.desc!r}, total={self.total!r}, unit={self.unit!r}, enabled={self.enabled!r})"
@@ -57,6 +64,13 @@ class Phase:
             self.bar.update(n)
             if postfix:
                 self.bar.set_postfix(self.postfix)
+        elif self.enabled and self.each and n:
+            of = f" of {self.total}" if self.total else ""
+            words = [f"{self.unit} {self.n}{of} done", f"{time.perf_counter() - self.t0:.1f} s"]
+            print(f"{self.desc}: " + ", ".join(words + self._postfix_words()), file=self.stream, flush=True)
+
+    def _postfix_words(self):
+        return [f"{k} = {v}" for k, v in self.postfix.items()]
 
     def close(self, reason=None):
         """End the phase, stating why it stopped (``"converged"``, ``"iteration limit"``, ...)."""
@@ -75,7 +89,7 @@ class Phase:
         words = [f"{self.n} {self.unit}{'s' if self.unit.isalpha() and self.n != 1 else ''}", f"{seconds:.1f} s"]
         if reason:
             words.append(reason)
-        words += [f"{k} = {v}" for k, v in self.postfix.items()]
+        words += self._postfix_words()
         print(f"{self.desc}: " + ", ".join(words), file=self.stream, flush=True)
 
     def __enter__(self):
@@ -85,7 +99,7 @@ class Phase:
         self.close("interrupted" if exc_type is KeyboardInterrupt else ("failed" if exc_type else None))
 
 
-def phase(desc, total=None, *, unit="iteration", enabled=True, stream=None):
+def phase(desc, total=None, *, unit="iteration", enabled=True, stream=None, each=False):
     """Progress of one phase: a bar on a terminal, else one summary line at its end.
 
     Parameters
@@ -100,9 +114,12 @@ def phase(desc, total=None, *, unit="iteration", enabled=True, stream=None):
         False: no output at all (``--quiet``).
     stream : file, optional
         Default ``sys.stderr``.
+    each : bool
+        Without a terminal, also one line per step (``subscans: subscan 2 of 8
+        done, 41.0 s, bubbles = 34``), for phases of many long steps.
 
     Returns
     -------
     Phase
     """
-    return Phase(desc, total, unit, enabled, sys.stderr if stream is None else stream)
+    return Phase(desc, total, unit, enabled, sys.stderr if stream is None else stream, each=each)

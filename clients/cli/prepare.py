@@ -58,7 +58,11 @@ def cmd_prepare(args):
     )
     if options.background == "reproject" and options.foam_radius is None:
         raise ValueError("--background reproject needs --foam-radius (mm): the region the foam fills")
-    report = _with_sigterm_as_interrupt(prepare, args.raw, args.out, options, progress=not args.quiet)
+    from bubsub.clients.progress import phase
+
+    # a bar per pass on a terminal, one line per pass in a log
+    report = _with_sigterm_as_interrupt(prepare, args.raw, args.out, options,
+                                        progress=False if args.quiet else phase)
     steps = {s["step"]: s for s in report["steps"]}
     shape = steps["bin"]["output_shape"]
     centre = steps["center"]

@@ -250,16 +250,13 @@ def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=N
         overlap, unmatched ids of either side.
     """
     from bubsub.clients.cluster.engine import distributed
+    from bubsub.clients.progress import phase
 
     parts = chunk_bounds(order, chunks)
     linker = _Linker(parts, start.ids if start is not None else ())
     results = []
-    bar = None
-    if settings.progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(order), desc=f"subscans ({len(parts)} chunk{'s' if len(parts) > 1 else ''})",
-                   unit="subscan")
+    bar = phase(f"subscans ({len(parts)} chunk{'s' if len(parts) > 1 else ''})", len(order), unit="subscan",
+                enabled=settings.progress, each=True)
     worker_settings = dataclasses.replace(settings, progress=False) if client is not None else settings
 
     def take(c, res):
@@ -269,9 +266,8 @@ def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=N
             results.append(r)
             if on_result is not None:
                 on_result(r)
-        if bar is not None and not (c > 0 and res.index == parts[c][0]):
-            bar.update(1)
-            bar.set_postfix(bubbles=len(res.state))
+        if not (c > 0 and res.index == parts[c][0]):
+            bar.update(1, subscan=res.index, bubbles=len(res.state))
 
     def when(k):
         return float(times[k]) if times is not None else float(k)
@@ -304,8 +300,11 @@ def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=N
             finally:
                 client.cancel([f for f in futures if not f.done()])
     except KeyboardInterrupt:
+        bar.close("interrupted")
         return results, True, linker.links
+    except Exception:
+        bar.close("failed")
+        raise
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
     return results, False, linker.links

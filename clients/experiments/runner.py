@@ -231,18 +231,16 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
     rows = _read_runs(out / f"{name}.csv", exp.variable, quick) if resume else []
     done = {(r[exp.variable], r["seed"], r["method"]) for r in rows}
     todo = [(v, s, m) for v in values for s in range(seeds) for m in methods if (v, s, m) not in done]
-    from tqdm.auto import tqdm
-
     from bubsub.clients.cluster.engine import run_tasks
+    from bubsub.clients.progress import phase
 
-    bar = tqdm(total=len(todo), desc=name, disable=not progress)
+    bar = phase(name, len(todo), unit="run", enabled=progress, each=True)
     t0 = time.perf_counter()
     done_now = {}
 
     def finished(i, row):
         done_now[i] = row
-        bar.update(1)
-        bar.set_postfix(method=row["method"], ddi=f"{row['ddi']:.3f}")
+        bar.update(1, method=row["method"], ddi=f"{row['ddi']:.3f}")
 
     interrupted = False
     try:

@@ -200,7 +200,9 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         The progress line's name.
     callback : callable, optional
         Called after each iteration with ``(iteration, objective, surfaces)``;
-        return True to stop.
+        return a true value to stop: a string is the stop reason the fit
+        reports (in plain words, e.g. ``"stopped: ..."``), True reports
+        ``"stopped early"``.
     catch_interrupt : bool
         True: Ctrl-C stops the fit and it returns the best iterate so far,
         flagged ``interrupted`` (the ``bubsub reconstruct`` command then
@@ -265,7 +267,9 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
     bar = phase(label, iterations, enabled=progress)
 
     class _Stop(Exception):
-        pass
+        def __init__(self, reason):
+            super().__init__(reason)
+            self.reason = reason
 
     class _Stalled(Exception):
         pass
@@ -273,8 +277,9 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
     def on_iteration(xk):
         history.append({"iteration": len(history) + 1, "objective": best["f"], "seconds": time.perf_counter() - t0})
         bar.update(1, f=f"{best['f']:.4g}")
-        if callback is not None and callback(len(history), best["f"], unpack(best["x"])):
-            raise _Stop
+        stop = callback(len(history), best["f"], unpack(best["x"])) if callback is not None else None
+        if stop:
+            raise _Stop(stop if isinstance(stop, str) else "stopped early")
         k = rtol_window
         if rtol is not None and len(history) > k and \
                 history[-k - 1]["objective"] - best["f"] <= rtol * best["f"]:
@@ -296,8 +301,8 @@ def fit(projector, surfaces, data=None, iterations=80, *, method="auto", progres
         interrupted, reason = True, "interrupted"
         if not catch_interrupt:
             raise
-    except _Stop:
-        reason = "stopped by callback"
+    except _Stop as why:
+        reason = why.reason
     except _Stalled:
         reason = "converged"
     finally:

@@ -35,7 +35,6 @@ import dataclasses
 import time as _time
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from bubsub.core import MeshProjector, SubdivisionSurface
 from bubsub.core.metrics import projection_mse
@@ -439,26 +438,24 @@ def run_chain(get_scan, indices, settings, *, start=None, step=reconstruct_subsc
         included.
     interrupted : bool
     """
+    from bubsub.clients.progress import phase
+
     results = []
     state = start
-    bar = None
-    if settings.progress:
-        bar = tqdm(total=len(indices), desc="subscans", unit="subscan", position=0)
-    try:
-        for k in indices:
-            res = step(get_scan(k), state, settings, k, float(times[k]) if times is not None else float(k))
-            if res.report.get("interrupted"):
-                return results, True
-            results.append(res)
-            state = res.state
-            if on_result is not None:
-                on_result(res)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(bubbles=len(state), ended=len(res.ended))
-    except KeyboardInterrupt:
-        return results, True
-    finally:
-        if bar is not None:
-            bar.close()
+    # one line per finished subscan in a log (each=True): a run takes hours
+    with phase("subscans", len(indices), unit="subscan", enabled=settings.progress, each=True) as bar:
+        try:
+            for k in indices:
+                res = step(get_scan(k), state, settings, k, float(times[k]) if times is not None else float(k))
+                if res.report.get("interrupted"):
+                    bar.close("interrupted")
+                    return results, True
+                results.append(res)
+                state = res.state
+                if on_result is not None:
+                    on_result(res)
+                bar.update(1, subscan=k, bubbles=len(state), ended=len(res.ended))
+        except KeyboardInterrupt:
+            bar.close("interrupted")
+            return results, True
     return results, False

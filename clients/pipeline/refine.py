@@ -37,6 +37,10 @@ __all__ = ["refine_and_fit", "refine_and_check", "can_refine", "refinable", "coa
            "penalised_objective"]
 
 
+#: The refined fit's stop reason when its trial fails: the finer surfaces did not lower the objective enough,
+#: within a few iterations, to pay for their extra unknowns (the coarse bubbles are kept).
+TRIAL_FAILED = "stopped: the finer surfaces do not pay for their extra unknowns"
+
 def refinable(surface):
     """Whether a bubble has a subdivision level to move into its control mesh, keeping one in 3D.
 
@@ -176,14 +180,16 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         # a refinement that has not paid for its unknowns after a few iterations is not worth the rest
         seen.append(objective)
         if iteration == trial:
-            return akaike_score(objective, m, k) >= before_trial
-        return trial // 2 <= iteration < trial and out_of_reach(seen, bar, trial - iteration)
+            failed = akaike_score(objective, m, k) >= before_trial
+        else:
+            failed = trial // 2 <= iteration < trial and out_of_reach(seen, bar, trial - iteration)
+        return TRIAL_FAILED if failed else None
 
     result = fit(projector, refined, data, iterations=iterations, progress=progress, catch_interrupt=False,
                  penalty=penalty, label="refined fit", callback=trial_failed, rtol=rtol)
     after = akaike_score(result.objective, m, k)
     # a refinement stopped by the trial is judged by the trial's own bar
-    kept = after < (before_trial if result.stop_reason == "stopped by callback" else before)
+    kept = after < (before_trial if result.stop_reason == TRIAL_FAILED else before)
     summary = {"kept": bool(kept), "objective_before": f0, "objective_reached": start,
                "objective_after": result.objective,
                "coarse_rate": float(coarse_rate), "stop_reason": result.stop_reason,

@@ -299,6 +299,15 @@ def _among(surfaces, ids):
     return None if ids is None else {k for k, s in enumerate(surfaces) if id(s) in ids}
 
 
+def _changes_words(changes):
+    """A round's changes in words, for its progress line: ``"2 added, 1 merged"``."""
+    done = {"remove": "removed", "add": "added", "merge": "merged", "split": "split"}
+    counts = {}
+    for c in changes:
+        counts[c["change"]] = counts.get(c["change"], 0) + 1
+    return ", ".join(f"{n} {done[k]}" for k, n in counts.items()) or "no change"
+
+
 def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius, max_radius, rounds=3,
                    iterations=30, threshold=0.15, touch=0.0, split_ratio=1.6, local_iterations=15, max_add=20,
                    max_tries=8, steps=("remove", "add", "merge", "split"), complexity=1.0, image=None,
@@ -375,44 +384,55 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     refits = []
     fresh = None  # after the first round: the bubbles the last refit moved (ids)
     residual = None
+    from bubsub.clients.progress import phase
+
     for r in range(rounds):
         n_before = len(changes)
         start = {id(s): s for s in surfaces}
-
-        own = Footprints(projector, surfaces)
-        residual = scene_residual(projector, surfaces, data)
-        cost = complexity * unknowns * 2 * _half_sq(residual) / residual.size
-        if "remove" in steps:
-            # unknowns no ray sees cost nothing to remove: a cut bubble is charged for its visible ones only
-            removal_cost = cost * _seen_unknowns(surfaces, projector.geometry) / unknowns if fov_edge else cost
-            surfaces, own = remove_step(surfaces, residual, own, changes, r, removal_cost,
-                                        only=_among(surfaces, fresh))
-        if "add" in steps:
-            surfaces, own = add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r,
-                                     min_radius=min_radius, max_radius=max_radius, threshold=threshold,
-                                     max_add=max_add, cost=cost)
-        if "merge" in steps:
-            at_edge = _at_edge(surfaces, projector.geometry) if fov_edge else None
-            surfaces, own = merge_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
-                                       touch=touch, iterations=local_iterations, max_tries=max_tries, cost=cost,
-                                       at_edge=at_edge, only=_among(surfaces, fresh))
-        if "split" in steps:
-            surfaces, own = split_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
-                                       ratio=split_ratio, iterations=local_iterations, max_tries=max_tries, cost=cost,
-                                       blobs=blobs, only=_among(surfaces, fresh))
-        done = r + 1
-        if len(changes) == n_before or not surfaces:
-            break
-        # only the bubbles the round changed, and their neighbours, are refitted (on windows, the rest fixed)
-        kept = {id(s) for s in surfaces}
-        changed = [k for k, s in enumerate(surfaces) if id(s) not in start]
-        gone = [(_centre(s), equivalent_radius(_size(s), s.ndim)) for i, s in start.items() if i not in kept]
-        before_refit = {id(s) for s in surfaces}
-        surfaces, residual, summary = local_refit(projector, surfaces, data, changed, iterations=iterations,
-                                                  touch=touch, near=gone, residual=residual, penalty=penalty,
-                                                  progress=progress, label=f"topology round {r + 1} refit")
-        fresh = {id(s) for s in surfaces if id(s) not in before_refit}
-        refits.append(dict(summary, round=r))
+        # the whole round is one phase, timed from its start: its changes (the residual's blobs, the merge and
+        # split trials) take most of its time, the refit of what they changed (a phase of its own) the rest
+        with phase(f"topology round {r + 1}", len(steps) + 1, unit="step", enabled=progress) as bar:
+            own = Footprints(projector, surfaces)
+            residual = scene_residual(projector, surfaces, data)
+            cost = complexity * unknowns * 2 * _half_sq(residual) / residual.size
+            if "remove" in steps:
+                # unknowns no ray sees cost nothing to remove: a cut bubble is charged for its visible ones only
+                removal_cost = cost * _seen_unknowns(surfaces, projector.geometry) / unknowns if fov_edge else cost
+                surfaces, own = remove_step(surfaces, residual, own, changes, r, removal_cost,
+                                            only=_among(surfaces, fresh))
+                bar.update(1)
+            if "add" in steps:
+                surfaces, own = add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r,
+                                         min_radius=min_radius, max_radius=max_radius, threshold=threshold,
+                                         max_add=max_add, cost=cost)
+                bar.update(1)
+            if "merge" in steps:
+                at_edge = _at_edge(surfaces, projector.geometry) if fov_edge else None
+                surfaces, own = merge_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
+                                           touch=touch, iterations=local_iterations, max_tries=max_tries, cost=cost,
+                                           at_edge=at_edge, only=_among(surfaces, fresh))
+                bar.update(1)
+            if "split" in steps:
+                surfaces, own = split_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
+                                           ratio=split_ratio, iterations=local_iterations, max_tries=max_tries,
+                                           cost=cost, blobs=blobs, only=_among(surfaces, fresh))
+                bar.update(1)
+            done = r + 1
+            if len(changes) == n_before or not surfaces:
+                bar.close("no change")
+                break
+            # only the bubbles the round changed, and their neighbours, are refitted (on windows, the rest fixed)
+            kept = {id(s) for s in surfaces}
+            changed = [k for k, s in enumerate(surfaces) if id(s) not in start]
+            gone = [(_centre(s), equivalent_radius(_size(s), s.ndim)) for i, s in start.items() if i not in kept]
+            before_refit = {id(s) for s in surfaces}
+            surfaces, residual, summary = local_refit(projector, surfaces, data, changed, iterations=iterations,
+                                                      touch=touch, near=gone, residual=residual, penalty=penalty,
+                                                      progress=progress, label=f"topology round {r + 1} refit")
+            fresh = {id(s) for s in surfaces if id(s) not in before_refit}
+            refits.append(dict(summary, round=r))
+            bar.update(1)
+            bar.close(_changes_words(changes[n_before:]))
     # the last round's residual is the returned scene's (kept up to date by every change and refit)
     objective = _half_sq(residual) if residual is not None else scene_objective(projector, surfaces, data)
     return surfaces, {"changes": changes, "objective": objective, "rounds": done, "refits": refits}

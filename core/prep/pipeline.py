@@ -114,6 +114,8 @@ def _slabs(n, per):
 
 
 def _bar(total, desc, progress):
+    if callable(progress):
+        return progress(desc, total, unit="projection" if desc.startswith("pass 1") else "row")
     from tqdm.auto import tqdm
 
     return tqdm(total=total, desc=desc, unit="proj" if desc.startswith("pass 1") else "row", disable=not progress,
@@ -131,8 +133,9 @@ def prepare(raw, out, options=None, *, progress=True):
         Scan file to write (atomically); ``<out>.report.json`` is written too.
     options : PrepareOptions, optional
         :func:`prepare_options` (defaults if omitted).
-    progress : bool
-        tqdm progress bars.
+    progress : bool or callable
+        tqdm progress bars; or ``progress(desc, total, unit=)`` making each pass's progress (a context
+        manager with ``update(n)``, e.g. :func:`bubsub.clients.progress.phase`: one line per pass in a log).
 
     Returns
     -------

@@ -13,7 +13,7 @@ from bubsub.core.contrast import signal_masses
 from bubsub.core.validate import check_int
 
 __all__ = ["check_settings", "check_bubble_signal", "check_lateral_truncation", "side_signal", "CONTROL_POINTS_3D",
-           "MAX_LEVELS", "TRUNCATED_VIEWS"]
+           "MAX_LEVELS", "TRUNCATED_VIEWS", "check_physical_signal", "longest_path", "IMPOSSIBLE_FRACTION"]
 
 #: Control vertices of the icosphere control meshes (3D bubbles).
 CONTROL_POINTS_3D = (12, 42, 162)
@@ -114,6 +114,7 @@ def check_bubble_signal(scan, *, background_subtracted=False):
             f"and no /exchange/background, so the fit would take the liquid for bubbles; gas bubbles have a "
             f"negative contrast: correct its sign and {prepare}; if the data really hold only the bubbles' "
             f"projection, pass --background-subtracted")
+    check_physical_signal(scan)
     check_lateral_truncation(scan)
 
 
@@ -203,3 +204,117 @@ def check_lateral_truncation(scan):
             f"view and its gas outside it would be fitted as spurious bubbles at the edge; bubsub needs a "
             f"detector wider than the sample (a wider field of view, or the sample centred on the rotation axis "
             f"if it is narrower than the detector but off-centre)")
+
+#: Most fraction of the values that may pass a bound of :func:`check_physical_signal` by more than the noise
+#: before the scan is refused: a few defective detector columns (each 1/cols of the values) stay below it, a
+#: signal beyond the physics shows in far more (a foam's data with their sign flipped: all of them).
+IMPOSSIBLE_FRACTION = 0.002
+
+
+def longest_path(geometry):
+    """The longest path (mm) a ray of ``geometry`` can take through the region the pipeline models.
+
+    That region is the cylinder of :data:`bubsub.clients.pipeline.fov.FOV_EXTEND` times the field of
+    view's radius (:func:`bubsub.clients.pipeline.fov.field_of_view`; a disc in 2D): a ray crosses it
+    over at most its diameter divided by the cosine of the ray's tilt out of the x-y plane (0 in 2D and for
+    a parallel beam perpendicular to the axis; largest at the middle of a cone beam's top and bottom rows).
+
+    Parameters
+    ----------
+    geometry : bubsub.core.ScanGeometry
+
+    Returns
+    -------
+    float
+        mm.
+    """
+    from bubsub.clients.pipeline.fov import FOV_EXTEND, field_of_view
+
+    diameter = 2.0 * FOV_EXTEND * field_of_view(geometry)[0]
+    if geometry.ndim == 2:
+        return diameter
+    views = geometry[::max(1, geometry.n_angles // 32)]
+    flat = 1.0
+    for row in (0, geometry.det_rows - 1):  # the steepest rays: a cone's top and bottom rows
+        _, d = views.window(row, 0, rows=1, cols=geometry.det_cols).rays()
+        flat = min(flat, float(np.min(np.hypot(d[..., 0], d[..., 1]))))
+    return diameter / max(flat, 1e-6)
+
+
+def check_physical_signal(scan):
+    """Refuse data no foam can give: the bubble signal's sign and size against the liquid and the contrast.
+
+    Along each ray the line integral is ``data = background + c L``, with
+    ``c`` the bubble contrast (gas minus liquid attenuation, 1/mm) and ``L``
+    the length (mm) of the ray's path through gas. Whatever the sample,
+    within the noise:
+
+    1. the projections vary: one value everywhere is no image of a sample;
+    2. with ``/exchange/background``, ``background >= 0`` and ``data >= 0``:
+       nothing in the beam attenuates negatively, so a bubble removes at most
+       the liquid on its ray (the gas attenuation, liquid plus ``c``, is
+       ``>= 0`` and ``L`` is at most the liquid's path) and the bubble signal
+       ``data - background`` never falls below ``-background``;
+    3. ``L = (data - background) / c`` is at most the longest path through the
+       modelled region (:func:`longest_path`): a contrast far too small in
+       magnitude (or in the wrong unit), or data scaled by a factor, imply
+       gas paths longer than the sample.
+
+    :func:`check_bubble_signal` checks the signal's sign (most of its mass
+    on the contrast's side) before this; this check bounds each value. The
+    noise ``sigma`` is :func:`bubsub.core.prep.background.noise_level` of
+    ``data`` (differences of adjacent columns); a value breaks a bound when
+    it passes it by more than ``max(6 sigma, 1 % of the 99th percentile of
+    |data|)``, and the scan is refused when more than
+    :data:`IMPOSSIBLE_FRACTION` of the values do. NaN, inf and a zero
+    contrast are refused when the file is read
+    (:func:`bubsub.core.io.scanfile.read_scan`).
+
+    Parameters
+    ----------
+    scan : bubsub.core.io.scanfile.Scan
+        ``data`` and ``background`` ``(views, cols)`` or ``(views, rows, cols)``.
+
+    Raises
+    ------
+    ValueError
+        One line naming the bound broken, by how many values and how far, and what to correct.
+    """
+    from bubsub.core.prep.background import noise_level
+
+    name = scan.path.name if scan.path is not None else "the scan"
+    data, bg, c = scan.data, scan.background, scan.bubble_contrast
+    step = max(1, data.shape[0] // 64)  # the noise and the scale from some views: the same level, quicker
+    sigma = noise_level(data[::step])
+    tol = max(6.0 * sigma, 0.01 * float(np.percentile(np.abs(data[::step]), 99)))
+    lo, hi = float(data.min()), float(data.max())
+    if hi - lo <= tol:
+        spread = f"are all {lo:.4g}" if hi == lo else f"vary only from {lo:.4g} to {hi:.4g}, within the noise"
+        raise ValueError(
+            f"{name}: the values of /exchange/data {spread}: the projections hold no image of a sample; write "
+            f"the scan's line integrals, -log(transmission), to it")
+    prepare = "make it with `bubsub prepare --background auto`"
+    if bg is not None:
+        n_bg = int(np.count_nonzero(bg < -tol))
+        if n_bg > IMPOSSIBLE_FRACTION * bg.size:
+            raise ValueError(
+                f"{name}: {100 * n_bg / bg.size:.3g} % of /exchange/background is negative (down to "
+                f"{float(bg.min()):.4g}, beyond the noise {tol:.2g}): the liquid's projection cannot attenuate "
+                f"negatively; {prepare}")
+        n_neg = int(np.count_nonzero(data < -tol))
+        if n_neg > IMPOSSIBLE_FRACTION * data.size:
+            raise ValueError(
+                f"{name}: {100 * n_neg / data.size:.3g} % of the line integrals in /exchange/data are negative "
+                f"(down to {lo:.4g}, beyond the noise {tol:.2g}), so the bubble signal data - background exceeds "
+                f"the whole liquid's projection there, more than a bubble filling all the liquid on a ray could "
+                f"remove; /exchange/data must hold -log(transmission) of the sample with its liquid and "
+                f"/exchange/background the liquid's projection alone ({prepare})")
+    longest = longest_path(scan.geometry)
+    gas = np.sign(c) * scan.bubble_data  # c L: positive along gas
+    n_long = int(np.count_nonzero(gas > abs(c) * longest + tol))
+    if n_long > IMPOSSIBLE_FRACTION * gas.size:
+        raise ValueError(
+            f"{name}: with bubble_contrast = {c:g} 1/mm the bubble signal implies gas paths up to "
+            f"{float(gas.max()) / abs(c):.4g} mm on {100 * n_long / gas.size:.3g} % of the rays, longer than the "
+            f"{longest:.4g} mm any ray crosses of the field of view: bubble_contrast (gas minus liquid "
+            f"attenuation, 1/mm) is too small in magnitude for these data, or the data are scaled; correct it")

@@ -1,0 +1,103 @@
+"""Scans no foam can give are refused before any work: the bubble signal against the liquid and the contrast.
+
+The truth is the construction: each impossible scan is a simulated foam (voxel-projected, not the fitted mesh
+model) altered so that it breaks a physical bound by a known margin: line integrals below zero, a bubble
+signal larger than the liquid it replaces, gas paths longer than the field of view, one value everywhere.
+"""
+
+import shutil
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from bubsub.clients.cli import main
+from bubsub.clients.pipeline.checks import check_bubble_signal, check_physical_signal, longest_path
+from bubsub.core import ScanGeometry
+from bubsub.core.io.scanfile import read_scan
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "sim"
+    assert main(["simulate", "--phantom", "foam2d", "--det-count", "400", "--angles", "12", "--seed", "3",
+                 "--out", str(out)]) == 0
+    return out
+
+
+def _altered(sim, path, data=None, contrast=None, background=True):
+    """A copy of the simulation's scan (written with h5py) with ``data(d, bg)`` as its data and, when
+    ``background`` is callable, ``background(bg)`` as its background (False: none)."""
+    shutil.copy(sim / "scan.h5", path)
+    with h5py.File(path, "a") as f:
+        d, bg = f["exchange/data"][...], f["exchange/background"][...]
+        if data is not None:
+            f["exchange/data"][...] = data(d, bg).astype(np.float32)
+        if contrast is not None:
+            f.attrs["bubble_contrast"] = contrast
+        if background is False:
+            del f["exchange/background"]
+        elif callable(background):
+            f["exchange/background"][...] = background(bg).astype(np.float32)
+    return path
+
+
+def test_a_sign_flipped_scan_is_refused_in_one_line_and_leaves_no_folder(sim, tmp_path, capsys):
+    scan = _altered(sim, tmp_path / "flipped.h5", data=lambda d, bg: -np.abs(d) - 1)
+    t0 = time.perf_counter()
+    assert main(["reconstruct", str(scan), "--out", str(tmp_path / "rec"), "--quiet"]) == 2
+    assert time.perf_counter() - t0 < 3  # before the voxel preview
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "100 % of the line integrals in /exchange/data are negative" in err
+    assert not (tmp_path / "rec").exists()
+
+
+@pytest.mark.parametrize("kind, data, contrast, background, words", [
+    # bubbles 3x deeper than they are: on the big bubbles' rays more gas than liquid
+    ("3x signal", lambda d, bg: bg + 3 * (d - bg), None, True, "line integrals in /exchange/data are negative"),
+    # the contrast 50x too small: gas paths of up to 50x the foam's width
+    ("tiny contrast", None, -0.002, True, "longer than the"),
+    # the bubbles' signal alone, 20x too strong, so no background to compare with
+    ("20x signal, no background", lambda d, bg: 20 * (d - bg), None, False, "gas paths up to"),
+    ("one value", lambda d, bg: np.full_like(d, 0.5), None, True, "are all 0.5"),
+    ("zeros", lambda d, bg: np.zeros_like(d), None, True, "are all 0"),
+    # the background's sign flipped, data with it: data - background is still the bubbles' signal
+    ("negative background", lambda d, bg: d - 2 * bg, None, lambda bg: -bg, "of /exchange/background is negative"),
+])
+def test_impossible_scans_are_refused(sim, tmp_path, kind, data, contrast, background, words):
+    path = _altered(sim, tmp_path / "bad.h5", data=data, contrast=contrast, background=background)
+    with pytest.raises(ValueError, match=words) as exc:
+        check_bubble_signal(read_scan(path))
+    assert "\n" not in str(exc.value)
+
+
+def test_real_foams_pass(sim, tmp_path):
+    scan = read_scan(sim / "scan.h5")
+    check_physical_signal(scan)
+    # the bubbles' projection alone (no background) is a possible scan too
+    scan.data, scan.background = scan.bubble_data, None
+    check_physical_signal(scan)
+    # noisier: 300 photons
+    noisy = tmp_path / "noisy"
+    assert main(["simulate", "--phantom", "foam2d", "--det-count", "400", "--angles", "12", "--seed", "4",
+                 "--photons", "300", "--out", str(noisy)]) == 0
+    check_physical_signal(read_scan(noisy / "scan.h5"))
+
+
+def test_the_longest_path_is_the_modelled_cylinder_crossed_by_the_steepest_ray():
+    pix, cols, rows, so, od = 0.05, 200, 120, 40.0, 20.0
+    # parallel: the diameter of 1.25 x the reconstructable disc, cols x pix wide
+    g2 = ScanGeometry.parallel(np.linspace(0, np.pi, 9, endpoint=False), pixel_size=pix, cols=cols)
+    assert longest_path(g2) == pytest.approx(1.25 * cols * pix)
+    # cone: the disc shrinks by the magnification; the middle of the top row's ray is tilted by
+    # atan(z / (so + od)), z that row's centre above the axis
+    g3 = ScanGeometry.cone(np.linspace(0, 2 * np.pi, 9, endpoint=False), source_origin=so, origin_detector=od,
+                           pixel_size=pix, cols=cols, rows=rows)
+    r = 0.5 * cols * pix * so / (so + od)
+    z = (0.5 * rows - 0.5) * pix
+    # the middle of the row is between two pixel centres: the steepest pixel ray is half a pixel aside
+    x = 0.5 * pix
+    tilt = np.hypot(so + od, np.hypot(x, z)) / np.hypot(so + od, x)
+    assert longest_path(g3) == pytest.approx(2 * 1.25 * r * tilt, rel=1e-9)

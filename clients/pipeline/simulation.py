@@ -9,11 +9,12 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["PHANTOMS", "DYNAMIC_PHANTOMS", "make_phantom", "make_geometry", "truth_grid", "simulate_to_dir",
-           "simulate_dynamic_to_dir", "simulate_raw_to_dir"]
+           "simulate_dynamic_to_dir", "simulate_flowing_to_dir", "simulate_raw_to_dir"]
 
 PHANTOMS = ("foam2d", "foam3d", "foam3d-benchmark")
-#: Expanding foams for dynamic scans (:mod:`bubsub.core.foam.expanding`).
-DYNAMIC_PHANTOMS = ("expanding2d", "expanding3d")
+#: Dynamic scans: expanding foams (:mod:`bubsub.core.foam.expanding`) and a flowing, coarsening foam column
+#: (:mod:`bubsub.core.foam.flowing`).
+DYNAMIC_PHANTOMS = ("expanding2d", "expanding3d", "flowing3d")
 
 
 def make_phantom(name, seed, n_bubbles=None):
@@ -124,6 +125,12 @@ def simulate_dynamic_to_dir(out, phantom_name="expanding2d", *, subscans=8, proj
 
     if phantom_name not in DYNAMIC_PHANTOMS:
         raise ValueError(f"unknown dynamic phantom {phantom_name!r}; choose one of {DYNAMIC_PHANTOMS}")
+    if phantom_name == "flowing3d":
+        if beam not in (None, "parallel"):
+            raise ValueError("the flowing3d phantom is a parallel-beam scan; drop --beam cone")
+        return simulate_flowing_to_dir(out, subscans=subscans, projections_per_subscan=projections_per_subscan,
+                                       photons=photons, seed=seed, det_count=det_count, n_bubbles=n_bubbles,
+                                       seconds_per_projection=seconds_per_projection, **(foam or {}))
     out = Path(out)
     (out / "truth").mkdir(parents=True, exist_ok=True)
     kw = dict(foam or {}, **({"n_bubbles": n_bubbles} if n_bubbles else {}))
@@ -151,6 +158,43 @@ def simulate_dynamic_to_dir(out, phantom_name="expanding2d", *, subscans=8, proj
     atomic_write_text(out / "phantom.json", json.dumps(meta, indent=2))
     truths = [out / "truth" / f"subscan_{k:04d}.{'json' if foam.ndim == 2 else 'ply'}" for k in range(len(mid))]
     finish_outputs(out, [out / "scan.h5", out / "phantom.json", *truths], command="simulate")
+    return out / "scan.h5", out / "truth", meta
+
+
+def simulate_flowing_to_dir(out, *, subscans=None, projections_per_subscan=None, photons=1e4, seed=0,
+                            det_count=None, n_bubbles=None, seconds_per_projection=0.01, **foam):
+    """Simulate a flowing, coarsening foam column's dynamic scan into ``out`` (:mod:`bubsub.core.foam.flowing`).
+
+    Defaults (:data:`~bubsub.core.foam.flowing.FLOWING_DEFAULTS`): 12 subscans of 40 parallel projections over
+    180 degrees each, continuous rotation, 128 x 384 pixels of 12 um, ~150 bubbles in view. ``det_count``
+    sets the columns (a third as many rows) and keeps the field of view: the pixel is ``0.012 * 384 / det_count``
+    mm. ``foam``: more options of :func:`~bubsub.core.foam.flowing.flowing_foam` (``flow``, ``vanishing``,
+    ``coalescences``, ...). Writes what :func:`~bubsub.core.foam.flowing.write_flowing` lists.
+
+    Returns
+    -------
+    scan : Path
+    truth : Path
+        The per-subscan truth folder.
+    meta : dict
+        ``phantom.json``.
+    """
+    from bubsub.core.foam.flowing import FLOWING_DEFAULTS, flowing_foam, simulate_flowing, write_flowing
+
+    from bubsub.clients.pipeline.outputs import finish_outputs
+
+    d = FLOWING_DEFAULTS
+    cols = det_count or d["cols"]
+    if cols < 3:
+        raise ValueError(f"--det-count must be at least 3 for flowing3d (rows are a third of it), got {cols}")
+    per = projections_per_subscan or d["projections_per_subscan"]
+    flowing = flowing_foam(n_bubbles or d["n_bubbles"], seed=seed, rows=cols // 3, cols=cols,
+                           pixel_size=d["pixel_size"] * d["cols"] / cols, subscans=subscans or d["subscans"], **foam)
+    scan = simulate_flowing(flowing, projections_per_subscan=per, photons=photons,
+                            seconds_per_projection=seconds_per_projection)
+    out = Path(out)
+    files, meta = write_flowing(out, flowing, scan, seconds_per_projection=seconds_per_projection)
+    finish_outputs(out, files, command="simulate")
     return out / "scan.h5", out / "truth", meta
 
 

@@ -204,3 +204,29 @@ def test_a_2d_reconstruct4d_folder_is_refused_as_2d(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "2D reconstruct4d folder" in err and "not analysed" in err and "no complete" not in err
     assert len(err.splitlines()) == 1 and not out.exists()
+
+
+def test_a_4d_folder_is_analysed_on_one_grid_for_all_subscans(tmp_path):
+    """Bubbles doubling in size would give each subscan its own default grid; one grid lets a cell be followed."""
+    from bubsub.clients.analysis import analyse
+
+    rec = tmp_path / "grow"
+    centres = [(-1.0, -1.0, 0.0), (1.0, -1.0, 0.0), (-1.0, 1.0, 0.0), (1.0, 1.0, 0.0)]
+    results = []
+    for k, r in enumerate((0.2, 0.3, 0.45)):
+        state = BubbleState.from_surfaces([0, 1, 2, 3], [sphere_surface(c, r * (1 + 0.02 * i), C, levels=2)
+                                                             for i, c in enumerate(centres)])
+        results.append(SubscanResult(k, float(k), state, (), {"subscan": k, "time": float(k), "bubbles": 4,
+                                                              "field_of_view_mm": FOV}))
+        dynamic_outputs.write_subscan(rec, results[-1], 3)
+    dynamic_outputs.write_tracks(rec / "tracks.csv", results, "s")
+    result = analyse(rec, contact_gap=0.03)
+    cells = {}
+    for row in result.tables["grid"]:
+        cells.setdefault(row["subscan"], []).append(
+            tuple(row[c] for c in ("cell_x", "cell_y", "cell_z", "x_lo_mm", "x_hi_mm", "z_lo_mm", "z_hi_mm")))
+    assert cells[0] == cells[1] == cells[2]
+    # sized from the median radius of all subscans' bubbles (0.3 mm): cells about three diameters wide
+    assert result.summary["grid"] == [3, 3, 1] and len(cells[0]) == 9
+    gas = {s: sum(r["gas_volume_mm3"] for r in result.tables["grid"] if r["subscan"] == s) for s in cells}
+    assert gas[2] == pytest.approx(sum(4 / 3 * np.pi * (0.45 * (1 + 0.02 * i)) ** 3 for i in range(4)), rel=0.01)

@@ -233,18 +233,39 @@ def default_contact_gap(report):
     return 2.0 * float(fov["radius"]) / PREVIEW_VOXELS_3D
 
 
-def _snapshot(rec, gap, options):
-    options = dict(options)
-    radius = options.pop("radius", None)
-    domain = None
-    if radius is not None:
-        fov = rec.field_of_view
-        if fov is None:
-            raise ValueError(f"{rec.folder}: the report gives no field of view (its height) for a domain of radius "
-                             f"{radius} mm")
-        domain = Domain.field_of_view(min(float(radius), fov[0]), fov[1])
+def _snapshot(rec, gap, options, domain, source):
     return analyse_meshes(rec.meshes, rec.ids, contact_gap=gap, field_of_view=rec.field_of_view,
-                          truncated=rec.truncated, volume_in_fov=rec.volume_in_fov, domain=domain, **options)
+                          truncated=rec.truncated, volume_in_fov=rec.volume_in_fov, domain=domain,
+                          domain_source=source, **options)
+
+
+def _domain_spec(domain, radius):
+    """``domain`` (``--domain``), or ``radius`` as its shorthand ``cylinder:R``."""
+    if radius is None:
+        return domain
+    if domain is not None:
+        raise ValueError("give the analysed domain once: --domain or --radius (the shorthand of --domain "
+                         "cylinder:R), not both")
+    if not (float(radius) > 0 and np.isfinite(float(radius))):
+        raise ValueError(f"the domain radius must be positive and finite, got {radius!r} mm")
+    return f"cylinder:{float(radius)!r}"
+
+
+def _fixed_regions(recs, domain, grid, shells):
+    """One grid and one set of shells for every subscan of a 4D folder: over ``domain`` (else the bounding
+    box of every subscan's bubbles), cells and shells sized from the median equivalent radius of all
+    subscans' whole bubbles (:func:`~bubsub.core.analysis.snapshot.default_regions`)."""
+    from bubsub.core.analysis.snapshot import default_regions
+    from bubsub.core.projection.mesh import equivalent_radius
+
+    if domain is None:
+        domain = Domain.around([m for rec in recs for m in rec.meshes])
+    radii = [equivalent_radius(m.volume, 3) for rec in recs
+             for k, m in enumerate(rec.meshes) if not (rec.truncated and rec.truncated[k])]
+    if not radii:
+        radii = [equivalent_radius(m.volume, 3) for rec in recs for m in rec.meshes]
+    g0, s0 = default_regions(float(np.median(radii)), domain)
+    return domain, (g0 if grid is None else grid), (s0 if shells is None else shells)
 
 
 def _check_gap(contact_gap):
@@ -256,7 +277,7 @@ def _check_gap(contact_gap):
     return gap
 
 
-def analyse(folder, *, contact_gap=None, radius=None, grid=None, shells=None, progress=None):
+def analyse(folder, *, contact_gap=None, domain=None, radius=None, grid=None, shells=None, progress=None):
     """Analyse a reconstruct or reconstruct4d output folder.
 
     Parameters
@@ -264,35 +285,43 @@ def analyse(folder, *, contact_gap=None, radius=None, grid=None, shells=None, pr
     folder : str or os.PathLike
     contact_gap : float, optional
         mm; default :func:`default_contact_gap` of the (first subscan's) report.
+    domain : str or Domain, optional
+        The analysed domain (:func:`bubsub.clients.analysis.domain.analysed_domain`): ``"sample"``
+        (the default: the simulated sample where known, else the field of view), ``"fov"``,
+        ``"box:X0,X1,Y0,Y1,Z0,Z1"``, ``"cylinder:R[,Z0,Z1]"`` or a
+        :class:`~bubsub.core.analysis.regions.Domain`; cut to the field of view.
     radius : float, optional
-        Radius of the analysed cylinder about the rotation axis, mm (default the field of view's):
-        the sample's radius when it is narrower, so that the liquid fraction counts no air.
+        Shorthand for ``domain="cylinder:R"`` (mm, over the field of view's height).
     grid : (3,) int, optional
     shells : int, optional
-        The regions (:func:`bubsub.core.analysis.snapshot.default_regions`).
+        The regions (:func:`bubsub.core.analysis.snapshot.default_regions`); in 4D one grid and one set of
+        shells for every subscan.
     progress : callable, optional
         Called with a line of text per analysed subscan.
 
     Returns
     -------
     Analysis
+        Its summary's ``domain`` gives the domain's ``kind``, bounds, ``radius_mm`` and ``source``.
     """
+    from bubsub.clients.analysis.domain import analysed_domain
+
     gap = _check_gap(contact_gap)
     problem = _problem(folder)
     if problem:
         raise ValueError(problem)
-    if radius is not None and not (float(radius) > 0 and np.isfinite(float(radius))):
-        raise ValueError(f"the domain radius must be positive and finite, got {radius!r} mm")
-    options = {"grid": grid, "shells": shells, "radius": radius}
+    spec = _domain_spec(domain, radius)
+    options = {"grid": grid, "shells": shells}
     if reconstruction_kind(folder) == "3d":
         rec = read_reconstruction(folder)
         gap = default_contact_gap(rec.report) if gap is None else gap
-        snap = _snapshot(rec, gap, options)
+        region, source = analysed_domain(spec, rec.report, folder, rec.field_of_view)
+        snap = _snapshot(rec, gap, options, region, source)
         tables = {"bubbles": snap.bubbles, "contacts": snap.contacts, "grid": snap.grid, "shells": snap.shells}
         summary = {"kind": "3d", "reconstruction": str(Path(folder)), "contact_gap_default": contact_gap is None,
                    **snap.summary}
         return Analysis("3d", tables, dict(SNAPSHOT_TABLES), summary)
-    return _analyse_4d(Path(folder), gap, options, progress)
+    return _analyse_4d(Path(folder), gap, options, spec, progress)
 
 
 def _subscans(folder):
@@ -331,23 +360,31 @@ def _subscans_contact_gap(found):
     return default_contact_gap((previewed or reports)[0])
 
 
-def _analyse_4d(folder, gap, options, progress):
+def _analyse_4d(folder, gap, options, spec, progress):
+    from bubsub.clients.analysis.domain import analysed_domain
+
     default_gap = gap is None
     unit = _time_unit(folder)
-    spec = dynamics_columns(unit)
-    t_col, t_info = spec["rates"]["time"][0], spec["rates"]["time"][1:]
+    spec_columns = dynamics_columns(unit)
+    t_col, t_info = spec_columns["rates"]["time"][0], spec_columns["rates"]["time"][1:]
     steps, per_table, summaries = [], {k: [] for k in SNAPSHOT_TABLES}, []
     found = _subscans(folder)
     if gap is None:
         gap = _subscans_contact_gap(found)
-    for n, (index, d) in enumerate(found):
-        rec = read_reconstruction(d)
+    recs = [read_reconstruction(d) for _, d in found]
+    region, source = analysed_domain(spec, recs[0].report, found[0][1], recs[0].field_of_view)
+    region, grid, shells = _fixed_regions(recs, region, options["grid"], options["shells"])
+    if source.startswith("the bounding box"):
+        source = "the bounding box of every subscan's bubbles (neither the sample nor the field of view is known)"
+    options = {"grid": grid, "shells": shells}
+    for n, ((index, d), rec) in enumerate(zip(found, recs)):
         time = float(rec.report.get("time", index))
-        snap = _snapshot(rec, gap, options)
+        snap = _snapshot(rec, gap, options, region, source)
         for name in SNAPSHOT_TABLES:
             per_table[name] += [{"subscan": index, t_col: time, **r} for r in getattr(snap, name)]
         steps.append(snap.step(index, time))
-        summaries.append({"subscan": index, "time": time, **{k: v for k, v in snap.summary.items() if k != "domain"}})
+        summaries.append({"subscan": index, "time": time,
+                          **{k: v for k, v in snap.summary.items() if k not in ("domain", "grid", "shells")}})
         if progress:
             progress(f"subscan {index} ({n + 1} of {len(found)}): {snap.summary['bubbles']} bubbles, "
                      f"{snap.summary['contacts']} contacts")
@@ -361,11 +398,12 @@ def _analyse_4d(folder, gap, options, progress):
            "distribution": distribution}
     tables = dict(per_table)
     for name, rows in dyn.items():
-        tables[name] = named_rows(rows, spec[name])
-        columns[name] = describe(spec[name])
+        tables[name] = named_rows(rows, spec_columns[name])
+        columns[name] = describe(spec_columns[name])
     kinds = [r["kind"] for r in dyn["events"]]
     summary = {"kind": "4d", "reconstruction": str(folder), "time_unit": unit, "contact_gap_mm": gap,
                "contact_gap_default": default_gap, "subscans": len(steps),
+               "domain": {**region.describe(), "source": source}, "grid": list(grid), "shells": shells,
                "growth_law": {"model": f"d(V^(2/3))/dt = k (Z - Z0), k in mm^2/{unit}", **law},
                "t1_events": len(dyn["t1"]), "coalescences": kinds.count("coalescence"),
                "disappearances": kinds.count("disappearance"), "appearances": kinds.count("appearance"),

@@ -47,8 +47,8 @@ def cmd_analyse(args):
     reconstruction_kind(args.rec)  # a folder that is no reconstruction is refused before --out is looked at
     out = check_output_folder(args.out, overwrite=args.overwrite)
     progress = None if args.quiet else print
-    result = analyse(args.rec, contact_gap=args.contact_gap, radius=args.radius, grid=args.grid, shells=args.shells,
-                     progress=progress)
+    result = analyse(args.rec, contact_gap=args.contact_gap, domain=args.domain, radius=args.radius, grid=args.grid,
+                     shells=args.shells, progress=progress)
     files = result.write(out, overwrite=True, pictures=not args.no_pictures)
     s = result.summary
     if result.kind == "3d":
@@ -56,7 +56,8 @@ def cmd_analyse(args):
         cut = "field of view unknown" if cut is None else f"{cut} cut by the field of view"
         print(f"{s['bubbles']} bubbles ({cut}), {s['contacts']} contacts at a {s['contact_gap_mm']:.4g} mm gap"
               + (f", mean coordination {coord:.2f}" if coord is not None else "")
-              + (f", liquid fraction {s['liquid_fraction']:.3f}" if s["liquid_fraction"] is not None else ""))
+              + (f", liquid fraction {s['liquid_fraction']:.3f} in the {s['domain']['kind']} of "
+                 f"{s['domain']['source']}" if s["liquid_fraction"] is not None else ""))
     else:
         law = s["growth_law"]
         fit = (f"growth law k = {law['slope']:.3g} +- {law['slope_stderr']:.2g}, Z0 = {law['z0']:.3g} +- "
@@ -78,9 +79,13 @@ def register(sub):
     p.add_argument("--contact-gap", type=positive_float, metavar="MM",
                    help="bubbles whose surfaces come closer than this are in contact (default: one voxel of the "
                         "reconstruction's voxel preview, the field of view's diameter / 160; docs/analysis.md)")
+    p.add_argument("--domain", metavar="SPEC",
+                   help="the analysed domain, the sample (air around it would count as liquid): 'sample' (default: "
+                        "the simulated sample from the phantom.json beside the scan, else the field of view), "
+                        "'fov', 'box:X0,X1,Y0,Y1,Z0,Z1' or 'cylinder:R[,Z0,Z1]' about the rotation axis, mm; "
+                        "cut to the field of view; summary.json says which was used")
     p.add_argument("--radius", type=positive_float, metavar="MM",
-                   help="radius of the analysed cylinder about the rotation axis (default: the field of view's); "
-                        "give the sample's when it is narrower, or its air counts as liquid")
+                   help="shorthand for --domain cylinder:MM (over the field of view's height)")
     p.add_argument("--grid", type=positive_int, nargs=3, metavar=("NX", "NY", "NZ"),
                    help="cells of the Cartesian grid (default: cells about three bubble diameters wide)")
     p.add_argument("--shells", type=positive_int, metavar="N",

@@ -1,8 +1,10 @@
 """Region averages: liquid fraction and texture tensor on a Cartesian grid and in cylindrical shells.
 
-The analysed domain is the field of view (a cylinder about the rotation
-axis, the z axis of the scan geometry, ``|z| <= half_height``) or, where it
-is not known, the bubbles' bounding box. It is divided into
+The analysed domain (:class:`Domain`) is a box, a cylinder about the
+rotation axis (the z axis of the scan geometry) or the part of a box inside
+such a cylinder: the sample (a liquid box, a column) within the field of view
+(the cylinder every projection sees, ``|z| <= half_height``), so that the
+liquid fraction counts no air around the sample. It is divided into
 
 * Cartesian cells: ``(nx, ny, nz)`` equal boxes over the domain's bounding box,
   each cell measured where it overlaps the domain;
@@ -39,7 +41,11 @@ AREA_SAMPLES = 1000
 
 @dataclass(frozen=True)
 class Domain:
-    """The analysed region: a cylinder about the z axis, or a box.
+    """The analysed region: the points of the box ``lo``-``hi`` within ``radius`` of the z axis.
+
+    A box (``radius`` None), a cylinder about the z axis (the box is the
+    cylinder's bounding box) or a box cut by such a cylinder: the intersection
+    of any two of them is one of the three (:meth:`intersect`).
 
     Attributes
     ----------
@@ -59,6 +65,65 @@ class Domain:
         if not (radius > 0 and half_height > 0):
             raise ValueError(f"the field of view needs a positive radius and half-height, got {radius}, {half_height}")
         return cls((-radius, -radius, -half_height), (radius, radius, half_height), float(radius))
+
+    @classmethod
+    def cylinder(cls, radius, z_lo, z_hi):
+        """The cylinder ``x^2 + y^2 <= radius^2``, ``z_lo <= z <= z_hi`` (mm)."""
+        r = float(radius)
+        if not (r > 0 and np.isfinite(r)):
+            raise ValueError(f"a cylinder needs a positive, finite radius, got {radius!r} mm")
+        box = cls.box((-r, r, -r, r, z_lo, z_hi))
+        return cls(box.lo, box.hi, r)
+
+    @classmethod
+    def box(cls, bounds):
+        """The box ``(x0, x1, y0, y1, z0, z1)`` (mm), each lower bound below its upper one."""
+        b = np.asarray(bounds, dtype=float).reshape(-1)
+        if b.shape != (6,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"a box needs six finite bounds x0, x1, y0, y1, z0, z1 (mm), got {bounds!r}")
+        lo, hi = b[0::2], b[1::2]
+        if np.any(hi <= lo):
+            raise ValueError(f"a box needs each lower bound below its upper one, got {bounds!r}")
+        return cls(tuple(map(float, lo)), tuple(map(float, hi)), None)
+
+    def intersect(self, other):
+        """The points of both domains (a box, a cylinder about the z axis, or a box cut by a cylinder).
+
+        Raises
+        ------
+        ValueError
+            If the two do not overlap.
+        """
+        lo, hi = np.maximum(self.lo, other.lo), np.minimum(self.hi, other.hi)
+        radii = [r for r in (self.radius, other.radius) if r is not None]
+        r = min(radii) if radii else None
+        if r is not None:
+            lo[:2], hi[:2] = np.maximum(lo[:2], -r), np.minimum(hi[:2], r)
+        if np.any(hi <= lo):
+            raise ValueError(f"the domains {self.describe()} and {other.describe()} do not overlap")
+        if r is not None:
+            corners = np.hypot(np.maximum(np.abs(lo[0]), np.abs(hi[0])), np.maximum(np.abs(lo[1]), np.abs(hi[1])))
+            near = np.hypot(0.0 if lo[0] <= 0 <= hi[0] else min(abs(lo[0]), abs(hi[0])),
+                            0.0 if lo[1] <= 0 <= hi[1] else min(abs(lo[1]), abs(hi[1])))
+            if near >= r:
+                raise ValueError(f"the domains {self.describe()} and {other.describe()} do not overlap")
+            if corners <= r:  # the cylinder does not cut the box
+                r = None
+        return Domain(tuple(map(float, lo)), tuple(map(float, hi)), None if r is None else float(r))
+
+    @property
+    def kind(self):
+        """``"box"``, ``"cylinder"`` (its bounding box is ``lo``-``hi``) or ``"box within cylinder"``."""
+        if self.radius is None:
+            return "box"
+        r = self.radius
+        square = np.allclose([self.lo[0], self.lo[1], self.hi[0], self.hi[1]], [-r, -r, r, r], rtol=1e-12, atol=0)
+        return "cylinder" if square else "box within cylinder"
+
+    def describe(self):
+        """The domain as JSON: ``{"kind", "lo_mm", "hi_mm", "radius_mm"}`` (radius None for a box)."""
+        return {"kind": self.kind, "lo_mm": [float(v) for v in self.lo], "hi_mm": [float(v) for v in self.hi],
+                "radius_mm": self.radius}
 
     @classmethod
     def around(cls, meshes):

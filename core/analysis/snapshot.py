@@ -102,7 +102,7 @@ def _checked_flags(values, n, what):
 
 
 def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncated=None, volume_in_fov=None,
-                   domain=None, grid=None, shells=None):
+                   domain=None, domain_source=None, grid=None, shells=None):
     """Bubble, contact and region tables of one foam.
 
     Parameters
@@ -121,8 +121,10 @@ def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncat
     volume_in_fov : (n,) float, optional
         Their volume inside the field of view, mm^3.
     domain : Domain, optional
-        The regions' domain, e.g. the sample's cylinder when it is narrower than the field of
-        view (liquid fractions count everything outside the bubbles as liquid).
+        The regions' domain: the sample (its liquid box or column) within the field of view, since
+        liquid fractions count everything outside the bubbles as liquid.
+    domain_source : str, optional
+        Where ``domain`` comes from, for the summary (default: what this function chose).
     grid : (3,) int, optional
     shells : int, optional
         Regions' cells and shells; defaults of :func:`default_regions`.
@@ -187,6 +189,8 @@ def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncat
     t = time.perf_counter()
     if domain is None:
         domain = Domain.field_of_view(*field_of_view) if field_of_view is not None else Domain.around(meshes)
+        domain_source = domain_source or ("the field of view" if field_of_view is not None
+                                          else "the bounding box of the bubbles")
     whole = cut == 0
     radius = float(np.median([s["equivalent_radius_mm"] for s, w in zip(shapes, whole) if w] or
                              [s["equivalent_radius_mm"] for s in shapes]))
@@ -206,9 +210,7 @@ def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncat
         "median_equivalent_radius_mm": radius,
         "median_sphericity": float(np.median(sph)) if len(sph) else None,
         "liquid_fraction": float(1 - gas / total) if total else None,
-        "domain": {"kind": "field of view" if domain.radius is not None else "bounding box of the bubbles",
-                   "lo_mm": list(map(float, domain.lo)), "hi_mm": list(map(float, domain.hi)),
-                   "radius_mm": domain.radius},
+        "domain": {**domain.describe(), "source": domain_source or "given"},
         "grid": list(grid), "shells": shells,
         "seconds": seconds,
     }

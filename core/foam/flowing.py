@@ -474,7 +474,7 @@ def flowing_events(foam, projections_per_subscan, seconds_per_projection=0.01):
 
 
 def truth_rows(state, fov_half_height):
-    """Rows of :data:`~bubsub.core.foam.column.TRUTH_COLUMN_INFO` for the visible bubbles of a state (id = bubble id)."""
+    """Rows of :data:`~bubsub.core.foam.column.TRUTH_COLUMN_INFO` of a state's visible bubbles (id = bubble id)."""
     vis = state.select(state.visible)
     vol = vis.volumes
     ez = np.sqrt(shape_matrices(vis.axes, vis.rotations)[:, 2, 2])

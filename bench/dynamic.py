@@ -1,0 +1,587 @@
+"""``bubsub bench dynamic``: ``bubsub reconstruct4d`` on a flowing, coarsening foam, per subscan, beside the voxel route.
+
+The scan is ``bubsub simulate --phantom flowing3d`` (:mod:`bubsub.core.foam.flowing`:
+by default 12 subscans of 40 parallel projections over 180 degrees, continuous
+rotation, 128 x 384 pixels of 12 um, ~150 polydisperse ellipsoidal bubbles in
+view flowing up 4 pixels per subscan, the smallest 12 % shrinking to nothing,
+4 coalescences, the foam moving between projections, Poisson noise at
+I0 = 1e4), made in ``DATA`` unless a simulation with the same settings is
+there. Two routes run on it, each in a child process whose wall time and peak
+RSS summed over its process tree are measured (:func:`bubsub.bench.scale.run_tree`):
+
+* ``bubsub reconstruct4d`` with its defaults (options this benchmark does not
+  know are passed on to it);
+* the **voxel route**: per subscan, SIRT (``--sirt-iterations``, default 100)
+  of the subscan's projections on the evaluation grid coarsened ``--voxel-bin``
+  times, Otsu inside the liquid cylinder, a distance watershed
+  (:func:`bubsub.bench.fov.voxel_route`), its labels repeated back onto the
+  evaluation grid; ids linked forward in time by overlap (a label continues the
+  previous subscan's label it overlaps most when each is the other's best
+  match and they share at least 30 % of the later label's voxels).
+
+Each subscan is scored against the truth at its mid-time inside the field of
+view, on the evaluation grid (``phantom.json``: two pixels per voxel), with
+:func:`bubsub.bench.matching.match`:
+
+* **true**: truth bubbles with a voxel in view; **found**: the reconstructed
+  bubble overlapping it most has IoU >= 0.5 with it, and it is not merged;
+  **merged**: one reconstructed bubble covers more than 30 % of it and of
+  another truth bubble; **missed**: the rest; **spurious**: reconstructed
+  bubbles in view that are no truth bubble's best match; **DDI** of the gas
+  masks in view;
+* **anew**: the truth bubbles that exist at subscan ``k`` but not at ``k + 1``
+  (they leave through the top, vanish or coalesce later): a backward chain
+  cannot carry them from its successor and must find them anew at ``k``;
+  counted all and those whose visible part holds a ball of at least 6 pixels'
+  radius (``anew6``);
+* **small**: truth bubbles whose visible part holds a largest ball of 6 to 12
+  pixels' radius (inside the foam or as a cap at the detector's edge);
+* **track purity**: each reconstructed row (a track's bubble in a subscan) is
+  put on the truth bubble it overlaps most; a track's purity is the share of
+  its rows on its most frequent truth bubble, and the run's is the sum over
+  tracks of those rows over all rows (rows on no truth bubble are impure).
+
+The largest ball a visible part holds is the smallest semi-axis for a bubble
+wholly in view, and for one cut by the top or bottom row the maximum of the
+distance transform of its part between the cut planes on a one-pixel grid.
+
+``python -m bubsub.bench dynamic [--data DIR] [--out DIR] [--seed 0] [--bubbles 150] [--det-count 384]
+[--subscans 12] [--projections-per-subscan 40] [--flow 4] [--vanishing 0.12] [--coalescences 4]
+[--sirt-iterations 100] [--voxel-bin 1] [--no-voxel]
+[--no-bubsub] [--rec DIR] [RECONSTRUCT4D OPTIONS]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["MERGE_COVER", "SMALL_BALL", "flowing_truth", "visible_ball", "truth_subscan", "row_owners",
+           "track_purity", "link_by_overlap", "score_subscan", "score_run", "bubsub_labels", "voxel_labels",
+           "run_voxel_route", "simulate_flowing_case", "format_table", "main"]
+
+#: A reconstructed bubble covering more than this share of two truth bubbles merges them.
+MERGE_COVER = 0.3
+#: The small bubbles: the largest ball their visible part holds, pixels.
+SMALL_BALL = (6.0, 12.0)
+#: Shared share of the later label's voxels that links two voxel-route labels.
+LINK_SHARE = 0.3
+
+
+def flowing_truth(sim_dir):
+    """``(meta, tables, events)`` of a flowing foam's simulation folder.
+
+    Returns
+    -------
+    meta : dict
+        ``phantom.json``.
+    tables : list of dict
+        Per subscan, ``truth/subscan_kkkk.csv`` as ``{column: (n,) float array}``.
+    events : list of dict
+        ``events.csv`` rows.
+    """
+    sim_dir = Path(sim_dir)
+    meta = json.loads((sim_dir / "phantom.json").read_text())
+    if meta.get("phantom") != "flowing3d":
+        raise ValueError(f"{sim_dir} is not a flowing foam (make one with bubsub simulate --phantom flowing3d)")
+    tables = []
+    for k in range(meta["subscans"]):
+        with open(sim_dir / meta["truth_table"].format(k=k), newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        tables.append({c: np.array([float(r[c]) for r in rows]) for c in (rows[0] if rows else {"id": ()})})
+    with open(sim_dir / meta["events"], newline="") as fh:
+        events = list(csv.DictReader(fh))
+    return meta, tables, events
+
+
+def _ellipsoids(table):
+    centres = np.stack([table[f"centre_{a}_mm"] for a in "xyz"], axis=1)
+    axes = np.stack([table[f"semi_axis_{k}_mm"] for k in (1, 2, 3)], axis=1)
+    rot = np.stack([table[f"rotation_{i}{j}"] for i in (1, 2, 3) for j in (1, 2, 3)], axis=1).reshape(-1, 3, 3)
+    return centres, axes, rot
+
+
+def visible_ball(table, meta):
+    """(n,) radius of the largest ball within each truth bubble's visible part, pixels.
+
+    The smallest semi-axis for a bubble wholly between the detector's top and
+    bottom planes; for a cut one, the maximum of the Euclidean distance
+    transform of its part between the planes, sampled on a one-pixel grid.
+    """
+    from scipy import ndimage
+
+    c = meta["column"]
+    px, h = c["pixel_size_mm"], c["fov_half_height_mm"]
+    if not len(table.get("id", ())):
+        return np.zeros(0)
+    centres, axes, rot = _ellipsoids(table)
+    out = axes.min(axis=1) / px
+    cut = (table["cut_top"] > 0) | (table["cut_bottom"] > 0)
+    for b in np.flatnonzero(cut):
+        reach = axes[b].max() + px
+        z0, z1 = max(centres[b, 2] - reach, -h), min(centres[b, 2] + reach, h)
+        if z1 <= z0:
+            out[b] = 0.0
+            continue
+        grid = [np.arange(centres[b, i] - reach, centres[b, i] + reach, px) for i in (0, 1)]
+        grid.append(np.arange(z0 + px / 2, z1, px))
+        pts = np.stack(np.meshgrid(*grid, indexing="ij"), axis=-1) - centres[b]
+        inside = np.sum((pts @ rot[b] / axes[b]) ** 2, axis=-1) <= 1.0
+        out[b] = float(ndimage.distance_transform_edt(np.pad(inside, 1)).max()) if inside.any() else 0.0
+    return out
+
+
+def truth_subscan(meta, table):
+    """Truth labels of one subscan on the evaluation grid (row index + 1, 0 outside the field of view) and the ids."""
+    from bubsub.bench.matching import truth_labels
+
+    if not len(table.get("id", ())):
+        return np.zeros(tuple(meta["grid_shape"]), np.int32), np.zeros(0, np.int64)
+    return truth_labels(meta, table), table["id"].astype(np.int64)
+
+
+def row_owners(truth, rec):
+    """(n_rec,) the truth label each reconstructed label ``1..n_rec`` overlaps most (0: none)."""
+    from bubsub.bench.matching import overlaps
+
+    table, _, n_r = overlaps(truth, rec)
+    shared = table[1:, :]
+    owner = np.argmax(shared, axis=0) + 1
+    owner[shared.max(axis=0, initial=0) == 0] = 0
+    return owner[1:len(n_r)]
+
+
+def track_purity(rows):
+    """Share of a run's rows that lie on their track's most frequent truth bubble.
+
+    Parameters
+    ----------
+    rows : iterable of (track id, truth id or -1)
+        One per reconstructed bubble per subscan.
+
+    Returns
+    -------
+    (purity, tracks, rows) : (float or None, int, int)
+    """
+    by_track = {}
+    for track, truth in rows:
+        by_track.setdefault(track, []).append(truth)
+    n = sum(len(v) for v in by_track.values())
+    pure = 0
+    for v in by_track.values():
+        real = [t for t in v if t >= 0]
+        pure += max(np.unique(real, return_counts=True)[1]) if real else 0
+    return (float(pure / n) if n else None), len(by_track), n
+
+
+def link_by_overlap(previous, previous_ids, labels, next_id, share=LINK_SHARE):
+    """Track ids of a label image linked to the previous subscan's labels by overlap.
+
+    Parameters
+    ----------
+    previous : int ndarray or None
+        The previous subscan's labels ``1..m`` (None: none).
+    previous_ids : (m,) int
+        Their track ids.
+    labels : int ndarray
+        This subscan's labels ``1..n``.
+    next_id : int
+        First unused track id.
+    share : float
+        Least shared fraction of the later label's voxels.
+
+    Returns
+    -------
+    ids : (n,) int
+    next_id : int
+    """
+    from bubsub.bench.matching import overlaps
+
+    n = int(labels.max(initial=0))
+    ids = np.full(n, -1, dtype=np.int64)
+    if previous is not None and n and previous.max(initial=0):
+        table, _, n_now = overlaps(previous, labels)
+        t = table[1:, 1:n + 1]
+        best_prev = np.argmax(t, axis=0)
+        best_next = np.argmax(t, axis=1)
+        for j in range(n):
+            i = best_prev[j]
+            if t[i, j] > 0 and best_next[i] == j and t[i, j] >= share * n_now[j + 1]:
+                ids[j] = previous_ids[i]
+    for j in np.flatnonzero(ids < 0):
+        ids[j] = next_id
+        next_id += 1
+    return ids, next_id
+
+
+def score_subscan(truth, truth_ids, rec, ball, anew):
+    """The scores of one subscan (see the module docstring).
+
+    Parameters
+    ----------
+    truth, rec : int ndarray
+        Labels on the evaluation grid, 0 outside the field of view.
+    truth_ids : (n_truth,) int
+        Bubble id of truth label ``i + 1``.
+    ball : (n_truth,) float
+        :func:`visible_ball`, pixels.
+    anew : set of int
+        Truth ids a backward chain must find anew here.
+
+    Returns
+    -------
+    dict
+        ``truth, found, missed, merged, spurious, reconstructed, ddi`` of
+        :func:`~bubsub.bench.matching.match` and ``anew, anew_found, anew6, anew6_found, small, small_found``.
+    """
+    from bubsub.bench.matching import MIN_IOU, match, overlaps
+
+    m = match(truth, rec)  # spurious, DDI, and each truth bubble's best reconstructed bubble and its IoU
+    table, n_t, _ = overlaps(truth, rec)
+    covers = table[:, 1:] > MERGE_COVER * np.maximum(n_t, 1)[:, None]
+    covers[0] = False
+    merged = (covers & (covers.sum(axis=0) > 1)[None, :]).any(axis=1)
+    status = {i: "merged" if merged[i] else ("found" if iou >= MIN_IOU else "missed")
+              for i, _, iou, _ in m["per_truth"]}
+    found = {int(truth_ids[i - 1]) for i, st in status.items() if st == "found"}
+    present = {int(truth_ids[i - 1]): i - 1 for i in status}
+    out = {k: m[k] for k in ("truth", "spurious", "reconstructed", "ddi")}
+    out.update({k: sum(st == k for st in status.values()) for k in ("found", "missed", "merged")})
+    a = [b for b in anew if b in present]
+    a6 = [b for b in a if ball[present[b]] >= SMALL_BALL[0]]
+    small = [b for b, i in present.items() if SMALL_BALL[0] <= ball[i] <= SMALL_BALL[1]]
+    out.update(anew=len(a), anew_found=sum(b in found for b in a), anew6=len(a6),
+               anew6_found=sum(b in found for b in a6), small=len(small), small_found=sum(b in found for b in small))
+    return out
+
+
+def score_run(meta, tables, labels_of, subscans=None):
+    """Score every subscan of a run and its tracks.
+
+    Parameters
+    ----------
+    meta, tables
+        :func:`flowing_truth`.
+    labels_of : callable
+        ``k -> (labels, track ids)`` of the route's subscan ``k`` (labels on the evaluation grid, 0 outside the
+        field of view; ``ids[j]`` the track of label ``j + 1``), or None when the route has no subscan ``k``.
+    subscans : iterable of int, optional
+        Default all.
+
+    Returns
+    -------
+    dict
+        ``subscans`` (per subscan :func:`score_subscan` with ``subscan``), ``totals`` (sums, ``found_share``,
+        ``mean_ddi``, ``track_purity``, ``tracks``, ``rows``).
+    """
+    per, rows = [], []
+    ks = list(range(meta["subscans"]) if subscans is None else subscans)
+    ids_at = [set(t["id"].astype(int).tolist()) if len(t.get("id", ())) else set() for t in tables]
+    for k in ks:
+        got = labels_of(k)
+        if got is None:
+            continue
+        rec, rec_ids = got
+        truth, truth_ids = truth_subscan(meta, tables[k])
+        anew = ids_at[k] - ids_at[k + 1] if k + 1 < len(tables) else set()
+        s = score_subscan(truth, truth_ids, rec, visible_ball(tables[k], meta), anew)
+        per.append({"subscan": k, **s})
+        owners = row_owners(truth, rec)
+        present = np.flatnonzero(np.bincount(rec.ravel(), minlength=len(rec_ids) + 1)[1:] > 0)
+        rows += [(int(rec_ids[j]), int(truth_ids[owners[j] - 1]) if owners[j] else -1) for j in present]
+    purity, n_tracks, n_rows = track_purity(rows)
+    keys = ("truth", "found", "missed", "merged", "spurious", "anew", "anew_found", "anew6", "anew6_found",
+            "small", "small_found")
+    totals = {k: int(sum(p[k] for p in per)) for k in keys}
+    totals.update(found_share=totals["found"] / totals["truth"] if totals["truth"] else None,
+                  mean_ddi=float(np.mean([p["ddi"] for p in per])) if per else None,
+                  track_purity=purity, tracks=n_tracks, rows=n_rows)
+    return {"subscans": per, "totals": totals}
+
+
+def bubsub_labels(rec_dir, meta):
+    """``k -> (labels, track ids)`` of a ``bubsub reconstruct4d`` folder (None for a subscan it lacks)."""
+    from bubsub.bench.matching import mesh_labels
+    from bubsub.core.io.meshio import read_ply
+
+    rec_dir = Path(rec_dir)
+
+    def labels_of(k):
+        path = rec_dir / f"subscan_{k:04d}" / "bubbles.ply"
+        if not path.is_file():
+            return None
+        meshes, ids = read_ply(path, with_ids=True)
+        return mesh_labels(meshes, meta), np.asarray(ids, dtype=np.int64)
+
+    return labels_of
+
+
+def voxel_labels(path):
+    """``k -> (labels, track ids)`` of the voxel route's ``labels.npz`` (:func:`run_voxel_route`)."""
+    data = np.load(path)
+
+    def labels_of(k):
+        if f"labels_{k}" not in data:
+            return None
+        return data[f"labels_{k}"], data[f"ids_{k}"]
+
+    return labels_of
+
+
+def run_voxel_route(sim_dir, out, *, iterations=100, voxel_bin=1):
+    """The voxel route on every subscan, tracked by overlap, into ``out/labels.npz``; per subscan seconds.
+
+    Parameters
+    ----------
+    sim_dir : path
+        A flowing foam's simulation folder.
+    out : path
+        Folder (created); ``labels.npz`` holds ``labels_k`` (int32 on the evaluation grid, 0 outside the field
+        of view) and ``ids_k`` per subscan, ``seconds.json`` the seconds per subscan.
+    iterations : int
+        SIRT iterations.
+    voxel_bin : int
+        The SIRT grid's voxel is this many evaluation-grid voxels.
+    """
+    from bubsub.bench.fov import voxel_route
+    from bubsub.clients.pipeline.fov import fov_mask
+    from bubsub.core.io.scanfile import read_scan
+    from bubsub.core.io.subscans import subscan, subscan_layout
+
+    sim_dir, out = Path(sim_dir), Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = json.loads((sim_dir / "phantom.json").read_text())
+    scan = read_scan(sim_dir / "scan.h5")
+    layout = subscan_layout(scan)
+    shape, extent = tuple(meta["grid_shape"]), tuple(meta["grid_extent"])
+    b = int(voxel_bin)
+    if b < 1:
+        raise ValueError(f"--voxel-bin must be a positive integer, got {voxel_bin}")
+    coarse = tuple(int(np.ceil(s / b)) for s in shape)
+    # the coarse grid starts where the evaluation grid does (x min, y max: row 0, z min) and runs past its
+    # far ends, so that each coarse voxel holds b x b x b evaluation voxels
+    ext = list(extent)
+    for axis, (n, nc) in enumerate(zip(shape[::-1], coarse[::-1])):
+        step = (extent[2 * axis + 1] - extent[2 * axis]) / n
+        if axis == 1:
+            ext[2] = extent[3] - nc * b * step
+        else:
+            ext[2 * axis + 1] = extent[2 * axis] + nc * b * step
+    inside = fov_mask(shape, extent, (meta["column"]["fov_radius_mm"], meta["column"]["fov_half_height_mm"]))
+    result, seconds, previous, prev_ids, next_id = {}, [], None, None, 0
+    for k in layout.selected:
+        t0 = time.perf_counter()
+        lab = voxel_route(subscan(scan, layout, k), dict(meta, grid_shape=list(coarse), grid_extent=ext), iterations)
+        if b > 1:
+            lab = np.repeat(np.repeat(np.repeat(lab, b, 0), b, 1), b, 2)[:shape[0], :shape[1], :shape[2]]
+        lab = np.where(inside, lab, 0)
+        kept, lab = np.unique(lab, return_inverse=True)
+        lab = lab.reshape(shape).astype(np.int32)
+        if kept[0] != 0:
+            lab += 1
+        ids, next_id = link_by_overlap(previous, prev_ids, lab, next_id)
+        result[f"labels_{k}"], result[f"ids_{k}"] = lab, ids
+        previous, prev_ids = lab, ids
+        seconds.append(time.perf_counter() - t0)
+    np.savez_compressed(out / "labels.npz", **result)
+    (out / "seconds.json").write_text(json.dumps({"seconds": seconds, "iterations": iterations,
+                                                  "voxel_bin": b, "grid_shape": list(coarse)}))
+    return out / "labels.npz"
+
+
+def simulate_flowing_case(folder, *, seed=0, bubbles=None, det_count=None, subscans=None, per_subscan=None,
+                          **foam):
+    """The flowing foam's simulation folder, made unless it holds one with these settings.
+
+    ``foam``: ``flow``, ``vanishing``, ``coalescences`` of ``bubsub simulate`` (None: its default).
+
+    Returns
+    -------
+    (Path, float or None)
+        The folder and the seconds the simulation took (None when reused).
+    """
+    from bubsub.bench.reconstruct import cli_command
+    from bubsub.core.foam.flowing import FLOWING_DEFAULTS as D
+
+    folder = Path(folder)
+    want = {"seed": seed, "cols": det_count or D["cols"], "subscans": subscans or D["subscans"],
+            "projections_per_subscan": per_subscan or D["projections_per_subscan"],
+            "bubbles_asked": bubbles or D["n_bubbles"],
+            **{k: v for k, v in foam.items() if v is not None}}
+    key = folder / "bench_key.json"
+    if key.is_file() and json.loads(key.read_text()) == want and (folder / "scan.h5").is_file():
+        return folder, None
+    t0 = time.perf_counter()
+    subprocess.run(cli_command("simulate", "--phantom", "flowing3d", "--seed", seed, "--bubbles",
+                               want["bubbles_asked"], "--det-count", want["cols"], "--subscans", want["subscans"],
+                               "--projections-per-subscan", want["projections_per_subscan"], "--out", folder,
+                               "--overwrite", *[x for k, v in foam.items() if v is not None for x in (f"--{k}", v)]),
+                   check=True, stdout=subprocess.DEVNULL)
+    key.write_text(json.dumps(want))
+    return folder, time.perf_counter() - t0
+
+
+def _fmt(x, nd=4):
+    return "" if x is None else (f"{x:.{nd}f}" if isinstance(x, float) else str(x))
+
+
+def format_table(name, scores, seconds=None):
+    """A Markdown table of one route's per-subscan scores and its totals row.
+
+    ``seconds``: per subscan ``(start, seconds)`` (e.g. from ``report.json``), or None.
+    """
+    from bubsub.bench.scale import table
+
+    header = ["subscan", "start", "s", "true", "found", "missed", "merged", "spurious", "DDI", "anew found/all",
+              "anew >= 6 px found/all", "small found/all"]
+    body = []
+    for p in scores["subscans"]:
+        start, sec = (seconds or {}).get(p["subscan"], ("", None))
+        body.append([p["subscan"], start, _fmt(sec, 0), p["truth"], p["found"], p["missed"], p["merged"],
+                     p["spurious"], _fmt(p["ddi"]), f"{p['anew_found']}/{p['anew']}",
+                     f"{p['anew6_found']}/{p['anew6']}", f"{p['small_found']}/{p['small']}"])
+    t = scores["totals"]
+    total_s = sum(s for _, s in (seconds or {}).values() if s is not None) if seconds else None
+    share = f"{t['found']} ({100 * (t['found_share'] or 0):.1f} %)"
+    body.append([f"**{name}**", "", _fmt(total_s, 0), t["truth"], share,
+                 t["missed"], t["merged"], t["spurious"], f"{_fmt(t['mean_ddi'])} (mean)",
+                 f"{t['anew_found']}/{t['anew']}", f"{t['anew6_found']}/{t['anew6']}",
+                 f"{t['small_found']}/{t['small']}"])
+    return table(header, body)
+
+
+def _bubsub_seconds(rec_dir):
+    """``{subscan: (start, seconds)}`` from each subscan folder's ``report.json`` (empty where there is none)."""
+    out = {}
+    for path in sorted(Path(rec_dir).glob("subscan_*/report.json")):
+        p = json.loads(path.read_text())
+        if "subscan" in p:
+            out[int(p["subscan"])] = (p.get("start", ""), p.get("seconds"))
+    return out
+
+
+def main(argv=None):
+    from bubsub.bench.reconstruct import cli_command
+    from bubsub.bench.scale import run_tree
+
+    ap = argparse.ArgumentParser(prog="python -m bubsub.bench dynamic", description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default="bench-dynamic/flowing3d", help="simulation folder (made when missing)")
+    ap.add_argument("--out", default="bench-dynamic", help="folder of the routes' outputs (default bench-dynamic)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--bubbles", type=int, help="about this many bubbles in view (default 150)")
+    ap.add_argument("--det-count", type=int, help="detector columns, a third as many rows (default 384)")
+    ap.add_argument("--subscans", type=int, help="default 12")
+    ap.add_argument("--projections-per-subscan", type=int, help="default 40")
+    ap.add_argument("--flow", type=float, help="pixels per subscan (default 4)")
+    ap.add_argument("--vanishing", type=float, help="share of the bubbles that vanish (default 0.12)")
+    ap.add_argument("--coalescences", type=int, help="default 4")
+    ap.add_argument("--sirt-iterations", type=int, default=100, help="the voxel route's SIRT iterations (100)")
+    ap.add_argument("--voxel-bin", type=int, default=1,
+                    help="the voxel route's grid voxel in evaluation-grid voxels (two pixels each; default 1)")
+    ap.add_argument("--no-voxel", action="store_true", help="skip the voxel route")
+    ap.add_argument("--no-bubsub", action="store_true", help="skip bubsub reconstruct4d")
+    ap.add_argument("--rec", help="score this reconstruct4d folder instead of running one")
+    ap.add_argument("--json", help="also write all scores to this JSON file")
+    ap.add_argument("--voxel-child", nargs=2, metavar=("SIM", "OUT"), help=argparse.SUPPRESS)
+    args, extra = ap.parse_known_args(argv)
+    if args.voxel_child:
+        run_voxel_route(*args.voxel_child, iterations=args.sirt_iterations, voxel_bin=args.voxel_bin)
+        return 0
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sim, sim_s = simulate_flowing_case(Path(args.data), seed=args.seed, bubbles=args.bubbles,
+                                       det_count=args.det_count, subscans=args.subscans,
+                                       per_subscan=args.projections_per_subscan, flow=args.flow,
+                                       vanishing=args.vanishing, coalescences=args.coalescences)
+    meta, tables, events = flowing_truth(sim)
+    f = meta["flowing"]
+    vanishing = sum(e["event"] == "vanish" and e["in_fov"] == "1" for e in events)
+    print(f"flowing foam {sim}: {meta['subscans']} subscans of {meta['projections_per_subscan']} x "
+          f"{meta['column']['rows']} x {meta['column']['cols']}, {min(f['bubbles_per_subscan'])}-"
+          f"{max(f['bubbles_per_subscan'])} bubbles in view, {meta['bubbles']} over the run, flow "
+          f"{f['flow_px_per_subscan']:g} px per subscan, {vanishing} vanishing in view, {len(f['coalescences'])} coalescences"
+          + (f" (simulated in {sim_s:.0f} s)" if sim_s else " (reused)") + "\n", flush=True)
+    results = {}
+    if not args.no_bubsub:
+        if args.rec:
+            rec, wall, rss = Path(args.rec), None, None
+        else:
+            rec = out / "bubsub"
+            wall, _, rss = run_tree(cli_command("reconstruct4d", sim / "scan.h5", "--out", rec, "--quiet",
+                                                "--overwrite", *extra))
+        scores = score_run(meta, tables, bubsub_labels(rec, meta))
+        secs = _bubsub_seconds(rec)
+        cold = [s for st, s in secs.values() if st == "cold"]
+        warm = [s for st, s in secs.values() if st == "warm"]
+        name = (f"bubsub reconstruct4d (from {rec})" if args.rec
+                else "bubsub reconstruct4d " + (" ".join(extra) or "(defaults)"))
+        results["bubsub"] = {"route": name, **scores, "wall_s": wall, "peak_rss_mib": rss,
+                             "seconds_cold": float(sum(cold)) if cold else None,
+                             "seconds_warm_median": float(np.median(warm)) if warm else None,
+                             "cold_ddi": next((p["ddi"] for p in scores["subscans"]
+                                               if secs.get(p["subscan"], ("",))[0] == "cold"), None)}
+        print(f"### {name}\n\n{format_table('all', scores, secs)}\n", flush=True)
+    if not args.no_voxel:
+        vox = out / "voxel"
+        wall, _, rss = run_tree(cli_command("bench", "dynamic", "--voxel-child", sim, vox, "--sirt-iterations",
+                                            args.sirt_iterations, "--voxel-bin", args.voxel_bin))
+        scores = score_run(meta, tables, voxel_labels(vox / "labels.npz"))
+        sec = json.loads((vox / "seconds.json").read_text())
+        secs = {k: ("", s) for k, s in enumerate(sec["seconds"])}
+        name = (f"voxel route: SIRT {args.sirt_iterations} on {' x '.join(map(str, sec['grid_shape']))} voxels "
+                f"+ Otsu + distance watershed, tracked by overlap")
+        results["voxel"] = {"route": name, **scores, "wall_s": wall, "peak_rss_mib": rss, "seconds": sec["seconds"]}
+        print(f"### {name}\n\n{format_table('all', scores, secs)}\n", flush=True)
+    _print_summary(results)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+    return 0
+
+
+def _print_summary(results):
+    from bubsub.bench.scale import table
+
+    if not results:
+        return
+    cols = list(results)
+    t = {k: results[k]["totals"] for k in cols}
+
+    def row(label, fn):
+        return [label] + [fn(k) for k in cols]
+
+    def worst(k):
+        return min((p["found"] / p["truth"] for p in results[k]["subscans"] if p["truth"]), default=0.0)
+
+    def pct(a, b):
+        return f"{a}/{b} ({100 * a / b:.1f} %)" if b else "0/0"
+
+    body = [
+        row("true bubbles found, all subscans", lambda k: pct(t[k]["found"], t[k]["truth"])),
+        row("merged (true bubbles)", lambda k: str(t[k]["merged"])),
+        row("spurious", lambda k: str(t[k]["spurious"])),
+        row("worst subscan found", lambda k: f"{worst(k) * 100:.1f} %"),
+        row("bubbles found anew (all)", lambda k: pct(t[k]["anew_found"], t[k]["anew"])),
+        row("bubbles found anew (ball >= 6 px)", lambda k: pct(t[k]["anew6_found"], t[k]["anew6"])),
+        row("small bubbles found (ball 6-12 px)", lambda k: pct(t[k]["small_found"], t[k]["small"])),
+        row("mean DDI in the FOV", lambda k: _fmt(t[k]["mean_ddi"])),
+        row("cold subscan DDI", lambda k: _fmt(results[k].get("cold_ddi"))),
+        row("track purity (tracks, rows)",
+            lambda k: f"{_fmt(t[k]['track_purity'], 3)} ({t[k]['tracks']}, {t[k]['rows']})"),
+        row("seconds: cold subscan / median warm", lambda k: f"{_fmt(results[k].get('seconds_cold'), 0)} / "
+            f"{_fmt(results[k].get('seconds_warm_median'), 0)}" if k == "bubsub" else
+            f"{_fmt(float(np.median(results[k]['seconds'])), 0)} per subscan"),
+        row("wall s, peak RSS MiB (process tree)", lambda k: f"{_fmt(results[k]['wall_s'], 0)}, "
+            f"{_fmt(results[k]['peak_rss_mib'], 0)}"),
+    ]
+    print(table([""] + [results[k]["route"] for k in cols], body), flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,115 @@
+"""The dynamic benchmark's scores, on a tiny flowing foam and reconstructions made from its own truth."""
+
+
+import numpy as np
+import pytest
+
+from bubsub.bench import dynamic as D
+from bubsub.core.foam.ellipsoids import ellipsoid_mesh
+from bubsub.core.io.meshio import read_ply, write_ply
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    from bubsub.clients.cli.main import main
+
+    out = tmp_path_factory.mktemp("flow") / "sim"
+    assert main(["simulate", "--phantom", "flowing3d", "--det-count", "96", "--bubbles", "30", "--subscans", "3",
+                 "--projections-per-subscan", "8", "--coalescences", "1", "--seed", "1", "--out", str(out)]) == 0
+    return out
+
+
+def _fake_run(sim, folder, edit=None):
+    """A reconstruct4d-like folder whose bubbles are the truth meshes (``edit(k, meshes, ids)`` may change them)."""
+    for k in range(3):
+        meshes, ids = read_ply(sim / "truth" / f"subscan_{k:04d}.ply", with_ids=True)
+        if edit:
+            meshes, ids = edit(k, list(meshes), list(ids))
+        (folder / f"subscan_{k:04d}").mkdir(parents=True)
+        write_ply(folder / f"subscan_{k:04d}" / "bubbles.ply", meshes, ids)
+    return folder
+
+
+def test_the_truth_itself_scores_perfectly_and_anew_follows_the_events(sim, tmp_path):
+    meta, tables, events = D.flowing_truth(sim)
+    s = D.score_run(meta, tables, D.bubsub_labels(_fake_run(sim, tmp_path / "rec"), meta))
+    t = s["totals"]
+    assert t["found"] == t["truth"] > 0 and t["merged"] == t["spurious"] == t["missed"] == 0
+    assert t["track_purity"] == 1.0 and t["mean_ddi"] < 0.01
+    # anew at k: in view at k, gone at k + 1 by an exit, a vanishing or a coalescence (events.csv, independent)
+    for p in s["subscans"][:-1]:
+        k = p["subscan"]
+        at_k = set(tables[k]["id"].astype(int))
+        gone = {int(e["id"]) for e in events if int(e["subscan"]) == k + 1 and e["event"] in ("exit", "vanish")}
+        gone |= {int(x) for e in events if int(e["subscan"]) == k + 1 and e["event"] == "coalesce"
+                 for x in e["parents"].split(";")}
+        assert p["anew"] == len(gone & at_k) == p["anew_found"]
+    assert s["subscans"][-1]["anew"] == 0
+
+
+def test_a_bubble_over_two_true_ones_merges_both_and_swapped_ids_lower_purity(sim, tmp_path):
+    meta, tables, _ = D.flowing_truth(sim)
+    tab = tables[1]
+    centres = np.stack([tab[f"centre_{a}_mm"] for a in "xyz"], axis=1)
+    inner = np.flatnonzero((np.abs(centres[:, 2]) < 0.3) & (tab["cut_top"] == 0) & (tab["cut_bottom"] == 0))
+    d = np.linalg.norm(centres[inner, None] - centres[None, inner], axis=2) + 1e9 * np.eye(len(inner))
+    a, b = (inner[i] for i in np.unravel_index(np.argmin(d), d.shape))
+    ida, idb = int(tab["id"][a]), int(tab["id"][b])
+    mid = 0.5 * (centres[a] + centres[b])
+    later = set(tables[2]["id"].astype(int))
+    swap = [int(i) for i, c in zip(tab["id"], centres) if int(i) in later and np.linalg.norm(c - mid) > 1.0][:2]
+    assert len(swap) == 2
+
+    def edit(k, meshes, ids):
+        if k == 1:  # one ellipsoid covering both neighbours replaces them
+            big = ellipsoid_mesh(mid, [0.6 * d.min() + 0.3] * 3, np.eye(3), -0.1, 3)
+            keep = [i for i, x in enumerate(ids) if x not in (ida, idb)]
+            return [meshes[i] for i in keep] + [big], [ids[i] for i in keep] + [10_000]
+        if k == 2:  # two tracks swap their ids in one subscan
+            ids = [swap[1] if x == swap[0] else swap[0] if x == swap[1] else x for x in ids]
+        return meshes, ids
+
+    s = D.score_run(meta, tables, D.bubsub_labels(_fake_run(sim, tmp_path / "rec", edit), meta))
+    p = s["subscans"][1]
+    assert p["merged"] >= 2 and p["found"] == p["truth"] - p["merged"]
+    # each swapped track has one of its rows (the last subscan's) on another truth bubble
+    rows = s["totals"]["rows"]
+    assert s["totals"]["track_purity"] == pytest.approx((rows - 2) / rows)
+
+
+def test_track_purity_and_overlap_links():
+    assert D.track_purity([(1, 5), (1, 5), (1, 6), (2, 7), (2, -1)]) == (3 / 5, 2, 5)
+    a = np.zeros((1, 10, 10), np.int32)
+    a[0, 1:4, 1:4], a[0, 6:9, 6:9] = 1, 2
+    b = np.zeros_like(a)
+    b[0, 2:5, 1:4], b[0, 0:2, 7:9] = 2, 1  # label 2 continues label 1 shifted a row; label 1 is new
+    ids, nxt = D.link_by_overlap(a, np.array([40, 41]), b, 50)
+    assert ids.tolist() == [50, 40] and nxt == 51
+
+
+def test_visible_ball_is_the_axis_or_the_cut_part_ball(sim):
+    meta, tables, _ = D.flowing_truth(sim)
+    px, h = meta["column"]["pixel_size_mm"], meta["column"]["fov_half_height_mm"]
+    # a ball of 10 px whose centre lies 4 px below the top row: its visible part holds a ball of (10 + 4) / 2 px
+    table = {f"centre_{a}_mm": np.array([0.0, 0.0]) for a in "xy"}
+    table["centre_z_mm"] = np.array([h - 4 * px, 0.0])
+    for k in (1, 2, 3):
+        table[f"semi_axis_{k}_mm"] = np.array([10 * px, [4, 5, 6][k - 1] * px])
+    for i in (1, 2, 3):
+        for j in (1, 2, 3):
+            table[f"rotation_{i}{j}"] = np.array([float(i == j)] * 2)
+    table.update(id=np.array([0.0, 1.0]), cut_top=np.array([1.0, 0.0]), cut_bottom=np.array([0.0, 0.0]))
+    ball = D.visible_ball(table, meta)
+    assert ball[1] == pytest.approx(4.0)
+    assert ball[0] == pytest.approx(7.0, abs=1.0)
+
+
+def test_voxel_route_runs_tracks_and_scores(sim, tmp_path):
+    meta, tables, _ = D.flowing_truth(sim)
+    D.run_voxel_route(sim, tmp_path / "vox", iterations=20)
+    s = D.score_run(meta, tables, D.voxel_labels(tmp_path / "vox" / "labels.npz"))
+    t = s["totals"]
+    assert t["found"] > 0.5 * t["truth"]
+    assert t["track_purity"] > 0.9 and t["tracks"] < t["rows"]  # ids carried from subscan to subscan
+    text = D.format_table("voxel", s)
+    assert text.count("\n") == len(s["subscans"]) + 2

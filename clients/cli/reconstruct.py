@@ -107,14 +107,31 @@ def _finish(args, out, rec):
         print(f"{len(r['slabs'])} slabs (halo {r['slab_halo_rows']} rows, {r['slabs_computed']} computed now): "
               f"{st['owned']} bubbles owned, {st['duplicates_dropped']} seam duplicates dropped, "
               f"{st['claimed_from_halo']} taken from a halo, {st['seam_cut']} cut at a seam")
-    print(f"{r['bubbles']} bubbles, {r['iterations']} iterations ({r.get('stop_reason', 'done')}), objective "
-          f"{r['initial_objective']:.4g} -> {r['final_objective']:.4g}, {r['seconds_total']:.1f} s")
+    print(summary_line(r))
     if "holdout_mse" in r:
         print(f"held-out projection MSE ({r['holdout_projections']} projections): {r['holdout_mse']:.4g}"
               + (f" (voxel BB reference: {r['holdout_mse_voxel_bb']:.4g})" if "holdout_mse_voxel_bb" in r else ""))
     _print_changes(r)
     print(f"wrote {out}: " + ", ".join(p.name for p in files.values()))
     return 130 if r["interrupted"] else 0
+
+
+def summary_line(r):
+    """The line ``bubsub reconstruct`` prints about what it delivered, from its ``report.json`` ``r``.
+
+    The objective is the written bubbles' (``final_objective``); with a kept refined fit the iterations
+    read ``fit + refined fit`` and the stop reason is the refined fit's, e.g. ``40 bubbles, objective
+    18.03 -> 2.283, 80 + 35 iterations (refined fit: converged), 25.1 s``.
+    """
+    fit = r.get("fit")
+    if fit is not None and r.get("delivered_fit") == "refined fit":
+        its = f"{fit['iterations']} + {r['iterations'] - fit['iterations']} iterations (refined fit: "
+    else:
+        its = f"{r['iterations']} iterations ("
+    final = r.get("final_objective")
+    return (f"{r['bubbles']} bubbles, objective {r['initial_objective']:.4g} -> "
+            f"{'?' if final is None else format(final, '.4g')}, {its}{r.get('stop_reason', 'done')}), "
+            f"{r['seconds_total']:.1f} s")
 
 
 def _print_changes(r):
@@ -143,7 +160,8 @@ def register(sub):
     p.add_argument("--iterations", type=non_negative_int, default=80,
                    help="maximum BFGS iterations (default 80, the paper's; the fit stops earlier when converged)")
     p.add_argument("--control-points", type=positive_int,
-                   help="control points per bubble (3D: 12, 42 or 162, default 42; 2D: >= 3, default 9)")
+                   help="control points per bubble of the fit (3D: 12, 42 or 162, default 42; 2D: >= 3, default 9); "
+                        "a kept refinement delivers twice as many in 2D, the next icosphere in 3D (42 -> 162)")
     p.add_argument("--data-levels", type=positive_int, metavar="K",
                    help="fit on pixels binned 2^(K-1) x 2^(K-1), ..., 2 x 2, then on the full detector, each level "
                         "warm-started (default: 2 for 3D detectors of at least 96 x 96 pixels, else 1)")

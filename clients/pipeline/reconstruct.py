@@ -44,7 +44,7 @@ from bubsub.clients.pipeline.fov import (field_of_view, fov_report, inside_fov, 
 from bubsub.clients.pipeline.initial import choose_initial, default_detector
 from bubsub.clients.pipeline.local import scene_objective
 from bubsub.clients.pipeline.preview import preview_voxel_size, voxel_for_bubbles, voxel_preview
-from bubsub.clients.pipeline.refine import can_refine, coarse_rate, refine_and_check
+from bubsub.clients.pipeline.refine import can_refine, coarse_rate, control_counts, refine_and_check
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
 from bubsub.clients.pipeline.resolution import level_counts, levels_by_size
 from bubsub.clients.pipeline.topology import adapt_bubbles
@@ -60,7 +60,7 @@ class ReconstructionSettings:
     iterations: int = 80  # the full detector's cap, 3x on binned levels (.optimise.levels); a level ends earlier on convergence
     data_levels: int | None = None  # fit on 2^(k-1)-binned, ..., full pixels; default 2 for 3D detectors >= 96 px
     fit_rtol: float | None = 2e-4  # converged: objective down by < fit_rtol x itself over 5 iterations
-    control_points: int | None = None  # 42 in 3D, 9 in 2D
+    control_points: int | None = None  # 42 in 3D, 9 in 2D; a kept refinement delivers 162 (3D) or twice (2D)
     levels: int = 2  # the most Loop levels; in 3D each bubble takes as few as keep its faces within facet_pixels
     facet_pixels: float = 0.2  # .resolution: most a fine face may stand from a sphere of its bubble's size; 0: all at levels
     radius: float | None = None  # initial radius (mm); default: median from the distance transform
@@ -242,6 +242,12 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         kept, validity = check_and_repair(kept, checker, d_fit, repair=False)
         clock.mark("validity")
 
+    refined = bool(refinement and refinement["kept"])
+    # what was delivered: the bubbles written, after the topology rounds, the repair and a kept refined fit
+    try:
+        f_final = scene_objective(local, kept, d_fit)
+    except KeyboardInterrupt:  # a second Ctrl-C: the outputs matter more than this figure
+        f_final, interrupted = None, True
     report = {
         "bubbles": len(kept),
         "bubbles_initial": len(surfaces),
@@ -253,14 +259,20 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "topology": topology,
         "refinement": refinement,
         "dimension": geometry.ndim,
-        "iterations": result.iterations,
-        "evaluations": result.evaluations,
+        # the fits that made the delivered bubbles: the fit, then the refined fit when it was kept
+        "iterations": result.iterations + (refinement["iterations"] if refined else 0),
+        "evaluations": result.evaluations + (refinement["evaluations"] if refined else 0),
+        "delivered_fit": "refined fit" if refined else "fit",
+        "fit": {"objective": result.objective, "iterations": result.iterations, "evaluations": result.evaluations,
+                "stop_reason": result.stop_reason, "seconds": result.seconds, "penalty": result.penalty},
         "fit_levels": fit_levels_report,
-        "final_objective": result.objective,
+        # 0.5 ||Proj(S x) - d||^2 of the delivered bubbles on the fitted projections, as initial_objective
+        "final_objective": f_final,
         "initial_objective": f_start,
         "method": result.method,
         "interrupted": interrupted,
-        "stop_reason": "interrupted" if interrupted else result.stop_reason,
+        "stop_reason": "interrupted" if interrupted else (refinement["stop_reason"] if refined
+                                                          else result.stop_reason),
         "seconds_total": time.perf_counter() - t0,
         "seconds_fit": result.seconds,
         "seconds_initialisation": t_init,
@@ -270,6 +282,9 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "unobserved_control_vertices": [int(unobserved_control(x, g_fit).sum()) for x in kept],
         # bubbles per subdivision level (.resolution; the refinement moves one level into the control meshes)
         "subdivision_levels": level_counts(kept),
+        # bubbles per number of control points (2D) or vertices (3D); a kept refinement doubles (2D) or about
+        # quadruples (3D) them
+        "control_points": control_counts(kept),
         "settings": {k: v for k, v in s.__dict__.items() if k != "progress"},
     }
     if g_val is not None:

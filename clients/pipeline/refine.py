@@ -34,7 +34,7 @@ from bubsub.core.projection.subdivision import refine_control
 from bubsub.clients.optimise.criteria import akaike_score
 
 __all__ = ["refine_and_fit", "refine_and_check", "can_refine", "refinable", "coarse_rate", "out_of_reach",
-           "penalised_objective"]
+           "penalised_objective", "control_counts"]
 
 
 #: The refined fit's stop reason when its trial fails: the finer surfaces did not lower the objective enough,
@@ -50,6 +50,17 @@ def refinable(surface):
     vertex every 4 pixels or so already.
     """
     return surface.levels >= (2 if surface.ndim == 3 else 1)
+
+
+def control_counts(surfaces):
+    """Bubbles per number of control points (2D) or vertices (3D), ``{"9": n9, "18": n18, ...}``
+    (report.json's ``control_points``): a kept refinement doubles a 2D polygon's points (9 -> 18) and takes a
+    3D icosphere from 42 to 162 vertices, each with one subdivision level less."""
+    counts = {}
+    for s in surfaces:
+        k = str(len(s.vertices))
+        counts[k] = counts.get(k, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: int(kv[0])))
 
 
 def can_refine(surfaces):
@@ -153,7 +164,8 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
     summary : dict
         ``kept`` (bool), ``objective_before``/``after``, ``objective_reached`` (the trial's start:
         ``objective_before`` less the repair's rise, with ``reached``), ``score_before``/``after``,
-        ``bubbles_refined``, ``control_vertices_before``/``after`` (the most of a bubble), ``iterations``.
+        ``bubbles_refined``, ``control_vertices_before``/``after`` (the most of a bubble), ``iterations``,
+        ``evaluations``, ``stop_reason`` (of the refined fit).
     """
     from bubsub.clients.optimise.fit import fit
     from bubsub.clients.pipeline.local import scene_objective
@@ -194,6 +206,7 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
                "objective_after": result.objective,
                "coarse_rate": float(coarse_rate), "stop_reason": result.stop_reason,
                "score_before": before, "score_after": after, "iterations": result.iterations,
+               "evaluations": result.evaluations,
                "bubbles_refined": sum(a is not b for a, b in zip(refined, surfaces)),
                "control_vertices_before": max(len(x.vertices) for x in surfaces),
                "control_vertices_after": max(len(x.vertices) for x in refined)}

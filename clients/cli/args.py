@@ -9,8 +9,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["positive_int", "non_negative_int", "positive_float", "existing_file", "output_folder",
-           "add_output_arguments"]
+__all__ = ["positive_int", "non_negative_int", "int_at_least", "positive_float", "non_negative_float",
+           "existing_file", "output_folder", "add_output_arguments"]
 
 
 def _number(text, kind):
@@ -34,6 +34,19 @@ def non_negative_int(text):
     return v
 
 
+def int_at_least(least, why):
+    """An argument type: an integer of at least ``least``; ``why`` says why in the refusal."""
+
+    def parse(text):
+        v = _number(text, int)
+        if v < least:
+            raise argparse.ArgumentTypeError(f"must be at least {least} ({why}), got {text}")
+        return v
+
+    parse.__name__ = f"int_at_least_{least}"
+    return parse
+
+
 def positive_float(text):
     v = _number(text, float)
     if not (v > 0 and v != float("inf")):
@@ -41,12 +54,22 @@ def positive_float(text):
     return v
 
 
+def non_negative_float(text):
+    v = _number(text, float)
+    if not (v >= 0 and v != float("inf")):
+        raise argparse.ArgumentTypeError(f"must be 0 or a positive finite number, got {text}")
+    return v
+
+
 def existing_file(text):
     p = Path(text)
     if not p.exists():
-        raise argparse.ArgumentTypeError(f"{text!r} does not exist")
+        where = "" if p.is_absolute() else f" (looked in {Path.cwd()})"
+        raise argparse.ArgumentTypeError(f"{text!r} does not exist{where}; give the path of an existing file")
     if p.is_dir():
-        raise argparse.ArgumentTypeError(f"{text!r} is a folder, not a file")
+        inside = sorted(q.name for q in p.glob("*.h5"))[:3]
+        hint = f", e.g. {p / inside[0]}" if inside else ""
+        raise argparse.ArgumentTypeError(f"{text!r} is a folder, not a file; give a file in it{hint}")
     return text
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bubsub.clients.cli.args import add_output_arguments, positive_int
+from bubsub.clients.cli.args import add_output_arguments, non_negative_float, non_negative_int, positive_int
 from bubsub.clients.cli.reconstruct import add_slab_arguments
 from bubsub.clients.cluster.engine import add_cluster_arguments
 
@@ -53,15 +53,16 @@ def register(sub):
     p.add_argument("--subscans", metavar="A:B", help="A:B reconstructs subscans A..B-1 (default all)")
     p.add_argument("--holdout", choices=("odd", "even"), help="keep these projections of every subscan aside "
                    "and report their MSE")
-    p.add_argument("--iterations", type=int, default=80, metavar="N", help="BFGS iterations per subscan (default 80)")
+    p.add_argument("--iterations", type=non_negative_int, default=80, metavar="N",
+                   help="BFGS iterations per subscan (default 80)")
     p.add_argument("--control-points", type=positive_int, metavar="N", help="control points per bubble (3D default 42, 2D 9)")
-    p.add_argument("--levels", type=int, default=2, metavar="N",
+    p.add_argument("--levels", type=non_negative_int, default=2, metavar="N",
                    help="subdivision levels (default 2); in 3D the most, each bubble taking as few as keep its faces "
                         "within --facet-pixels")
     p.add_argument("--facet-pixels", type=float, default=0.2, metavar="PX",
                    help="3D: subdivide each bubble only until its flat faces stand at most PX detector pixels from a "
                         "sphere of its size (default 0.2; 0: every bubble at --levels)")
-    p.add_argument("--warm-rtol", type=float, default=1e-3, metavar="R",
+    p.add_argument("--warm-rtol", type=non_negative_float, default=1e-3, metavar="R",
                    help="a warm-started fit stops once 5 iterations lowered the objective by less than this "
                         "fraction (default 1e-3; 0 runs all --iterations)")
     p.add_argument("--voxel-baseline", action="store_true",

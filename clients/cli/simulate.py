@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from bubsub.clients.cli.args import add_output_arguments, non_negative_int, positive_float, positive_int
+from bubsub.clients.cli.args import add_output_arguments, int_at_least, non_negative_int, positive_float, positive_int
 from bubsub.clients.pipeline.simulation import DYNAMIC_PHANTOMS, PHANTOMS, simulate_dynamic_to_dir, simulate_to_dir
 
 
@@ -52,8 +52,6 @@ def _simulate_column(args, out):
     if args.beam == "cone":
         raise ValueError("the column phantom is a parallel-beam scan; drop --beam cone")
     cols = args.det_count or 768
-    if cols < 3:
-        raise ValueError(f"--det-count must be at least 3 for the column (rows are a third of it), got {cols}")
     phantom = column_phantom(args.bubbles or 600, seed=args.seed, rows=cols // 3, cols=cols,
                              pixel_size=0.012 * 768 / cols)
     scan = simulate_column(phantom, n_angles=args.angles or 40, photons=args.photons)
@@ -122,9 +120,10 @@ def register(sub):
     p.add_argument("--coalescences", type=non_negative_int,
                    help="flowing3d: pairs of touching neighbours that merge (default 4)")
     p.add_argument("--photons", type=positive_float, default=1e4, help="flat-field photon count I0 (default 1e4)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the phantom and the noise (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the phantom and the noise (default 0)")
     p.add_argument("--beam", choices=("parallel", "cone"), help="default: parallel in 2D, cone in 3D")
-    p.add_argument("--det-count", type=positive_int, help="detector columns (2D default 2400, 3D 512, column 768 "
+    p.add_argument("--det-count", type=int_at_least(16, "a bubble must span a few detector columns"),
+                   help="detector columns (2D default 2400, 3D 512, column 768 "
                    "and flowing3d 384 with a third as many rows)")
     p.add_argument("--bubbles", type=positive_int, help="number of bubbles (random phantoms)")
     p.add_argument("--raw", action="store_true",

@@ -154,7 +154,7 @@ def check_slab_geometry(geometry):
         direction changes between projections or is not perpendicular to the rays.
     """
     if geometry.ndim != 3:
-        raise ValueError("slabs of detector rows need a 3D scan")
+        raise ValueError("slabs of detector rows need a 3D scan; leave --slabs out for a 2D one")
     if geometry.is_cone:
         raise ValueError("slabs need a parallel-beam scan: the rows of a cone-beam detector are not slices of the "
                          "sample; reconstruct it whole (--slabs 1)")

@@ -460,7 +460,8 @@ def read_scan(path, *, bubble_contrast=None, rows=None):
     try:
         f = h5py.File(p, "r")
     except OSError as exc:
-        raise ValueError(f"{str(p)!r} is not a readable HDF5 file ({exc})") from None
+        raise ValueError(f"{str(p)!r} is not a readable HDF5 file ({exc}); give a scan file written by bubsub "
+                         f"simulate or bubsub prepare") from None
     with f:
         geometry = _read_geometry(f, p)
         full = geometry
@@ -525,7 +526,8 @@ def read_geometry(path):
     try:
         f = h5py.File(p, "r")
     except OSError as exc:
-        raise ValueError(f"{str(p)!r} is not a readable HDF5 file ({exc})") from None
+        raise ValueError(f"{str(p)!r} is not a readable HDF5 file ({exc}); give a scan file written by bubsub "
+                         f"simulate or bubsub prepare") from None
     with f:
         return _read_geometry(f, p)
 

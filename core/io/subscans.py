@@ -116,7 +116,7 @@ def subscan_layout(scan, projections_per_subscan=None, subscans=None, *, incompl
     stored = scan.projections_per_subscan
     if k is not None and stored is not None and int(k) != stored:
         raise ValueError(f"projections_per_subscan {k} contradicts the scan file's attribute "
-                         f"projections_per_subscan = {stored}")
+                         f"projections_per_subscan = {stored}; leave it out to use the file's")
     k = int(k) if k is not None else stored
     if k is None:
         raise ValueError("the scan file has no root attribute 'projections_per_subscan'; "

@@ -22,7 +22,7 @@ from .body import BodyLimitMiddleware
 from .concurrency import RequestLimitMiddleware
 from .config import Settings, get_settings
 from .metrics import MetricsMiddleware
-from .openapi import EXTRA_MODELS
+from .openapi import EXTRA_MODELS, add_docs
 from .routes import ROUTERS
 from .schemas import DataFile
 from .server import connection_limits
@@ -164,13 +164,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=VERSION,
         description=DESCRIPTION,
         lifespan=lifespan,
-        docs_url="/docs",
+        docs_url=None,  # add_docs: the same page with its script and style sheet served here, not from a CDN
         redoc_url=None,
     )
     app.state.service = state
     errors.install(app)
     for router in ROUTERS:
         app.include_router(router)
+    add_docs(app)
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes, metrics=state.requests)
     app.add_middleware(RequestLimitMiddleware, limit=state.limits.requests, retry_after=settings.retry_after_seconds,
                        metrics=state.requests)

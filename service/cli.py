@@ -61,7 +61,9 @@ def add_serve_command(subparsers):
     p = subparsers.add_parser(
         "serve",
         help="run the projection server (HTTP API for remote fits)",
-        description="Run the bubsub projection server.",
+        description="Run the bubsub projection server: an HTTP API that holds a scan and computes the "
+                    "projections of bubbles and their gradients, for fits run elsewhere (bubsub reconstruct "
+                    "--server URL). API documentation at http://HOST:PORT/docs; details: docs/service.md.",
         epilog=_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

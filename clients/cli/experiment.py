@@ -8,15 +8,39 @@ from bubsub.clients.cli.args import add_output_arguments, positive_int
 from bubsub.clients.cluster.engine import add_cluster_arguments
 
 
+#: The 4D experiments (clients/experiments/fig6.py) and their dimension; the others are in ``EXPERIMENTS``.
+DYNAMIC_EXPERIMENTS = {"fig6": 2, "fig6-3d": 3}
+
+
+def experiment_names():
+    """Every name ``bubsub experiment`` takes: the sweeps of ``EXPERIMENTS``, then the 4D ones."""
+    from bubsub.clients.experiments.runner import EXPERIMENTS
+
+    return tuple(EXPERIMENTS) + tuple(DYNAMIC_EXPERIMENTS)
+
+
+def _dynamic_lines(name, ndim):
+    from bubsub.clients.experiments.fig6 import FIG6_CONFIGS
+
+    c = FIG6_CONFIGS[(ndim, False)]
+    beam = "parallel" if ndim == 2 else "cone"
+    return (f"  {name:<7} {ndim}D expanding foam: 4D BubSub against voxel baselines per subscan (docs/dynamic.md)\n"
+            f"          {c['bubbles']} bubbles, {c['subscans']} subscans of {c['per_subscan']} {beam}-beam projections\n"
+            f"          (odd ones held out); methods: bubsub bb sirt (voxel ones binarised by Otsu's threshold)")
+
+
 def _experiments_epilog():
     from bubsub.clients.experiments.runner import EXPERIMENTS
 
     lines = ["experiments (the setting swept, its paper values, the methods compared):"]
     for e in EXPERIMENTS.values():
         values = ", ".join(f"{v:g}" for v in e.values)
-        lines.append(f"  {e.name:<6} {e.title}\n         {e.variable}: {values}; methods: {' '.join(e.methods)}")
-    lines.append("\nWrites OUT/NAME.csv (one row per run), OUT/NAME.png and OUT/NAME.json (summary). OUT may hold "
-                 "other experiments; this one's earlier results need --resume (continue) or --overwrite (replace).")
+        lines.append(f"  {e.name:<7} {e.title}\n          {e.variable}: {values}; methods: {' '.join(e.methods)}")
+    lines += [_dynamic_lines(name, ndim) for name, ndim in DYNAMIC_EXPERIMENTS.items()]
+    lines.append("\nWrites OUT/NAME.csv (one row per run), OUT/NAME.png and OUT/NAME.json (summary); fig6 and fig6-3d "
+                 "write fig6.csv (one row per subscan and method), fig6.json, fig6.png and fig7.png, with the "
+                 "simulation in OUT/sim and the reconstruction in OUT/bubsub. OUT may hold other experiments; this "
+                 "one's earlier results need --resume (continue) or --overwrite (replace).")
     return "\n".join(lines)
 
 
@@ -25,7 +49,7 @@ def cmd_experiment(args):
     from bubsub.clients.experiments.runner import run_experiment
 
     spec = spec_from_args(args)
-    if args.name in ("fig6", "fig6-3d"):
+    if args.name in DYNAMIC_EXPERIMENTS:
         if not spec.in_process:
             raise ValueError(f"{args.name} runs in this process; --workers/--scheduler apply to the other experiments "
                              f"(and to reconstruct4d)")
@@ -42,7 +66,7 @@ def _fig6(args):
 
     if args.values or args.methods or (args.seeds or 1) != 1:
         raise ValueError(f"{args.name} runs one seed of every method; --values, --methods and --seeds do not apply")
-    s = run_fig6(args.out, ndim=3 if args.name == "fig6-3d" else 2, quick=args.quick, progress=not args.quiet,
+    s = run_fig6(args.out, ndim=DYNAMIC_EXPERIMENTS[args.name], quick=args.quick, progress=not args.quiet,
                  resume=args.resume, overwrite=args.overwrite)
     if s["interrupted"]:
         print(f"{args.name}: interrupted after {len(s['subscans'])} finished subscan(s), kept in {args.out}/bubsub; "
@@ -69,15 +93,11 @@ def cmd_demo(args):
 
 def register(sub):
     """Add the command's parser to ``sub`` (argparse subparsers)."""
-    from bubsub.clients.experiments.runner import EXPERIMENTS
-
     p = sub.add_parser("experiment", help="reproduce a figure of the paper (CSV + PNG)",
                        description="Reproduce a figure of the BubSub paper: DDI of each method against the "
                                    "simulated truth, per setting and seed (lower DDI is better).",
                        epilog=_experiments_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("name", choices=tuple(EXPERIMENTS) + ("fig6", "fig6-3d"),
-                   help="the figure to reproduce (listed below; fig6 / fig6-3d: 4D BubSub against voxel "
-                        "baselines on an expanding foam, docs/dynamic.md)")
+    p.add_argument("name", choices=experiment_names(), help="the figure to reproduce (listed below)")
     add_output_arguments(p, "NAME.csv, NAME.png and NAME.json (other experiments' results may share it)")
     p.add_argument("--quick", action="store_true",
                    help="a small version (coarser grids, fewer settings, 1 seed) that runs in about a minute")

@@ -25,8 +25,10 @@ Typical use:
   bubsub simulate --phantom foam3d --angles 25 --out sim
   bubsub reconstruct sim/scan.h5 --out rec
   bubsub evaluate rec sim
+  bubsub analyse rec --out analysis
 
-Parameters and when to change them: docs/parameters.md.
+Parameters and when to change them: docs/parameters.md; dynamic scans:
+docs/dynamic.md; the foam analysis: docs/analysis.md.
 """
 
 

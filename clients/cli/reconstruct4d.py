@@ -45,7 +45,14 @@ def cmd_reconstruct4d(args):
 
 def register(sub):
     """Add the command's parser to ``sub`` (argparse subparsers)."""
-    p = sub.add_parser("reconstruct4d", help="reconstruct a dynamic scan subscan by subscan, with bubble tracks")
+    p = sub.add_parser("reconstruct4d", help="reconstruct a dynamic scan subscan by subscan, with bubble tracks",
+                       description="Reconstruct a dynamic scan (all projections in acquisition order, K per "
+                                   "subscan) with BubSub, subscan by subscan backwards in time: the last subscan "
+                                   "as bubsub reconstruct does, each earlier one warm-started from its "
+                                   "successor's bubbles, whose ids are kept as track ids. Writes each subscan's "
+                                   "bubbles in subscan_NNNN/ (the files of bubsub reconstruct), tracks.csv, "
+                                   "report.json, growth.png and mse.png; --resume continues an interrupted run. "
+                                   "Details and outputs: docs/dynamic.md.")
     p.add_argument("scan", help="HDF5 scan file: all projections in acquisition order")
     add_output_arguments(p, "subscan folders, tracks.csv, report.json and plots")
     p.add_argument("--projections-per-subscan", type=positive_int, metavar="K",

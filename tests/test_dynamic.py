@@ -173,7 +173,8 @@ def test_subscan_step_is_picklable_and_keeps_track_ids(small):
     assert res.state.ids == (7, 3, 5) and res.report["start"] == "warm" and res.ended == ()
     assert res.report["objective"] < res.report["initial_objective"]
     parts = res.report["seconds_parts"]  # what the subscan's time is made of
-    assert set(parts) == {"remesh", "fit"} and 0 < sum(parts.values()) <= res.report["seconds"]
+    assert set(parts) == {"remesh", "fit", "detect"} and 0 < sum(parts.values()) <= res.report["seconds"]
+    assert res.report["new"] == {} and res.report["coalescences"] == []  # every true bubble has its warm start
     assert res.report["evaluations"] >= res.report["iterations"] and res.report["cpu_seconds"] > 0
     for s, r in zip(res.state.surfaces(), truth.radii):
         assert np.sqrt(s.fine().area / np.pi) == pytest.approx(r, rel=0.1)

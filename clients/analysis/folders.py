@@ -394,7 +394,11 @@ def _analyse_4d(folder, gap, options, spec, progress):
     whole = [r for r in rates if np.isfinite(r["two_thirds_rate"])]
     law = fit_growth_law([r["coordination"] for r in whole], [r["two_thirds_rate"] for r in whole])
     sizes, distribution = size_tables(steps)
-    dyn = {"rates": rates, "t1": t1_events(steps), "events": track_events(steps), "sizes": sizes,
+    lineage = None
+    if (folder / "lineage.csv").is_file():  # the reconstruction's own record of births, ends and coalescences
+        with open(folder / "lineage.csv", newline="") as fh:
+            lineage = list(csv.DictReader(fh))
+    dyn = {"rates": rates, "t1": t1_events(steps), "events": track_events(steps, lineage), "sizes": sizes,
            "distribution": distribution}
     tables = dict(per_table)
     for name, rows in dyn.items():
@@ -407,5 +411,6 @@ def _analyse_4d(folder, gap, options, spec, progress):
                "growth_law": {"model": f"d(V^(2/3))/dt = k (Z - Z0), k in mm^2/{unit}", **law},
                "t1_events": len(dyn["t1"]), "coalescences": kinds.count("coalescence"),
                "disappearances": kinds.count("disappearance"), "appearances": kinds.count("appearance"),
+               "events_from": "lineage.csv, volumes where it names no bubble" if lineage is not None else "volumes",
                "per_subscan": summaries}
     return Analysis("4d", tables, columns, summary)

@@ -23,14 +23,16 @@ def cmd_reconstruct4d(args):
     settings = DynamicSettings(iterations=args.iterations, control_points=args.control_points, levels=args.levels,
                                facet_pixels=args.facet_pixels, holdout=args.holdout,
                                voxel_baseline=args.voxel_baseline, warm_rtol=args.warm_rtol,
-                               slabs=args.slabs, slab_halo=args.slab_halo, progress=not args.quiet)
+                               slabs=args.slabs, slab_halo=args.slab_halo, detect=not args.no_detect,
+                               progress=not args.quiet)
     with open_client(spec_from_args(args)) as client:
         report = reconstruct_dynamic(scan, out, settings, projections_per_subscan=args.projections_per_subscan,
                                      subscans=args.subscans, resume=args.resume, overwrite=args.overwrite,
                                      client=client, chunks=args.chunks)
     kept = [f"subscan_{p['subscan']:04d}" for p in report["subscans"]]
     files = [f for d in kept for f in (out / d).iterdir() if f.is_file()]
-    files += [out / n for n in ("tracks.csv", "report.json", "growth.png", "mse.png", "run.json") if (out / n).is_file()]
+    files += [out / n for n in ("tracks.csv", "tracks.csv-metadata.json", "lineage.csv", "lineage.csv-metadata.json",
+                                "report.json", "growth.png", "mse.png", "run.json") if (out / n).is_file()]
     finish_outputs(out, files, command="reconstruct4d")
     t = report["totals"]
     state = " (interrupted: the finished subscans are complete; rerun with --resume)" if report["interrupted"] else ""
@@ -39,7 +41,7 @@ def cmd_reconstruct4d(args):
     if t["subscans_diverged"]:
         print(f"warning: {t['subscans_diverged']} subscan fit(s) diverged; kept their successor's bubbles "
               f"(see report.json)")
-    print(f"wrote {args.out}/subscan_NNNN/, tracks.csv, report.json, growth.png, mse.png")
+    print(f"wrote {args.out}/subscan_NNNN/, tracks.csv, lineage.csv, report.json, growth.png, mse.png")
     return 130 if report["interrupted"] else 0
 
 
@@ -75,6 +77,9 @@ def register(sub):
     p.add_argument("--voxel-baseline", action="store_true",
                    help="also run the voxel baseline (30 Barzilai-Borwein iterations, x >= 0) per subscan "
                         "and plot its held-out MSE")
+    p.add_argument("--no-detect", action="store_true",
+                   help="warm subscans only refit their successor's bubbles: no search for bubbles the successor "
+                        "lacks or for coalescences (lineage.csv then holds only the tracks that end)")
     p.add_argument("--resume", action="store_true", help="continue from the complete subscan folders in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--chunks", type=positive_int, default=1, metavar="K",

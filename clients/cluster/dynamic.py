@@ -8,8 +8,9 @@ which is also the first subscan of the next chunk in time. That shared
 subscan is reconstructed twice (warm by the later chunk, whose result is kept,
 and cold by the earlier one), and the earlier chunk's bubble ids are linked to
 the later chunk's by a one-to-one matching of the two reconstructions by
-overlap (:func:`link_ids`). Unmatched bubbles keep their own ids (new ones, not
-used by any other track) and are reported.
+overlap (:func:`link_ids`). Unmatched bubbles, and the bubbles an earlier
+chunk's warm subscans find anew, take fresh ids (not used by any other track);
+the unmatched ones are reported.
 
 Results are written as they complete, once their ids are final: the latest
 chunk's at once, an earlier chunk's as soon as its boundary is linked. So the
@@ -153,11 +154,32 @@ def link_ids(earlier, later, min_overlap=MIN_OVERLAP):
 
 
 def relabel(result, mapping):
-    """``result`` (a SubscanResult) with its track ids replaced through ``mapping``."""
-    state = dataclasses.replace(result.state, ids=tuple(mapping[i] for i in result.state.ids))
+    """``result`` (a SubscanResult) with its track ids replaced through ``mapping`` (in its state, its ended
+    tracks and its lineage: ``new`` and ``coalescences``)."""
+    state = dataclasses.replace(result.state, ids=tuple(mapping[i] for i in result.state.ids),
+                                next_id=1 + max(mapping.values(), default=-1))
     ended = tuple(sorted(mapping[i] for i in result.ended))
-    report = dict(result.report, ended={str(mapping[int(k)]): v for k, v in result.report.get("ended", {}).items()})
+    r = result.report
+    report = dict(r, ended={str(mapping[int(k)]): v for k, v in r.get("ended", {}).items()})
+    if "new" in r:
+        report["new"] = {str(mapping[int(k)]): v for k, v in r["new"].items()}
+    if "coalescences" in r:
+        report["coalescences"] = [{"parent": mapping[int(c["parent"])],
+                                   "children": [mapping[int(i)] for i in c["children"]]} for c in r["coalescences"]]
     return dataclasses.replace(result, state=state, ended=ended, report=report)
+
+
+class _Fresh(dict):
+    """A chunk's id mapping that gives an id it does not hold the next fresh id (a bubble the chunk's warm
+    subscans found anew), through ``take``."""
+
+    def __init__(self, mapping, take):
+        super().__init__(mapping)
+        self.take = take
+
+    def __missing__(self, key):
+        self[key] = self.take()
+        return self[key]
 
 
 class _Linker:
@@ -191,11 +213,20 @@ class _Linker:
             ready, m = self.pending[cc], self.mapping[cc]
             for i in sorted(ready, reverse=True):
                 r = ready.pop(i)
-                r = r if m is None else relabel(r, m)
+                if m is not None:  # ids the chunk's warm subscans gave new bubbles, in a fixed order
+                    for k in sorted({*r.state.ids, *(int(j) for j in r.report.get("new", {}))}):
+                        m[k]
+                    r = relabel(r, m)
                 self.used.update(r.state.ids)
                 self.done[(cc, i)] = r
                 out.append(r)
         return out
+
+    def _take(self):
+        """The next id above every id used so far (and marks it used)."""
+        i = 1 + max(self.used, default=-1)
+        self.used.add(i)
+        return i
 
     def _link(self, c):
         shared = self.chunks[c][0]
@@ -205,12 +236,12 @@ class _Linker:
         matches, overlaps = link_ids(self.cold[c].state, later.state)
         mapping, new = dict(matches), {}
         next_id = 1 + max(self.used, default=-1)
-        for i in self.cold[c].state.ids:  # a chain only loses bubbles: the cold start holds all its ids
+        for i in self.cold[c].state.ids:  # the cold start's ids; those its chunk finds later map on first sight
             if i not in mapping:
                 mapping[i] = new[i] = next_id
                 next_id += 1
         self.used.update(mapping.values())
-        self.mapping[c] = mapping
+        self.mapping[c] = _Fresh(mapping, self._take)
         self.links.append({"subscan": shared, "chunk": c, "matched": len(matches),
                            "overlap_min": min(overlaps.values(), default=None),
                            "unmatched_earlier": {str(k): v for k, v in new.items()},
@@ -253,7 +284,8 @@ def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=N
     from bubsub.clients.progress import phase
 
     parts = chunk_bounds(order, chunks)
-    linker = _Linker(parts, start.ids if start is not None else ())
+    # a resumed run's ids, ended tracks' included, are all below its start's next_id
+    linker = _Linker(parts, range(start.next_id) if start is not None else ())
     results = []
     bar = phase(f"subscans ({len(parts)} chunk{'s' if len(parts) > 1 else ''})", len(order), unit="subscan",
                 enabled=settings.progress, each=True)

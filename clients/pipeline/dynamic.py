@@ -4,9 +4,16 @@ The last selected subscan is reconstructed as a static scan (voxel preview,
 centres, radius estimation, BFGS: :func:`bubsub.clients.pipeline.reconstruct.reconstruct`).
 Every earlier subscan starts from its successor's bubbles, each control mesh
 shrunk toward its centroid and remeshed (:func:`bubsub.core.projection.remesh.warm_start`),
-then BFGS; no voxel preview. Bubbles only shrink and vanish going backwards:
-a bubble that collapses (or whose warm start cannot be built) ends its track,
-the others keep their ids.
+then BFGS; no voxel preview. After the warm fit, the static pipeline's
+topology rounds look for what the fitted bubbles leave unexplained
+(:mod:`bubsub.clients.pipeline.detect4d`): bubbles the successor lacks are
+added with new track ids, a bubble that is two here (a coalescence forward in
+time) is split, and slivers that left the field of view are removed. A bubble
+that collapses, leaves the field of view or whose warm start cannot be built
+ends its track; the others keep their ids. Each subscan's report holds its
+lineage (``new``, ``coalescences``, ``ended``), which
+:func:`bubsub.clients.pipeline.dynamic_outputs.write_lineage` writes as
+``lineage.csv`` in forward time.
 
 A large parallel-beam subscan goes through slabs of detector rows with the
 rules of ``bubsub reconstruct`` (:mod:`bubsub.clients.pipeline.slabs`: one
@@ -43,7 +50,7 @@ from bubsub.core.projection.remesh import SHRINK, warm_start
 from bubsub.core.validate import check_int
 
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
-from bubsub.clients.pipeline.fov import fov_report
+from bubsub.clients.pipeline.fov import fov_report, seen_by
 from bubsub.clients.pipeline.preview import preview_voxel_size
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
 from bubsub.clients.pipeline.resolution import levels_by_size
@@ -85,6 +92,9 @@ class DynamicSettings:
     voxel_baseline : bool
         Also run the paper's voxel baseline (30 BB iterations, non-negative)
         on each subscan and record its held-out MSE.
+    detect : bool
+        After each warm fit, look for bubbles the successor lacks and for coalescences
+        (:mod:`~bubsub.clients.pipeline.detect4d`; ``--no-detect``: only refit the successor's bubbles).
     warm_rtol, warm_window : float, int
         A warm-started fit stops early once ``warm_window`` iterations have
         lowered the objective by less than ``warm_rtol`` of its value (it
@@ -107,9 +117,10 @@ class DynamicSettings:
     warm_window: int = 5
     slabs: int | None = None
     slab_halo: int | None = None
+    detect: bool = True
 
     def __init__(self, static=None, *, shrink=SHRINK, min_radius=None, voxel_baseline=False, warm_rtol=1e-3,
-                 warm_window=5, slabs=None, slab_halo=None, **static_fields):
+                 warm_window=5, slabs=None, slab_halo=None, detect=True, **static_fields):
         unknown = sorted(set(static_fields) - STATIC_FIELDS)
         if unknown:
             raise TypeError(f"DynamicSettings got unknown settings {unknown}")
@@ -118,7 +129,8 @@ class DynamicSettings:
             static = dataclasses.replace(static, **static_fields)
         for name, value in (("static", static), ("shrink", shrink), ("min_radius", min_radius),
                             ("voxel_baseline", voxel_baseline), ("warm_rtol", warm_rtol),
-                            ("warm_window", warm_window), ("slabs", slabs), ("slab_halo", slab_halo)):
+                            ("warm_window", warm_window), ("slabs", slabs), ("slab_halo", slab_halo),
+                            ("detect", bool(detect))):
             object.__setattr__(self, name, value)
         check_int(static.iterations, "iterations", 0)
         if static.holdout not in (None, "odd", "even"):
@@ -154,6 +166,9 @@ class BubbleState:
         1/mm (the bubble contrast).
     levels : tuple of int
         Subdivision levels of each bubble (in 3D they follow its size: :mod:`.resolution`).
+    next_id : int
+        The first track id not used yet in the chain (new bubbles take ids from it upward, so that an id that
+        ended is never given again); -1: one above the largest of ``ids``.
     """
 
     ids: tuple
@@ -161,15 +176,22 @@ class BubbleState:
     faces: tuple
     attenuation: float
     levels: tuple
+    next_id: int = -1
+
+    def __post_init__(self):
+        if self.next_id < 0:
+            object.__setattr__(self, "next_id", 1 + max(self.ids, default=-1))
 
     @classmethod
-    def from_surfaces(cls, ids, surfaces, attenuation=None):
+    def from_surfaces(cls, ids, surfaces, attenuation=None, next_id=-1):
         surfaces = list(surfaces)
         if surfaces:
             attenuation = surfaces[0].attenuation if attenuation is None else attenuation
-        return cls(tuple(int(i) for i in ids), tuple(np.array(s.vertices) for s in surfaces),
+        ids = tuple(int(i) for i in ids)
+        return cls(ids, tuple(np.array(s.vertices) for s in surfaces),
                    tuple(None if s.ndim == 2 else np.array(s.control_faces) for s in surfaces),
-                   float(attenuation if attenuation is not None else np.nan), tuple(int(s.levels) for s in surfaces))
+                   float(attenuation if attenuation is not None else np.nan), tuple(int(s.levels) for s in surfaces),
+                   max(int(next_id), 1 + max(ids, default=-1)))
 
     def surfaces(self):
         """The bubbles as SubdivisionSurface, in ``ids`` order."""
@@ -183,7 +205,8 @@ class BubbleState:
         return len(self.ids)
 
     def __repr__(self):
-        return f"BubbleState(ids={list(self.ids)!r}, attenuation={self.attenuation!r}, levels={list(self.levels)!r})"
+        return (f"BubbleState(ids={list(self.ids)!r}, attenuation={self.attenuation!r}, levels={list(self.levels)!r}, "
+                f"next_id={self.next_id!r})")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -326,7 +349,7 @@ def _warm(scan, previous, settings):
     report = {"start": "warm", "iterations": 0, "objective": None, "initial_objective": None,
               "interrupted": False, "diverged": False, "seconds_parts": {"remesh": _time.perf_counter() - t0}}
     if not starts:
-        return BubbleState.from_surfaces([], [], scan.bubble_contrast), report, ended
+        return BubbleState.from_surfaces([], [], scan.bubble_contrast, previous.next_id), report, ended
     # a bubble that grew or shrank since its successor's fit takes the levels of its size
     starts = levels_by_size(starts, scan.geometry, settings.levels, settings.facet_pixels)
     slabs, halo = _warm_slabs(scan, previous, settings)  # before the fit: a refused slab setting is no divergence
@@ -340,20 +363,49 @@ def _warm(scan, previous, settings):
     report["seconds_parts"]["fit"] = fields.pop("seconds_fit")
     report["objective"] = fields.pop("final_objective")
     report.update(fields)
+    next_id = previous.next_id
+    if settings.detect:
+        t1 = _time.perf_counter()
+        ids, fitted, lineage, report["detection"], next_id = _detect(scan, previous, ids, fitted, settings)
+        report["seconds_parts"]["detect"] = _time.perf_counter() - t1
+        ended.update(lineage.pop("removed"))
+        for c in lineage["coalescences"]:
+            ended[c["parent"]] = "coalescence (going backwards: split into {} and {})".format(*c["children"])
+        if report["detection"].get("objective") is not None:
+            report["objective"] = report["detection"]["objective"]
+    else:
+        lineage = {"new": {}, "coalescences": []}
     kept_ids, kept = _survivors(ids, fitted, scan, settings, ended)
-    return BubbleState.from_surfaces(kept_ids, kept, scan.bubble_contrast), report, ended
+    alive = set(kept_ids)
+    report["new"] = {str(i): v for i, v in sorted(lineage["new"].items()) if i in alive}
+    report["coalescences"] = [c for c in lineage["coalescences"] if set(c["children"]) <= alive]
+    return BubbleState.from_surfaces(kept_ids, kept, scan.bubble_contrast, next_id), report, ended
+
+
+def _detect(scan, previous, ids, fitted, settings):
+    """:func:`~bubsub.clients.pipeline.detect4d.detect_warm` on the fitted projections (the whole subscan, after
+    its slabs too)."""
+    from bubsub.clients.pipeline.detect4d import detect_warm
+
+    geometry, data = _split(scan, settings.holdout)[:2]
+    sizes = {int(i): abs(float(s.fine().volume if s.ndim == 3 else s.fine().area))
+             for i, s in zip(previous.ids, previous.surfaces())}
+    return detect_warm(geometry, data, ids, fitted, settings, successor_sizes=sizes, next_id=previous.next_id)
 
 
 def _survivors(ids, fitted, scan, settings, ended):
-    """The fitted bubbles that have not collapsed, and their ids; the others end, their reason put in ``ended``."""
+    """The fitted bubbles that have not collapsed or left the field of view, and their ids; the others end,
+    their reason put in ``ended``."""
     # the geometry of the fitted projections; scan.data, whose split is a view, rather than a copy of bubble_data
-    min_radius = settings.min_radius or preview_voxel_size(split_holdout(scan.geometry, scan.data,
-                                                                         settings.holdout)[0])
+    geometry = split_holdout(scan.geometry, scan.data, settings.holdout)[0]
+    min_radius = settings.min_radius or preview_voxel_size(geometry)
     kept_ids, kept = [], []
     for i, s in zip(ids, fitted):
         r = s.fine().equivalent_radius
         if not np.all(np.isfinite(s.vertices)) or not r >= min_radius:
             ended[i] = f"collapsed (equivalent radius {r:.3g} mm < {min_radius:.3g} mm)"
+        elif not np.any(seen_by(s.fine().vertices, geometry)):
+            ended[i] = "left the field of view (no ray of the subscan sees it)"
         else:
             kept_ids.append(i)
             kept.append(s)

@@ -11,6 +11,7 @@ and ends with the summary files (:mod:`bubsub.clients.pipeline.dynamic_outputs`)
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -31,7 +32,7 @@ def _run_record(scan, layout, settings):
             "subscans": [layout.selected.start, layout.selected.stop], "holdout": settings.holdout,
             "dimension": scan.ndim, "levels": settings.levels, "iterations": settings.iterations,
             "warm_rtol": settings.warm_rtol, "warm_window": settings.warm_window, "slabs": settings.slabs,
-            "slab_halo": settings.slab_halo}
+            "slab_halo": settings.slab_halo, "detect": settings.detect}
 
 
 def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False,
@@ -44,7 +45,7 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
         The dynamic scan (all projections in acquisition order).
     out : path
         Output folder: ``subscan_NNNN/``, ``tracks.csv``, ``report.json``,
-        ``growth.png``, ``mse.png`` (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
+        ``growth.png``, ``mse.png``, ``lineage.csv`` (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
     settings : DynamicSettings, optional
     projections_per_subscan : int, optional
         If the scan file lacks the attribute (see :func:`bubsub.core.io.subscans.subscan_layout`).
@@ -95,6 +96,9 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
     atomic_write_text(run_file, json.dumps(record, indent=2))
     prior = [outputs.read_subscan_result(out, i, scan.bubble_contrast) for i in done]
     start = min(prior, key=lambda r: r.index).state if prior else None
+    if start is not None:  # new bubbles take ids above every id of the kept subscans, ended tracks' too
+        used = {i for r in prior for i in (*r.state.ids, *r.ended)}
+        start = dataclasses.replace(start, next_id=1 + max(used, default=-1))
 
     def write(result):
         outputs.write_subscan(out, result, scan.ndim, scan.path)

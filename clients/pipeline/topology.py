@@ -438,7 +438,8 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     return surfaces, {"changes": changes, "objective": objective, "rounds": done, "refits": refits}
 
 
-def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, settings, penalty=None):
+def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, settings, penalty=None,
+                  steps=("remove", "add", "merge", "split"), unexplained_only=False):
     """:func:`adapt_topology` as the reconstruction pipeline runs it (local projector, the preview's grid).
 
     Parameters
@@ -448,11 +449,19 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     geometry, data
         The fitted projections.
     contrast : float
-    image : ndarray
-        The voxel preview (:func:`~bubsub.clients.pipeline.preview.voxel_preview`).
-    extent : tuple
-        Of the voxel preview; ``voxel`` its voxel size, mm.
+    image : ndarray or None
+        The voxel preview (:func:`~bubsub.clients.pipeline.preview.voxel_preview`); None where there is none
+        (a warm-started subscan of ``reconstruct4d``): no split candidates from its blobs.
+    extent : tuple or None
+        Of the voxel preview; ``voxel`` its voxel size, mm (the residual preview's, without a preview).
     settings : ReconstructionSettings
+    steps : tuple of str
+        The changes tried (:func:`adapt_topology`).
+    unexplained_only : bool
+        Reconstruct only the residual's part of the bubbles' sign (gas the bubbles leave unexplained), the
+        rest set to 0: where fitted bubbles stand a little too large, the residual's other sign, which the
+        preview's ``x >= 0`` cannot hold, washes out the blobs beside them (a warm fit's neighbours that grew
+        toward a bubble they have no start for).
 
     Returns
     -------
@@ -483,11 +492,15 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     # preview with its blob search cost as much as the first fit and 400 MB of scale space
     coarse = 2 * voxel if ndim == 3 else settings.voxel_size
     extend = preview_extension(settings.fov_model, data, contrast)  # as the data preview's
-    if ndim == 3:
+    if ndim == 3 or image is None:
         shape_c, extent_c = preview_grid(geometry, coarse, extend)
-        image, extent = resample_image(image, extent, shape_c, extent_c), extent_c
+        if image is not None:
+            image = resample_image(image, extent, shape_c, extent_c)
+        extent = extent_c
 
     def preview(projections):
+        if unexplained_only:
+            projections = np.where(np.sign(contrast) * projections > 0, projections, np.float32(0))
         return voxel_preview(projections, geometry, contrast, coarse, method=settings.preview, coarse_3d=False,
                              extend=extend, iterations=RESIDUAL_PREVIEW_ITERATIONS_3D if ndim == 3 else None)
 
@@ -495,5 +508,5 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     return adapt_topology(MeshProjector(geometry, supersampling=settings.supersampling), surfaces, data,
                           preview=preview, new_bubble=new_bubble, min_radius=3 * voxel, max_radius=size / 8,
                           rounds=settings.topology_rounds, iterations=max(10, settings.iterations // 2),
-                          touch=2 * voxel, image=(image, extent), progress=settings.progress, penalty=penalty,
-                          fov_edge=settings.fov_model)
+                          touch=2 * voxel, image=None if image is None else (image, extent),
+                          progress=settings.progress, penalty=penalty, fov_edge=settings.fov_model, steps=steps)

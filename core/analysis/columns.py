@@ -60,7 +60,9 @@ def dynamics_columns(time_unit):
             **between,
             "kind": ("kind", "", "coalescence, disappearance or appearance"),
             "bubble_id": ("bubble_id", "", "the bubble that disappeared or appeared"),
-            "partner_id": ("partner_id", "", "coalescence: the neighbour it merged into (gained most volume)"),
+            "partner_id": ("partner_id", "", "coalescence: the bubble it merged into (lineage.csv's merged track "
+                                             "where the reconstruction recorded it, else the neighbour that gained "
+                                             "most volume)"),
             "volume": ("volume_mm3", "mm^3", "its volume where it exists (empty when cut by the field of view)"),
             **where,
         },

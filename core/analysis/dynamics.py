@@ -20,6 +20,10 @@ from step to step (what ``bubsub reconstruct4d`` writes).
   coalescence when one of its neighbours gained at least half its volume
   (the neighbour that gained most is named), else a disappearance (shrunk
   away by coarsening, or left the field of view). Appearances: the reverse.
+  Where the reconstruction recorded its tracks' lineage (``lineage.csv`` of
+  ``bubsub reconstruct4d``: births, ends, coalescences with their parents and
+  child), the events between two steps are taken from it, and guessed from
+  the volumes only for the bubbles it does not name.
 * Sizes: count, mean, median, standard deviation and Sauter mean
   (``sum r^3 / sum r^2``) of the equivalent radii per step, and their
   distribution over bins shared by all steps.
@@ -209,8 +213,36 @@ def t1_events(steps):
     return rows
 
 
-def track_events(steps):
+def _recorded(lineage, before, after):
+    """What ``lineage`` records between subscans ``before`` and ``after``: ``{gone id: (kind, partner)}`` and
+    the ids that begin there (births, and coalescences' children, which are no appearance)."""
+    gone, begun = {}, {}
+    for row in lineage or ():
+        if int(row["subscan_before"]) != before or str(row["subscan"]) != str(after):
+            continue
+        parents = [int(i) for i in str(row["parent_ids"]).split(";") if i != ""]
+        children = [int(i) for i in str(row["child_ids"]).split(";") if i != ""]
+        if row["event"] == "coalescence":
+            for a in parents:
+                gone[a] = ("coalescence", children[0] if len(children) == 1 else None)
+            begun.update({c: "coalescence" for c in children})
+        elif row["event"] == "end":
+            gone.update({a: ("disappearance", None) for a in parents})
+        elif row["event"] == "birth":
+            begun.update({c: "appearance" for c in children})
+    return gone, begun
+
+
+def track_events(steps, lineage=None):
     """Disappearances, coalescences and appearances between consecutive steps.
+
+    Parameters
+    ----------
+    steps : sequence of Step
+    lineage : sequence of dict, optional
+        Rows of ``lineage.csv`` (``event``: birth, end or coalescence; ``subscan_before``, ``subscan``,
+        ``parent_ids``, ``child_ids``: ids separated by semicolons). The bubbles it names between two steps
+        take its events (a coalescence's partner is the merged bubble); the others are guessed from the volumes.
 
     Returns
     -------
@@ -224,8 +256,15 @@ def track_events(steps):
         m0, m1 = s0.lookup(), s1.lookup()
         n0 = s0.neighbours()
         base = {"subscan_before": s0.index, "subscan_after": s1.index, "time_before": s0.time, "time_after": s1.time}
+        gone, begun = _recorded(lineage, s0.index, s1.index)
         for a in sorted(set(m0) - set(m1)):
             va = s0.volume[m0[a]]
+            c = s0.centroid[m0[a]]
+            if a in gone:
+                kind, partner = gone[a]
+                rows.append({**base, "kind": kind, "bubble_id": a, "partner_id": partner, "volume": float(va),
+                             "x": float(c[0]), "y": float(c[1]), "z": float(c[2])})
+                continue
             best, gain = None, -np.inf
             for b in sorted(n0.get(a, ())):
                 if b in m1:
@@ -238,6 +277,8 @@ def track_events(steps):
                          "partner_id": best if merged else None, "volume": float(va),
                          "x": float(c[0]), "y": float(c[1]), "z": float(c[2])})
         for a in sorted(set(m1) - set(m0)):
+            if begun.get(a) == "coalescence":
+                continue
             c = s1.centroid[m1[a]]
             rows.append({**base, "kind": "appearance", "bubble_id": a, "partner_id": None,
                          "volume": float(s1.volume[m1[a]]), "x": float(c[0]), "y": float(c[1]), "z": float(c[2])})

@@ -1,0 +1,285 @@
+"""Detection in a warm-started subscan: bubbles its successor lacks, coalescences seen backwards, tracks that end.
+
+``reconstruct4d`` goes backwards in time and starts each subscan from its
+successor's bubbles, so a bubble that exists now but not in the successor
+(it leaves through the detector's edge later, shrinks to nothing later, or
+coalesces later with a neighbour) has no warm start. After the warm fit,
+:func:`detect_warm` runs the static pipeline's topology rounds
+(:func:`bubsub.clients.pipeline.topology.adapt_bubbles`) on the fitted
+bubbles, without a voxel preview of the data and with the steps
+:data:`WARM_STEPS`:
+
+* **add**: the residual ``data - Proj(fit)`` is reconstructed on a coarse
+  voxel grid (the field-of-view model's grid, so caps at the detector's top
+  and bottom show), its blobs outside the fitted bubbles are seeded as round
+  bubbles, each kept when the objective drops by more than its unknowns cost
+  (the Akaike rule of the static pipeline), then refitted on a detector window
+  with its neighbours free (a neighbour whose warm fit grew into its gas
+  shrinks back) and the rest of the scene held fixed;
+* **split**: an elongated bubble (the warm fit of one bubble over two) is
+  replaced by two when that lowers the objective by more than the unknowns
+  the second bubble adds;
+* **remove**: a bubble whose removal costs the objective less than its seen
+  unknowns are worth goes (a bubble that left the field of view, going
+  backwards, keeps only a sliver in view).
+
+:func:`assign_tracks` then gives every bubble after the rounds its track:
+a bubble that lies mostly inside one fitted bubble continues its id; a
+fitted bubble that became two is a coalescence (forward in time) when the
+two together hold about the successor's bubble's size, both with new ids and
+the lineage ``children -> parent``; otherwise (one of the two is the bubble,
+the other a bubble whose space its warm fit took) the larger keeps the id.
+Bubbles inside none are new tracks. Ids come from ``next_id`` upward and are
+never reused in a run.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bubsub.core.projection.mesh import equivalent_radius
+from bubsub.core.voxel.raster import coverage
+
+from bubsub.clients.pipeline.fov import field_of_view, fov_report, truncated_flags
+
+__all__ = ["WARM_STEPS", "detect_warm", "assign_tracks", "overlap_fraction", "edge_side"]
+
+#: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
+#: forward in time, keeps the successor's two warm starts).
+WARM_STEPS = ("remove", "add", "split")
+
+#: A bubble after the rounds continues the fitted bubble that holds at least this fraction of it.
+CONTINUES = 0.5
+
+#: Cells along the longest side of the grid on which two bubbles' overlap is measured.
+OVERLAP_CELLS = 20
+
+
+def overlap_fraction(item, other, cells=OVERLAP_CELLS):
+    """Fraction of ``item``'s area (volume) inside ``other``, rasterised on a grid over ``item``'s box.
+
+    Parameters
+    ----------
+    item, other : SubdivisionSurface, Mesh or Polygon
+    cells : int
+        Grid cells along the box's longest side (two sub-samples per cell and axis).
+
+    Returns
+    -------
+    float
+        In [0, 1].
+    """
+    a, b = item.fine() if hasattr(item, "fine") else item, other.fine() if hasattr(other, "fine") else other
+    v = np.asarray(a.vertices, dtype=float)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    ov, oh = np.asarray(b.vertices).min(axis=0), np.asarray(b.vertices).max(axis=0)
+    if np.any(oh < lo) or np.any(ov > hi):
+        return 0.0
+    h = float((hi - lo).max()) / cells
+    ndim = v.shape[1]
+    shape = tuple(max(1, int(np.ceil((hi[k] - lo[k]) / h))) for k in reversed(range(ndim)))
+    extent = tuple(x for k in range(ndim) for x in (lo[k], lo[k] + shape[ndim - 1 - k] * h))
+    fa = coverage(a, shape, extent, supersample=2)
+    total = float(fa.sum())
+    if total <= 0:
+        return 0.0
+    return float(np.minimum(fa, coverage(b, shape, extent, supersample=2)).sum()) / total
+
+
+def edge_side(surface, geometry):
+    """Where a bubble meets the edge of the field of view: ``"top"`` (z > 0 in 3D), ``"bottom"``, ``"side"``
+    (the cylinder, or the disc in 2D) or None."""
+    fov = field_of_view(geometry)
+    fine = surface.fine()
+    if not truncated_flags([fine], fov, fov_report(geometry)["margin"])[0]:
+        return None
+    v = np.asarray(fine.vertices)
+    if v.shape[1] == 3 and np.abs(v[:, 2]).max() > fov[1] - fov_report(geometry)["margin"]:
+        return "top" if float(np.mean(v[:, 2])) > 0 else "bottom"
+    return "side"
+
+
+def _size(surface):
+    fine = surface.fine()
+    return abs(float(fine.volume if surface.ndim == 3 else fine.area))
+
+
+def _centre(surface):
+    return np.asarray(surface.fine().centroid, dtype=float)
+
+
+def _radius(surface):
+    v = surface.fine().vertices
+    return float(np.linalg.norm(v - v.mean(axis=0), axis=1).max())
+
+
+def _parents(before, after):
+    """For each bubble of ``after``: the index of the ``before`` bubble it continues, or -1.
+
+    The same object continues itself; another continues the nearby ``before`` bubble holding at least
+    :data:`CONTINUES` of it.
+    """
+    same = {id(s): k for k, s in enumerate(before)}
+    centres = np.array([_centre(s) for s in before]) if before else np.zeros((0, 1))
+    radii = np.array([_radius(s) for s in before])
+    out = []
+    for s in after:
+        if id(s) in same:
+            out.append(same[id(s)])
+            continue
+        c, r = _centre(s), _radius(s)
+        near = np.nonzero(np.linalg.norm(centres - c, axis=1) <= radii + r)[0] if len(before) else []
+        best, frac = -1, CONTINUES
+        for k in near:
+            f = overlap_fraction(s, before[k])
+            if f >= frac:
+                best, frac = int(k), f
+        out.append(best)
+    return out
+
+
+def assign_tracks(ids, before, after, successor_sizes, geometry, next_id):
+    """Track ids of the bubbles after the warm subscan's topology rounds, and the lineage they imply.
+
+    Parameters
+    ----------
+    ids : sequence of int
+        Track ids of ``before``.
+    before : list of SubdivisionSurface
+        The warm fit's bubbles.
+    after : list of SubdivisionSurface
+        The bubbles after :func:`detect_warm`'s rounds.
+    successor_sizes : dict
+        ``id -> area (2D) or volume (3D)`` of each track's bubble in the successor subscan (mm^2 or mm^3).
+    geometry : ScanGeometry
+        Of the fitted projections (the field of view, for the reasons).
+    next_id : int
+        The first unused track id.
+
+    Returns
+    -------
+    new_ids : list of int
+        One per ``after`` bubble.
+    lineage : dict
+        ``new`` (``{id: reason}``: tracks that start here going backwards, i.e. end here forward in time),
+        ``coalescences`` (``[{"parent": id, "children": [id, id]}]``: one bubble in the successor, two here),
+        ``removed`` (``{id: reason}``: tracks the rounds removed).
+    next_id : int
+        The first id still unused.
+    """
+    parents = _parents(before, after)
+    children = {}
+    for j, k in enumerate(parents):
+        if k >= 0:
+            children.setdefault(k, []).append(j)
+    new_ids = [None] * len(after)
+    lineage = {"new": {}, "coalescences": [], "removed": {}}
+
+    def fresh():
+        nonlocal next_id
+        next_id += 1
+        return next_id - 1
+
+    for k, js in children.items():
+        if len(js) == 1:
+            new_ids[js[0]] = int(ids[k])
+            continue
+        sizes = [_size(after[j]) for j in js]
+        js = [js[i] for i in np.argsort(sizes)[::-1]]
+        sizes = sorted(sizes, reverse=True)
+        known = successor_sizes.get(int(ids[k]))
+        # one bubble over two in the successor too (a coalescence forward in time) when the two together are
+        # nearer its size than the larger alone
+        if known is not None and abs(known - sum(sizes)) < abs(known - sizes[0]):
+            got = [fresh() for _ in js]
+            for j, i in zip(js, got):
+                new_ids[j] = i
+            lineage["coalescences"].append({"parent": int(ids[k]), "children": got})
+        else:
+            new_ids[js[0]] = int(ids[k])
+            for j in js[1:]:
+                new_ids[j] = fresh()
+                lineage["new"][new_ids[j]] = f"split off bubble {int(ids[k])}, whose warm fit covered it"
+    for j, s in enumerate(after):
+        if new_ids[j] is None:
+            new_ids[j] = fresh()
+            side = edge_side(s, geometry)
+            lineage["new"][new_ids[j]] = (f"at the {side} edge of the field of view" if side else
+                                          "inside the field of view, without a warm start")
+    for k, i in enumerate(ids):
+        if k not in children:
+            side = edge_side(before[k], geometry)
+            lineage["removed"][int(i)] = (f"left the field of view (a sliver at its {side} edge, removed by the "
+                                          f"topology rounds)" if side else
+                                          "collapsed (removed by the topology rounds: it explains less than its "
+                                          "unknowns cost)")
+    return new_ids, lineage, next_id
+
+
+def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, next_id):
+    """The warm fit's bubbles after the topology rounds of :data:`WARM_STEPS`, with their track ids.
+
+    Parameters
+    ----------
+    geometry : ScanGeometry
+        Of the fitted projections.
+    data : ndarray, ``geometry.shape``
+        The fitted projections' bubble signal.
+    ids : sequence of int
+        Track ids of ``surfaces``.
+    surfaces : list of SubdivisionSurface
+        The warm fit.
+    settings : DynamicSettings
+        Its static settings decide the rounds (``topology_rounds``, ``iterations``, ``fov_model``, ...).
+    successor_sizes : dict
+        ``id -> size`` of each track in the successor (mm^2 or mm^3).
+    next_id : int
+        The first unused track id.
+
+    Returns
+    -------
+    ids : list of int
+    surfaces : list of SubdivisionSurface
+    lineage : dict
+        See :func:`assign_tracks`.
+    summary : dict
+        The rounds' ``changes`` counted by kind, ``rounds``, ``objective``, ``voxel_mm`` (of the residual preview).
+    next_id : int
+    """
+    from bubsub.core import MeshProjector
+    from bubsub.clients.pipeline.fov import preview_extension
+    from bubsub.clients.pipeline.local import local_refit
+    from bubsub.clients.pipeline.preview import preview_voxel_size, voxel_for_bubbles
+    from bubsub.clients.pipeline.resolution import pixels_per_mm
+    from bubsub.clients.pipeline.topology import adapt_bubbles
+
+    surfaces = list(surfaces)
+    if not surfaces or settings.topology_rounds < 1:
+        return list(ids), surfaces, {"new": {}, "coalescences": [], "removed": {}}, {"rounds": 0, "objective": None}, \
+            next_id
+    contrast = surfaces[0].attenuation
+    voxel = settings.voxel_size or preview_voxel_size(geometry)
+    if settings.voxel_size is None:  # as the cold start's preview: finer when the bubbles are few voxels across
+        radii = [equivalent_radius(_size(s), s.ndim) for s in surfaces]
+        voxel = voxel_for_bubbles(radii, geometry, voxel,
+                                  preview_extension(settings.fov_model, data, contrast)) or voxel
+        # no finer than a detector pixel at the axis: the residual is reconstructed on twice this voxel
+        # (:func:`~bubsub.clients.pipeline.topology.adapt_bubbles`), and a bubble added is at least 3 voxels in
+        # radius; a finer grid costs a warm subscan more than its fit
+        voxel = max(voxel, 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0]))
+    after, summary = adapt_bubbles(surfaces, geometry, data, contrast, None, None, voxel, settings,
+                                   steps=WARM_STEPS, unexplained_only=True)
+    new_ids, lineage, next_id = assign_tracks(ids, surfaces, after, successor_sizes, geometry, next_id)
+    born = [k for k, i in enumerate(new_ids) if i not in set(ids)]
+    if born:
+        # the new bubbles with every neighbour within their size free: a neighbour whose warm fit grew into a
+        # new bubble's gas (the rounds refit only bubbles within a few voxels) gives it back
+        after, residual, _ = local_refit(MeshProjector(geometry, supersampling=settings.supersampling), after, data,
+                                      born, iterations=max(10, settings.iterations // 2),
+                                      touch=2 * max(_radius(after[k]) for k in born))
+        summary["objective"] = 0.5 * float(np.vdot(residual, residual))
+    counts = {}
+    for c in summary["changes"]:
+        counts[c["change"]] = counts.get(c["change"], 0) + 1
+    return new_ids, after, lineage, {"rounds": summary["rounds"], "changes": counts,
+                                     "objective": summary["objective"], "voxel_mm": voxel}, next_id

@@ -28,6 +28,10 @@ volume_in_fov_mm3
 The last two columns are there when the subscans' reports have their field
 of view (every ``bubsub reconstruct4d`` run writes it); see
 :func:`bubsub.clients.pipeline.fov.fov_columns`.
+
+``lineage.csv`` (:func:`bubsub.clients.pipeline.lineage.write_lineage`, with
+its CSVW sidecar) lists the tracks' births, ends and coalescences in forward
+time.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from bubsub.core.io.tables import bubble_table, unit_column, write_csv
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
+from bubsub.clients.pipeline.lineage import write_lineage
 from bubsub.clients.pipeline.outputs import json_default
 
 __all__ = ["subscan_dir", "write_subscan", "read_subscan_result", "complete_subscans", "track_rows",
@@ -153,6 +158,7 @@ def write_summary(out, results, *, layout, time_unit, settings, engine="local", 
     out = Path(out)
     results = sorted(results, key=lambda r: r.index)
     write_tracks(out / "tracks.csv", results, time_unit)
+    lineage = write_lineage(out / "lineage.csv", results, time_unit)
     per = [dict(r.report) for r in results]
     ended = [i for r in results for i in r.ended]
     warm = [p["seconds"] for p in per if p.get("start") == "warm"]
@@ -172,6 +178,7 @@ def write_summary(out, results, *, layout, time_unit, settings, engine="local", 
             "iterations": int(sum(p["iterations"] or 0 for p in per)),
             "tracks": len({i for r in results for i in r.state.ids} | set(ended)),
             "tracks_ended": len(ended), "subscans_diverged": sum(bool(p.get("diverged")) for p in per),
+            "lineage": {e: sum(r["event"] == e for r in lineage) for e in ("birth", "end", "coalescence")},
         },
         "subscans": per,
     }

@@ -211,13 +211,19 @@ def check_lateral_truncation(scan):
 IMPOSSIBLE_FRACTION = 0.002
 
 
+#: The region :func:`longest_path` bounds: this times the detector's half-width in the object plane
+#: (:data:`bubsub.clients.pipeline.fov.FOV_EXTEND`; fov imports this module, so the value stands here too).
+MODELLED_EXTEND = 1.25
+
+
 def longest_path(geometry):
     """The longest path (mm) a ray of ``geometry`` can take through the region the pipeline models.
 
-    That region is the cylinder of :data:`bubsub.clients.pipeline.fov.FOV_EXTEND` times the field of
-    view's radius (:func:`bubsub.clients.pipeline.fov.field_of_view`; a disc in 2D): a ray crosses it
-    over at most its diameter divided by the cosine of the ray's tilt out of the x-y plane (0 in 2D and for
-    a parallel beam perpendicular to the axis; largest at the middle of a cone beam's top and bottom rows).
+    That region is the cylinder of :data:`MODELLED_EXTEND` times the detector's half-width in the object
+    plane (the largest over the projections; for a centred detector the preview's region,
+    :data:`bubsub.clients.pipeline.fov.FOV_EXTEND` times the field of view's radius): a ray crosses it over
+    at most its diameter divided by the cosine of the ray's tilt out of the x-y plane (0 in 2D and for a
+    parallel beam perpendicular to the axis; largest at the middle of a cone beam's top and bottom rows).
 
     Parameters
     ----------
@@ -228,9 +234,13 @@ def longest_path(geometry):
     float
         mm.
     """
-    from bubsub.clients.pipeline.fov import FOV_EXTEND, field_of_view
-
-    diameter = 2.0 * FOV_EXTEND * field_of_view(geometry)[0]
+    n = geometry.ndim
+    vec = geometry.vectors
+    s, d, u = vec[:, :n], vec[:, n:2 * n], vec[:, 2 * n:3 * n]
+    half_w = 0.5 * geometry.det_cols * np.linalg.norm(u, axis=1)
+    if geometry.is_cone:  # the detector's width shrunk by the magnification onto the rotation axis
+        half_w = half_w * np.linalg.norm(s, axis=1) / np.linalg.norm(s - d, axis=1)
+    diameter = 2.0 * MODELLED_EXTEND * float(np.max(half_w))
     if geometry.ndim == 2:
         return diameter
     views = geometry[::max(1, geometry.n_angles // 32)]

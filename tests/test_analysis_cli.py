@@ -62,7 +62,8 @@ def test_analyse_a_reconstruct_folder(rec3d, tmp_path, capsys):
     assert float(by_id[10]["sphericity"]) > 0.999
     (contact,) = rows(out / "contacts.csv")
     assert (contact["id_a"], contact["id_b"]) == ("10", "20")
-    assert float(contact["gap_mm"]) == pytest.approx(brute_force_gap(*read_ply(rec3d / "bubbles.ply")[:2]), abs=1e-9)
+    # to the table's six significant digits
+    assert float(contact["gap_mm"]) == pytest.approx(brute_force_gap(*read_ply(rec3d / "bubbles.ply")[:2]), rel=5e-6)
     assert float(contact["branch_x_mm"]) == pytest.approx(0.92, abs=1e-3)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["contact_gap_mm"] == pytest.approx(2 * 2.4 / 160)  # one voxel of the default preview
@@ -119,6 +120,9 @@ def test_analyse_a_reconstruct4d_folder(tmp_path, capsys):
     assert main(["analyse", str(rec), "--out", str(out), "--contact-gap", "0.03"]) == 0
     printed = capsys.readouterr().out
     assert "subscan 2 (3 of 3)" in printed and "1 T1 events" in printed
+    # reconstruct4d's tracks.csv has its sidecar, describing every column
+    meta = json.loads((rec / "tracks.csv-metadata.json").read_text())
+    assert [c["name"] for c in meta["tableSchema"]["columns"]] == list(rows(rec / "tracks.csv")[0])
     (t1,) = rows(out / "t1_events.csv")
     assert [t1[k] for k in ("lost_a", "lost_b", "gained_c", "gained_d", "subscan_before", "subscan_after")] == \
         ["1", "2", "3", "4", "0", "1"]
@@ -129,8 +133,9 @@ def test_analyse_a_reconstruct4d_folder(tmp_path, capsys):
     assert {"subscan", "time_s"} <= set(bubbles[0]) and len(bubbles) == 6 + 6 + 5
     vol = {(int(r["subscan"]), int(r["id"])): float(r["volume_mm3"]) for r in bubbles}
     rates = {(int(r["subscan"]), int(r["bubble_id"])): r for r in rows(out / "rates.csv")}
-    assert float(rates[1, 5]["volume_rate_mm3_per_s"]) == pytest.approx((vol[2, 5] - vol[0, 5]) / 4.0)
-    assert float(rates[0, 5]["volume_rate_mm3_per_s"]) == pytest.approx((vol[1, 5] - vol[0, 5]) / 2.0)
+    # central and one-sided differences, of volumes written to six significant digits
+    assert float(rates[1, 5]["volume_rate_mm3_per_s"]) == pytest.approx((vol[2, 5] - vol[0, 5]) / 4.0, rel=1e-4)
+    assert float(rates[0, 5]["volume_rate_mm3_per_s"]) == pytest.approx((vol[1, 5] - vol[0, 5]) / 2.0, rel=1e-4)
     assert int(rates[1, 3]["coordination"]) == 3 and int(rates[0, 3]["coordination"]) == 2
     summary = json.loads((out / "summary.json").read_text())
     assert summary["t1_events"] == 1 and summary["disappearances"] == 1 and summary["subscans"] == 3
@@ -230,3 +235,27 @@ def test_a_4d_folder_is_analysed_on_one_grid_for_all_subscans(tmp_path):
     assert result.summary["grid"] == [3, 3, 1] and len(cells[0]) == 9
     gas = {s: sum(r["gas_volume_mm3"] for r in result.tables["grid"] if r["subscan"] == s) for s in cells}
     assert gas[2] == pytest.approx(sum(4 / 3 * np.pi * (0.45 * (1 + 0.02 * i)) ** 3 for i in range(4)), rel=0.01)
+
+
+def test_reconstruct_and_analyse_tables_give_a_bubble_the_same_columns_and_values(rec3d, tmp_path):
+    out = tmp_path / "an"
+    assert main(["analyse", str(rec3d), "--out", str(out), "--quiet", "--no-pictures"]) == 0
+    ours, theirs = rows(out / "bubbles.csv"), rows(rec3d / "bubbles.csv")
+    common = [c for c in theirs[0] if c in ours[0]]
+    # every measured column of reconstruct's table, under the same name (the rest are the analysis' own)
+    assert set(theirs[0]) - set(common) <= {"unobserved_control_vertices"}
+    assert "equivalent_diameter_mm" in common and "surface_area_mm2" in common
+    for a, b in zip(ours, theirs):
+        assert {c: a[c] for c in common} == {c: b[c] for c in common}  # the same cells, to the digit
+    # a near-ball: its area is that of the ball of its volume
+    ball = next(r for r in ours if r["id"] == "10")
+    assert float(ball["surface_area_mm2"]) == pytest.approx(np.pi * float(ball["equivalent_diameter_mm"]) ** 2,
+                                                            rel=5e-4)
+    for name in ("bubbles", "contacts", "regions_grid"):
+        meta = json.loads((out / f"{name}.csv-metadata.json").read_text())
+        assert meta["null"] == "" and "nan" not in (out / f"{name}.csv").read_text().lower()
+    meta = {c["name"]: c["dc:description"] for c in
+            json.loads((out / "bubbles.csv-metadata.json").read_text())["tableSchema"]["columns"]}
+    theirs_meta = {c["name"]: c["dc:description"] for c in
+                   json.loads((rec3d / "bubbles.csv-metadata.json").read_text())["tableSchema"]["columns"]}
+    assert all(meta[c] == theirs_meta[c] for c in common if c not in ("truncated", "volume_in_fov_mm3"))

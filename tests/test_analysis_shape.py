@@ -18,7 +18,7 @@ def test_sphere_volume_area_and_sphericity_converge_to_the_ball():
     for levels in (2, 3):
         s = bubble_shape(sphere_surface((0.3, -0.2, 1.0), R, -0.1, levels=levels).fine())
         errors.append((s["volume_mm3"] / (4 / 3 * np.pi * R ** 3) - 1, s["surface_area_mm2"] / (4 * np.pi * R * R) - 1))
-        assert s["equivalent_radius_mm"] == pytest.approx(np.cbrt(3 * s["volume_mm3"] / (4 * np.pi)))
+        assert s["equivalent_diameter_mm"] == pytest.approx(np.cbrt(6 * s["volume_mm3"] / np.pi))
         assert [s["centroid_x_mm"], s["centroid_y_mm"], s["centroid_z_mm"]] == pytest.approx([0.3, -0.2, 1.0], abs=1e-12)
         assert s["strain_von_mises"] < 1e-6
         # the Loop limit of a 42-vertex icosphere is a ball to within 3e-4 in sphericity

@@ -108,7 +108,7 @@ def test_experiment_folders_follow_the_output_folder_policy(tmp_path, capsys):
     assert main(args + ["--resume"]) == 0
     manifest = json.loads((tmp_path / MANIFEST).read_text())
     assert manifest["command"] == "experiment"
-    assert manifest["experiments"] == {"fig5": ["fig5.csv", "fig5.json", "fig5.png"]}
+    assert manifest["experiments"] == {"fig5": ["fig5.csv", "fig5.csv-metadata.json", "fig5.json", "fig5.png"]}
     # another experiment shares the folder; both stay listed and on disk
     with open(tmp_path / "fig1a.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["experiment", "angles", "method", "seed", "ddi", "seconds", "quick"])
@@ -118,7 +118,7 @@ def test_experiment_folders_follow_the_output_folder_policy(tmp_path, capsys):
     assert main(["experiment", "fig1a", "--quick", "--values", "10", "--methods", "fbp", "--out", str(tmp_path),
                  "--quiet", "--resume"]) == 0
     manifest = json.loads((tmp_path / MANIFEST).read_text())
-    assert sorted(manifest["experiments"]) == ["fig1a", "fig5"] and len(manifest["files"]) == 6
+    assert sorted(manifest["experiments"]) == ["fig1a", "fig5"] and len(manifest["files"]) == 8  # 4 files each
     assert all((tmp_path / f).is_file() for f in manifest["files"])
     # a folder holding another command's results is refused unless --overwrite
     rec = tmp_path / "rec"

@@ -17,7 +17,7 @@ __all__ = ["write_figures", "FIGURES"]
 
 #: File name -> what it shows.
 FIGURES = {
-    "sizes.png": "distribution of the equivalent radii",
+    "sizes.png": "distribution of the equivalent diameters",
     "sphericity.png": "histogram of the sphericity",
     "coordination.png": "histogram of the coordination (contacts per bubble)",
     "liquid_fraction.png": "liquid fraction against the distance from the rotation axis and against height",
@@ -178,9 +178,8 @@ def write_figures(out, analysis):
     from pathlib import Path
 
     out = Path(out)
-    _histograms(out / "sizes.png", analysis, "equivalent_radius_mm", "equivalent radius (mm; ball of equal volume)",
-                "Bubble sizes",
-                unit=" mm")
+    _histograms(out / "sizes.png", analysis, "equivalent_diameter_mm",
+                "equivalent diameter (mm; ball of equal volume)", "Bubble sizes", unit=" mm")
     _histograms(out / "sphericity.png", analysis, "sphericity", "sphericity pi^(1/3) (6V)^(2/3) / A", "Sphericity")
     _histograms(out / "coordination.png", analysis, "coordination",
                 f"coordination (contacts closer than {analysis.summary['contact_gap_mm']:.3g} mm)", "Coordination",

@@ -11,7 +11,7 @@
    threshold and an opening, scored by DDI against the truth at the
    subscan's mid-time; held-out projection MSE for BubSub and BB.
 
-Writes ``fig6.csv`` (one row per subscan and method), ``fig6.json`` (means,
+Writes ``fig6.csv`` (one row per subscan and method, with its CSVW sidecar), ``fig6.json`` (means,
 ratio to SIRT + Otsu, fraction of rows on the right track, seconds),
 ``fig6.png`` (held-out MSE and DDI per subscan) and ``fig7.png`` (BB slice,
 its Otsu binarisation, BubSub, truth at four subscans).
@@ -27,7 +27,20 @@ import numpy as np
 
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 
-__all__ = ["FIG6_CONFIGS", "run_fig6"]
+__all__ = ["FIG6_CONFIGS", "FIG6_COLUMN_INFO", "run_fig6"]
+
+#: ``column: (unit, meaning)`` of ``fig6.csv``.
+FIG6_COLUMN_INFO = {
+    "subscan": ("", "subscan index"),
+    "method": ("", "bubsub, bb (30 Barzilai-Borwein iterations, x >= 0) or sirt, voxel baselines binarised by Otsu"),
+    "start": ("", "bubsub: cold (from a voxel preview) or warm (from the neighbouring subscan); empty otherwise"),
+    "iterations": ("1", "iterations of the fit or of the voxel baseline"),
+    "stop_reason": ("", "bubsub: why the fit stopped"),
+    "ddi": ("1", "Dice dissimilarity index against the truth at the subscan's mid-time (0 is perfect)"),
+    "holdout_mse": ("1", "mean squared error on the held-out (odd) projections; empty for sirt"),
+    "seconds": ("s", "wall-clock time of the subscan's reconstruction"),
+    "cpu_seconds": ("s", "bubsub: CPU time of the subscan's reconstruction"),
+}
 
 FIG6_CONFIGS = {
     # 2D: the issue's target setting (>= 25 bubbles, 8 subscans of 25 + 25 parallel projections, I0 1e4)
@@ -204,11 +217,10 @@ def _summarise(rows, score, report, t_sim, t_total, cfg, ndim, quick, seed, phot
 
 def _write(out, rows, summary, panels, extent):
     """Write fig6.csv, fig6.json, fig6.png and fig7.png; returns their paths."""
-    from bubsub.core.io.tables import write_csv
+    from bubsub.core.io.tables import write_table
 
-    columns = ["subscan", "method", "start", "iterations", "stop_reason", "ddi", "holdout_mse", "seconds",
-               "cpu_seconds"]
-    write_csv(out / "fig6.csv", [{c: r.get(c) for c in columns} for r in rows], columns)
+    write_table(out / "fig6.csv", [{c: r.get(c) for c in FIG6_COLUMN_INFO} for r in rows], FIG6_COLUMN_INFO,
+                title="4D BubSub against voxel baselines per subscan (paper figure 6)")
     atomic_write_text(out / "fig6.json", json.dumps(summary, indent=2))
     from bubsub.clients.pipeline.figures import subplots
 
@@ -239,4 +251,4 @@ def _write(out, rows, summary, panels, extent):
             ax.set_yticks([])
     with atomic_path(out / "fig7.png") as tmp:
         fig.savefig(tmp, format="png", bbox_inches="tight")
-    return [out / n for n in ("fig6.csv", "fig6.json", "fig6.png", "fig7.png")]
+    return [out / n for n in ("fig6.csv", "fig6.csv-metadata.json", "fig6.json", "fig6.png", "fig7.png")]

@@ -258,10 +258,10 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
     summary["quick"] = quick
     summary["interrupted"] = interrupted
     summary["seeds"] = sorted({int(r["seed"]) for r in rows})
-    _write_csv(out / f"{name}.csv", rows)
+    _write_csv(out / f"{name}.csv", rows, exp.variable)
     atomic_write_text(out / f"{name}.json", json.dumps(summary, indent=2))
     plot(out / f"{name}.png", summary, exp)
-    finish_experiment(out, name, [out / f"{name}{ext}" for ext in (".csv", ".json", ".png")])
+    finish_experiment(out, name, [out / f"{name}{ext}" for ext in (".csv", ".csv-metadata.json", ".json", ".png")])
     print(format_table(summary, exp.variable))
     return summary
 
@@ -309,13 +309,22 @@ def format_table(summary, variable):
     return "\n".join(lines)
 
 
-def _write_csv(path, rows):
-    with atomic_path(path) as tmp:
-        with open(tmp, "w", newline="") as f:
-            if rows:
-                w = csv.DictWriter(f, fieldnames=list(rows[0]))
-                w.writeheader()
-                w.writerows(rows)
+#: What the experiments' variables are: ``variable: (unit, meaning)``.
+VARIABLE_INFO = {"angles": ("1", "number of projections"), "photons": ("1", "incident photons per detector pixel"),
+                 "radius": ("1", "initial radius / mean bubble radius")}
+
+
+def _write_csv(path, rows, variable):
+    """``NAME.csv`` and its CSVW sidecar (:func:`bubsub.core.io.tables.write_table`)."""
+    from bubsub.core.io.tables import write_table
+
+    info = {"experiment": ("", "experiment name"), variable: VARIABLE_INFO[variable],
+            "method": ("", "reconstruction method"), "seed": ("", "seed of the simulated phantom and noise"),
+            "ddi": ("1", "Dice dissimilarity index against the truth (0 is perfect)"),
+            "seconds": ("s", "wall-clock time of the reconstruction"),
+            "quick": ("", "True for a quick-mode run (fewer values, seeds and iterations)")}
+    return write_table(path, [{c: r[c] for c in info} for r in rows], info,
+                       title=f"{Path(path).stem}: DDI per {variable}, method and seed")
 
 
 #: one colour per method in every plot

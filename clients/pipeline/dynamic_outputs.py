@@ -3,7 +3,9 @@
 ``DIR/subscan_NNNN/`` holds what ``bubsub reconstruct`` writes (bubble ids =
 track ids); it is written as ``DIR/.subscan_NNNN.partial`` and renamed when
 complete, so a folder with the final name is always complete (``--resume``
-trusts it). ``tracks.csv`` has one row per (subscan, bubble):
+trusts it). ``tracks.csv`` (:func:`write_tracks`, with its CSVW sidecar
+``tracks.csv-metadata.json``, columns :func:`tracks_info`) has one row per
+(subscan, bubble):
 
 =====================  ======  =============================================
 column                 unit    meaning
@@ -13,11 +15,12 @@ time_s | time_subscan  s       mid-time of the subscan (``/exchange/time``);
                                ``time_subscan``: the subscan index when the scan
                                has no times
 bubble_id                      track id (kept through time)
-centroid_x_mm, _y_mm   mm      centroid of the refined surface
+centroid_x_mm, _y_mm   mm      centroid of the area (solid) the refined
+                               outline (surface) encloses
 [, centroid_z_mm]
 area_mm2 | volume_mm3  mm^2|3  2D area, 3D volume
-perimeter_mm |         mm|mm^2 2D perimeter, 3D surface area
-surface_area_mm2
+perimeter_mm |         mm|mm^2 2D perimeter, 3D surface area (the smooth
+surface_area_mm2               surface's, as in ``bubsub analyse``)
 equivalent_diameter_mm mm      of the disc (ball) of equal area (volume)
 truncated                      the bubble crosses the edge of the field of
                                view: its whole-size columns above are empty
@@ -45,7 +48,7 @@ import numpy as np
 
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.io.meshio import read_ply, read_polygons_json
-from bubsub.core.io.tables import bubble_table, unit_column, write_csv
+from bubsub.core.io.tables import BUBBLE_COLUMN_INFO, bubble_table, unit_column, write_table
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
@@ -53,7 +56,7 @@ from bubsub.clients.pipeline.lineage import write_lineage
 from bubsub.clients.pipeline.outputs import json_default
 
 __all__ = ["subscan_dir", "write_subscan", "read_subscan_result", "complete_subscans", "track_rows",
-           "write_tracks", "write_summary"]
+           "tracks_info", "write_tracks", "write_summary"]
 
 
 def subscan_dir(out, index):
@@ -146,10 +149,26 @@ def track_rows(results, time_unit):
     return rows
 
 
+def tracks_info(time_unit, columns=None):
+    """``column: (unit, meaning)`` of ``tracks.csv``: the subscan, its time, the track id and the columns of
+    ``bubbles.csv`` (:data:`~bubsub.core.io.tables.BUBBLE_COLUMN_INFO`, and those of the field of view),
+    restricted to ``columns`` (the rows' keys) when given."""
+    from bubsub.clients.pipeline.fov import FOV_COLUMN_INFO
+
+    when = "mid-time of the subscan" if time_unit == "s" else "subscan index (the scan has no times)"
+    info = {"subscan": ("", "subscan index in the scan"), time_column(time_unit): (time_unit, when),
+            "bubble_id": ("", "track id (kept through time; the id of the subscan folder's bubbles)"),
+            **{k: v for k, v in BUBBLE_COLUMN_INFO.items() if k != "id"},
+            **{k: v for k, v in FOV_COLUMN_INFO.items() if k != "unobserved_control_vertices"}}
+    return info if columns is None else {c: info[c] for c in columns}
+
+
 def write_tracks(path, results, time_unit):
-    """Write ``tracks.csv`` (atomically); the one place its columns are decided."""
+    """Write ``tracks.csv`` and its sidecar (atomically); the one place its columns are decided."""
     rows = track_rows(results, time_unit)
-    return write_csv(path, rows)
+    columns = list(rows[0]) if rows else ["subscan", time_column(time_unit), "bubble_id"]
+    return write_table(path, rows, tracks_info(time_unit, columns),
+                       title="bubble tracks of a bubsub reconstruct4d run: one row per subscan and bubble")[0]
 
 
 def write_summary(out, results, *, layout, time_unit, settings, engine="local", workers=1, interrupted=False,

@@ -21,7 +21,7 @@ Loop limit of that mesh taken as a control mesh.
 Definitions (FoamQuant's, on a mesh instead of voxels)
 -------------------------------------------------------
 * volume ``V``, surface area ``A``, centroid ``c``;
-* equivalent radius ``r = (3 V / (4 pi))^(1/3)``;
+* equivalent diameter ``d = (6 V / pi)^(1/3)``, that of the ball of the same volume;
 * sphericity ``pi^(1/3) (6 V)^(2/3) / A`` (1 for a ball, less for any other shape);
 * ``sphericity_ellipsoid``: FoamQuant's ``RegionProp`` sphericity, that of the
   ellipsoid of the same shape tensor (volume ``4/3 pi a b c``, Knud Thomsen's
@@ -44,9 +44,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from bubsub.core.io.tables import BUBBLE_COLUMN_INFO
 from bubsub.core.projection.mesh import equivalent_radius
 
-__all__ = ["solid_moments", "bubble_shape", "bubble_shapes", "strain_from_axes", "thomsen_area",
+__all__ = ["solid_moments", "bubble_shape", "bubble_shapes", "bubble_sizes", "strain_from_axes", "thomsen_area",
            "SHAPE_COLUMN_INFO", "SHAPE_COLUMNS"]
 
 #: Knud Thomsen's exponent in FoamQuant's ellipsoid area.
@@ -109,6 +110,43 @@ def _smooth_volume_area(vertex_arrays, face_arrays, volume, area):
         finer_f.append(fine)
     v1, a1, _, _ = _moments(finer_v, finer_f)
     return v1 + (v1 - volume) / 3.0, a1 + (a1 - area) / 3.0
+
+
+def _checked_moments(meshes):
+    vertex_arrays, face_arrays = [m.vertices for m in meshes], [m.faces for m in meshes]
+    volume, mesh_area, centroid, moment = _moments(vertex_arrays, face_arrays)
+    if np.any(~(volume > 0)):
+        k = int(np.argmin(volume))
+        raise ValueError(f"bubble {k} encloses a non-positive volume ({volume[k]:.3g} mm^3)")
+    smooth_volume, smooth_area = _smooth_volume_area(vertex_arrays, face_arrays, volume, mesh_area)
+    return volume, smooth_area * (volume / smooth_volume) ** (2 / 3), centroid, moment
+
+
+def bubble_sizes(meshes):
+    """Volume, surface area and centroid of many bubbles (the module docstring's definitions).
+
+    The ``volume_mm3``, ``surface_area_mm2`` and ``centroid_x|y|z_mm`` of both ``bubsub reconstruct``'s
+    and ``bubsub analyse``'s ``bubbles.csv`` (the same numbers, to the bit).
+
+    Parameters
+    ----------
+    meshes : sequence of Mesh
+        Closed, outward (the refined bubble surfaces).
+
+    Returns
+    -------
+    volume : (n,) float
+        mm^3, of the solid the mesh encloses.
+    area : (n,) float
+        mm^2, of the smooth surface at that volume.
+    centroid : (n, 3) float
+        mm, of the solid.
+    """
+    meshes = list(meshes)
+    if not meshes:
+        return np.zeros(0), np.zeros(0), np.zeros((0, 3))
+    volume, area, centroid, _ = _checked_moments(meshes)
+    return volume, area, centroid
 
 
 def thomsen_area(semi_axes, p=THOMSEN_P):
@@ -209,13 +247,7 @@ def bubble_shapes(meshes):
     meshes = list(meshes)
     if not meshes:
         return []
-    vertex_arrays, face_arrays = [m.vertices for m in meshes], [m.faces for m in meshes]
-    volume, mesh_area, centroid, moment = _moments(vertex_arrays, face_arrays)
-    if np.any(~(volume > 0)):
-        k = int(np.argmin(volume))
-        raise ValueError(f"bubble {k} encloses a non-positive volume ({volume[k]:.3g} mm^3)")
-    smooth_volume, smooth_area = _smooth_volume_area(vertex_arrays, face_arrays, volume, mesh_area)
-    area = smooth_area * (volume / smooth_volume) ** (2 / 3)
+    volume, area, centroid, moment = _checked_moments(meshes)
     lam, vec = np.linalg.eigh(moment)
     lam, vec = lam[:, ::-1], vec[:, :, ::-1]
     semi = np.sqrt(5.0 * np.maximum(lam, 0.0))
@@ -225,7 +257,7 @@ def bubble_shapes(meshes):
         axes = _axis_sign(vec[k])
         row = {"centroid_x_mm": centroid[k, 0], "centroid_y_mm": centroid[k, 1], "centroid_z_mm": centroid[k, 2],
                "volume_mm3": volume[k], "surface_area_mm2": area[k],
-               "equivalent_radius_mm": equivalent_radius(volume[k], 3),
+               "equivalent_diameter_mm": 2.0 * equivalent_radius(volume[k], 3),
                "sphericity": _sphericity(volume[k], area[k]),
                "sphericity_ellipsoid": sphericity_ellipsoid[k] if np.all(semi[k] > 0) else np.nan}
         for i in range(3):
@@ -252,13 +284,11 @@ def bubble_shape(mesh):
     return bubble_shapes([mesh])[0]
 
 
-#: ``column: (unit, meaning)`` of the shape columns of ``bubbles.csv``.
+#: ``column: (unit, meaning)`` of the shape columns of ``bubbles.csv`` (those ``bubsub reconstruct``'s
+#: ``bubbles.csv`` has too in its words, :data:`bubsub.core.io.tables.BUBBLE_COLUMN_INFO`).
 SHAPE_COLUMN_INFO = {
-    **{f"centroid_{a}_mm": ("mm", f"{a} coordinate of the centroid of the solid the refined surface encloses")
-       for a in "xyz"},
-    "volume_mm3": ("mm^3", "volume enclosed by the refined surface"),
-    "surface_area_mm2": ("mm^2", "area of the smooth (Loop limit) surface at the refined surface's volume"),
-    "equivalent_radius_mm": ("mm", "radius of the ball of the same volume, (3 V / 4 pi)^(1/3)"),
+    **{c: BUBBLE_COLUMN_INFO[c] for c in ("centroid_x_mm", "centroid_y_mm", "centroid_z_mm", "volume_mm3",
+                                         "surface_area_mm2", "equivalent_diameter_mm")},
     "sphericity": ("1", "pi^(1/3) (6 V)^(2/3) / A of the smooth surface: 1 for a ball, less for any other shape"),
     "sphericity_ellipsoid": ("1", "sphericity of the ellipsoid of the same shape tensor, Thomsen's area with p = 1.6 "
                                   "(FoamQuant RegionProp)"),

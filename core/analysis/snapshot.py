@@ -22,6 +22,7 @@ from bubsub.core.analysis.contacts import CONTACT_COLUMN_INFO, Surface, find_con
 from bubsub.core.analysis.dynamics import Step
 from bubsub.core.analysis.regions import GRID_COLUMN_INFO, SHELL_COLUMN_INFO, Domain, region_tables
 from bubsub.core.analysis.shape import SHAPE_COLUMN_INFO, bubble_shapes
+from bubsub.core.io.tables import BUBBLE_COLUMN_INFO as BUBBLE_COLUMN_INFO_RECONSTRUCT
 
 __all__ = ["Snapshot", "analyse_meshes", "BUBBLE_COLUMN_INFO", "SNAPSHOT_TABLES", "default_regions"]
 
@@ -30,7 +31,7 @@ WHOLE_SHAPE = tuple(c for c in SHAPE_COLUMN_INFO if not c.startswith("centroid_"
 
 #: ``column: (unit, meaning)`` of the analysis' ``bubbles.csv``.
 BUBBLE_COLUMN_INFO = {
-    "id": ("", "bubble id (the bubble_id of the reconstruction's bubbles.ply)"),
+    "id": BUBBLE_COLUMN_INFO_RECONSTRUCT["id"],
     **SHAPE_COLUMN_INFO,
     "coordination": ("1", "number of contacts (bubbles whose surface comes closer than the contact gap)"),
     "truncated": ("1", "1 if the bubble reaches the edge of the field of view: its whole-size and shape columns are "
@@ -192,8 +193,8 @@ def analyse_meshes(meshes, ids=None, *, contact_gap, field_of_view=None, truncat
         domain_source = domain_source or ("the field of view" if field_of_view is not None
                                           else "the bounding box of the bubbles")
     whole = cut == 0
-    radius = float(np.median([s["equivalent_radius_mm"] for s, w in zip(shapes, whole) if w] or
-                             [s["equivalent_radius_mm"] for s in shapes]))
+    radius = 0.5 * float(np.median([s["equivalent_diameter_mm"] for s, w in zip(shapes, whole) if w] or
+                                   [s["equivalent_diameter_mm"] for s in shapes]))
     g0, s0 = default_regions(radius, domain)
     grid = g0 if grid is None else tuple(int(g) for g in grid)
     shells = s0 if shells is None else int(shells)

@@ -270,15 +270,16 @@ class Job:
                     raise APIError(422, f"surface {len(out)}: {exc}", "invalid_surface") from None
         return out
 
-    def deadline(self):
-        """The :func:`time.monotonic` value by which a computation starting now must end."""
-        return time.monotonic() + self.compute_timeout
+    def deadline(self, spent=0.0):
+        """The :func:`time.monotonic` value by which a computation starting now must end, ``spent``
+        seconds of its request's work (decoding its body) already done."""
+        return time.monotonic() + self.compute_timeout - spent
 
     def forward(self, x, deadline=None):
         """Projection of the surfaces, float32 of ``geometry.shape``.
 
-        ``deadline`` (all three): past it the projector stops between chunks of
-        views and raises :class:`~bubsub.core.projection.projector.DeadlineExceeded`.
+        ``deadline`` (all three): past it the projector stops (within milliseconds)
+        and raises :class:`~bubsub.core.projection.projector.DeadlineExceeded`.
         """
         return self.projector.forward(self.items(x), deadline)
 

@@ -1,4 +1,11 @@
-"""``/v1/jobs/{id}/forward``, ``/vjp`` and ``/objective``: projections for posted control vertices."""
+"""``/v1/jobs/{id}/forward``, ``/vjp`` and ``/objective``: projections for posted control vertices.
+
+A job's compute timeout bounds the work of one request: decoding and
+estimating its body, the projection (its kernels stop within milliseconds of
+the deadline) and the encoding of the answer; waiting for a worker does not
+count. Past it the request is answered 504 (``compute_timeout``), never with
+a result that came late.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +13,7 @@ import time
 
 from fastapi import APIRouter, Request, Response
 
+from ...core.projection.backends.base import check_deadline
 from ...core.projection.projector import DeadlineExceeded
 from ..budget import check_job, estimate
 from ..codec import NPY, NPZ, content_type, encode_npy, encode_npz
@@ -20,13 +28,14 @@ _VERTICES = "stacked control vertices of all the job's surfaces, float (n_contro
 _ERRORS = errors(400, 401, 404, 409, 413, 415, 422, 503, 504, 507)
 
 
-async def _compute(state, job, op, fn, arrays, need):
-    """Run ``fn(job, arrays)`` in the compute pool within its memory estimate and its job's compute
-    timeout, mapping core errors to 422 and a computation stopped at its deadline to 504."""
+async def _compute(state, job, op, fn, arrays, need, spent):
+    """Run ``fn(job, arrays, deadline)`` in the compute pool within its memory estimate and its job's
+    compute timeout (less the ``spent`` seconds of decoding), mapping core errors to 422 and a
+    computation stopped at its deadline to 504."""
     job.active += 1
     t0 = time.perf_counter()
     try:
-        return await state.pool.run(op, fn, job, arrays, owner=job.owner, nbytes=need.total)
+        return await state.pool.run(op, _within, fn, job, arrays, spent, owner=job.owner, nbytes=need.total)
     except APIError:
         raise
     except DeadlineExceeded:
@@ -47,35 +56,46 @@ async def _compute(state, job, op, fn, arrays, need):
 
 
 def _decode(job, op, settings, body, ctype, params, allowed, required):
-    """Arrays of the request with the vertices checked, and the memory estimate (413 over the job's cap)."""
+    """Arrays of the request with the vertices checked, the memory estimate (413 over the job's cap),
+    and the seconds this took (counted against the compute timeout)."""
+    t0 = time.monotonic()
     arrays = decode_compute_body(body, ctype, params, settings.max_body_bytes, allowed, required)
     arrays["vertices"] = job.check_vertices(arrays["vertices"])
     need = estimate(job, op, settings.crossings_per_ray, arrays["vertices"], arrays, len(body))
     check_job(need, settings.compute_cap)
-    return arrays, need
+    return arrays, need, time.monotonic() - t0
+
+
+def _within(fn, job, arrays, spent):
+    """``fn(job, arrays, deadline)``, the deadline taken from the moment a worker takes the call (less
+    ``spent``), and checked once more after the answer is encoded: a result finished past the
+    deadline is a 504, as one stopped by it."""
+    deadline = job.deadline(spent)
+    result = fn(job, arrays, deadline)
+    check_deadline(deadline)
+    return result
 
 
 async def _arrays(request: Request, body: bytes, state, job, op, allowed, required):
-    """The request's arrays and its estimate, decoded off the event loop (cheap checks first)."""
+    """The request's arrays, its estimate and the seconds they took, decoded off the event loop (cheap
+    checks first)."""
     check_job(estimate(job, op, state.settings.crossings_per_ray), state.settings.compute_cap)
     ctype, params = content_type(request.headers.get("content-type"))
     return await state.decoder.run("decode", _decode, job, op, state.settings, body, ctype, params, allowed,
                                    required)
 
 
-def _forward(job, arrays):
-    return encode_npy(job.forward(arrays["vertices"], job.deadline()))
+def _forward(job, arrays, deadline):
+    return encode_npy(job.forward(arrays["vertices"], deadline))
 
 
-def _vjp(job, arrays):
-    deadline = job.deadline()  # from the moment a worker takes it
+def _vjp(job, arrays, deadline):
     x = arrays["vertices"]
     r = job.check_projection(arrays["residual"], "residual")
     return encode_npy(job.vjp(x, r, deadline))
 
 
-def _objective(job, arrays):
-    deadline = job.deadline()
+def _objective(job, arrays, deadline):
     x = arrays["vertices"]
     data = arrays.get("data")
     if data is not None:
@@ -89,8 +109,8 @@ def _objective(job, arrays):
              responses={**binary_response("float32 projections of the job's projection shape"), **_ERRORS})
 async def forward(request: Request, job: JobDep, state: StateDep, body: BodyDep) -> Response:
     """Project the subdivided surfaces: returns float32 `.npy` of shape (angle, row, col) / (angle, col)."""
-    arrays, need = await _arrays(request, body, state, job, "forward", ("vertices",), ("vertices",))
-    return Response(await _compute(state, job, "forward", _forward, arrays, need), media_type=NPY)
+    arrays, need, spent = await _arrays(request, body, state, job, "forward", ("vertices",), ("vertices",))
+    return Response(await _compute(state, job, "forward", _forward, arrays, need, spent), media_type=NPY)
 
 
 @router.post("/vjp", response_class=Response, summary="Vector-Jacobian product",
@@ -101,8 +121,8 @@ async def forward(request: Request, job: JobDep, state: StateDep, body: BodyDep)
              responses={**binary_response("float64 gradient, shape of the vertices"), **_ERRORS})
 async def vjp(request: Request, job: JobDep, state: StateDep, body: BodyDep) -> Response:
     """Gradient of `<forward(vertices), residual>` with respect to the control vertices (float64 `.npy`)."""
-    arrays, need = await _arrays(request, body, state, job, "vjp", ("vertices", "residual"), ("vertices", "residual"))
-    return Response(await _compute(state, job, "vjp", _vjp, arrays, need), media_type=NPY)
+    arrays, need, spent = await _arrays(request, body, state, job, "vjp", ("vertices", "residual"), ("vertices", "residual"))
+    return Response(await _compute(state, job, "vjp", _vjp, arrays, need, spent), media_type=NPY)
 
 
 @router.post("/objective", response_class=Response, summary="Objective and gradient",
@@ -118,6 +138,6 @@ async def objective(request: Request, job: JobDep, state: StateDep, body: BodyDe
     The target is the posted `data` if given, otherwise the job's data minus its background.
     The value is also in the `X-Objective` header (exact decimal repr).
     """
-    arrays, need = await _arrays(request, body, state, job, "objective", ("vertices", "data"), ("vertices",))
-    f, payload = await _compute(state, job, "objective", _objective, arrays, need)
+    arrays, need, spent = await _arrays(request, body, state, job, "objective", ("vertices", "data"), ("vertices",))
+    f, payload = await _compute(state, job, "objective", _objective, arrays, need, spent)
     return Response(payload, media_type=NPZ, headers={"X-Objective": repr(float(f))})

@@ -23,18 +23,26 @@ projector multiplies by ``n_f`` and scatters to the vertices.
 
 Deadlines
 ---------
-A call may carry a ``deadline`` (a :func:`time.monotonic` value): the
-backend then goes through the views in chunks (:func:`view_chunks`; rays in
-view order for the ray casters) and checks it before each, so that work past
-it really ends; every piece running on a thread stops at its next chunk, and
-:class:`DeadlineExceeded` is raised once all have (:func:`deadline_map`).
-Without a deadline each thread's views go to the kernel in one call.
+A call may carry a ``deadline`` (a :func:`time.monotonic` value). A backend
+turns it into a stop flag (:func:`stop_flag`: one byte, set by a watchdog
+thread the moment the deadline passes) that its compiled loops read every
+few thousand rays, so that work past the deadline ends within milliseconds
+whatever the call's shape (one view of many rays, or many views); pieces of
+work in Python check the clock (:func:`check_deadline`) between steps. A
+kernel that sees the flag returns what it has, and the backend then raises
+:class:`DeadlineExceeded`; every thread stops at its next check, and the
+exception is raised once all have (:func:`deadline_map`). Without a deadline
+the flag is never set and the results are the same to the bit.
 """
 
 from __future__ import annotations
 
+import heapq
+import itertools
+import os
 import threading
 import time
+import weakref
 
 import numpy as np
 
@@ -43,14 +51,11 @@ from bubsub.core.projection.subdivision import SubdivisionSurface, control_gradi
 from bubsub.core.threads import thread_map
 
 __all__ = ["Scene", "Traversal", "StoredCrossings", "Backend", "vertex_gradient", "DeadlineExceeded",
-           "check_deadline", "view_chunks", "deadline_map", "CHUNK_SECONDS"]
-
-#: with a deadline, chunks of views grow from one view while a chunk takes less than this (s)
-CHUNK_SECONDS = 0.05
+           "check_deadline", "stop_flag", "deadline_map"]
 
 
 class DeadlineExceeded(TimeoutError):
-    """A projection stopped at its deadline, between two chunks of views."""
+    """A projection stopped at its deadline."""
 
 
 def check_deadline(deadline):
@@ -59,31 +64,67 @@ def check_deadline(deadline):
         raise DeadlineExceeded(f"projection stopped at its deadline ({time.monotonic() - deadline:.3f} s past it)")
 
 
-def view_chunks(p0, p1, deadline):
-    """Ranges ``(q0, q1)`` covering views ``p0..p1`` in order, the deadline checked before each.
+class _Watchdog:
+    """One daemon thread that sets each registered stop flag when its deadline passes.
 
-    Without a deadline: ``(p0, p1)`` at once. With one, chunks start at one
-    view and double while a chunk takes under :data:`CHUNK_SECONDS`, so the
-    kernel calls add little and the deadline is checked often enough.
+    Flags are held weakly: a flag whose computation ended (and dropped it)
+    before its deadline costs nothing more than its place in the heap,
+    which is cleared of such places as it grows.
     """
-    if deadline is None:
-        if p1 > p0:
-            yield p0, p1
-        return
-    size, p = 1, p0
-    while p < p1:
-        check_deadline(deadline)
-        q = min(p1, p + size)
-        t0 = time.monotonic()
-        yield p, q
-        if time.monotonic() - t0 < CHUNK_SECONDS:
-            size *= 2
-        p = q
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._heap = []  # (deadline, sequence number, weak reference to the flag)
+        self._order = itertools.count()
+        self._pid = None  # the process whose thread serves the heap (a forked child starts its own)
+
+    def add(self, deadline, flag):
+        with self._cond:
+            if self._pid != os.getpid():
+                self._heap.clear()
+                self._pid = os.getpid()
+                threading.Thread(target=self._serve, name="bubsub-deadlines", daemon=True).start()
+            if len(self._heap) >= 1024:  # drop the places of flags already gone
+                self._heap = [e for e in self._heap if e[2]() is not None]
+                heapq.heapify(self._heap)
+            heapq.heappush(self._heap, (deadline, next(self._order), weakref.ref(flag)))
+            self._cond.notify()
+
+    def _serve(self):
+        with self._cond:
+            while True:
+                now = time.monotonic()
+                while self._heap and self._heap[0][0] <= now:
+                    flag = heapq.heappop(self._heap)[2]()
+                    if flag is not None:
+                        flag[0] = 1
+                self._cond.wait(self._heap[0][0] - now if self._heap else None)
+
+
+_WATCHDOG = _Watchdog()
+
+
+def stop_flag(deadline):
+    """``(1,) uint8`` array that becomes 1 once :func:`time.monotonic` passes ``deadline`` (None: never).
+
+    The compiled kernels read it every few thousand rays and return early
+    when it is set; the caller then raises :class:`DeadlineExceeded`
+    (:func:`check_deadline`). It is set by a watchdog thread, so reading it
+    costs a load, not a clock call; a flag is kept until its deadline only
+    while its caller holds it.
+    """
+    flag = np.zeros(1, np.uint8)
+    if deadline is not None:
+        if time.monotonic() >= deadline:
+            flag[0] = 1
+        else:
+            _WATCHDOG.add(float(deadline), flag)
+    return flag
 
 
 def deadline_map(fn, items, threads):
     """:func:`~bubsub.core.threads.thread_map` that, when an item stops at its deadline, waits for the
-    others to stop too (each at its next chunk) before raising :class:`DeadlineExceeded`."""
+    others to stop too (each at its next check) before raising :class:`DeadlineExceeded`."""
 
     def guarded(item):
         try:
@@ -370,8 +411,8 @@ class Backend:
             Whether ``face_sums`` will be called (a backend may then keep
             what it found, within a memory bound).
         deadline : float, optional
-            :func:`time.monotonic` value past which the work stops, between
-            chunks of views (``face_sums`` keeps it too), with
+            :func:`time.monotonic` value past which the work stops within a
+            few thousand rays (``face_sums`` keeps it too), with
             :class:`DeadlineExceeded`.
 
         Returns

@@ -23,6 +23,7 @@ from bubsub.core.projection.backends.jit import cached
 __all__ = ["HIT_CAPACITY", "call3", "record_and_reject", "hit_buffers", "kernel"]
 
 HIT_CAPACITY = 256  # recorded hits per ray before the buffer grows (and the ray is re-cast)
+HALT_EVERY = 4096  # rays between two reads of the stop flag (kernel)
 jit = cached(numba.njit, nogil=True)
 
 
@@ -94,7 +95,14 @@ def hit_buffers(cap):
 
 
 @jit
-def kernel(intersect1, handle, args_template, pixel, far, start, stop, sub, S, D, U, V, cone, rows, cols, shift, radius, face_item, mu, normals):
+def kernel(intersect1, handle, args_template, pixel, far, start, stop, sub, S, D, U, V, cone, rows, cols, shift, radius, face_item, mu, normals,
+           halt):
+    """Cast rays ``start:stop`` (see :func:`~bubsub.core.projection.backends.embree_native.trace_rays`).
+
+    ``halt`` ((1,) uint8, :func:`~bubsub.core.projection.backends.base.stop_flag`) is read every
+    :data:`HALT_EVERY` rays; once it is set the rays cast so far are returned. A plain read suffices:
+    every ray calls into Embree, which the compiler must assume may write any memory, so the byte
+    is read afresh after it."""
     k2 = sub.shape[0]
     npix = rows * cols
     # RTCRayHit (16-byte aligned): ray org 0-2, tnear 3, dir 4-6, time 7,
@@ -127,6 +135,8 @@ def kernel(intersect1, handle, args_template, pixel, far, start, stop, sub, S, D
     org = np.empty(3)
     dirv = np.empty(3)
     for q in range(start, stop):
+        if (q - start) % HALT_EVERY == 0 and halt[0] != 0:
+            break
         px = pixel[q // k2]
         j = q % k2
         p = px // npix

@@ -170,13 +170,13 @@ class _NativeCaster:
         self.scene = scene
         self.native = NativeScene(scene.vertices, scene.faces)
 
-    def trace_chunk(self, frames, sub, pix, far, radius, start, stop):
+    def trace_chunk(self, frames, sub, pix, far, radius, start, stop, halt):
         f, scene = frames, self.scene
         return trace_rays(self.native, pix, far, start, stop, sub, (f.s, f.d, f.u, f.v, f.cone, f.rows, f.cols),
-                          scene.centre, radius, scene.face_item, scene.mu, scene.normals)
+                          scene.centre, radius, scene.face_item, scene.mu, scene.normals, halt)
 
 
-def trace_rays(scene, pixel, far, start, stop, sub, frames, shift, radius, face_item, mu, normals):
+def trace_rays(scene, pixel, far, start, stop, sub, frames, shift, radius, face_item, mu, normals, halt=None):
     """Cast rays ``start:stop`` of the candidate pixels; every valid crossing, paired.
 
     Parameters
@@ -197,6 +197,9 @@ def trace_rays(scene, pixel, far, start, stop, sub, frames, shift, radius, face_
     radius : float
         Rays start on the sphere of this radius about ``shift``.
     face_item : (m,) int64, mu : (n_items,) float, normals : (m, 3) float
+    halt : (1,) uint8, optional
+        Stop flag (:func:`~bubsub.core.projection.backends.base.stop_flag`), read every few
+        thousand rays: once it is set, the rays cast so far are returned.
 
     Returns
     -------
@@ -208,8 +211,10 @@ def trace_rays(scene, pixel, far, start, stop, sub, frames, shift, radius, face_
         ``pixel (c,) int64, face (c,) int32, bary (c, 3) float32, inv_cos (c,) float32``.
     """
     s, d, u, v, cone, rows, cols = frames
+    if halt is None:
+        halt = np.zeros(1, np.uint8)
     return _state["kernel"](_state["intersect1"], scene.handle, _state["args_template"], pixel, far, start, stop, sub, s, d, u, v, bool(cone),
-                            int(rows), int(cols), np.asarray(shift, float), float(radius), face_item, mu, normals)
+                            int(rows), int(cols), np.asarray(shift, float), float(radius), face_item, mu, normals, halt)
 
 
 def _compile(lib):

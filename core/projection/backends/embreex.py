@@ -57,8 +57,9 @@ class _EmbreexScene:
         one = np.zeros((1, 3), np.float32)
         self.embree.run(one, one + np.float32(1), output=1)
 
-    def trace_chunk(self, frames, sub, pix, far, radius, start, stop):
-        """Trace rays ``start:stop``; returns (first pixel, values from it, crossings)."""
+    def trace_chunk(self, frames, sub, pix, far, radius, start, stop, halt):
+        """Trace rays ``start:stop``; returns (first pixel, values from it, crossings). Once the stop flag
+        ``halt`` is set it returns what it has (read before each pass of closest-hit casts)."""
         scene = self.scene
         k2 = sub.shape[0]
         ray = np.arange(start, stop)
@@ -70,7 +71,7 @@ class _EmbreexScene:
         hit_ray, hit_prim, hit_t, hit_u, hit_v, hit_cos = [], [], [], [], [], []
         eps = self.eps
         normals = self.normals32
-        while idx.size:
+        while idx.size and not halt[0]:
             res = self.embree.run(od[:, :3], od[:, 3:], dists=(length - toff).astype(np.float32), output=1)
             h = np.flatnonzero(res["primID"] >= 0)
             prim = res["primID"][h]

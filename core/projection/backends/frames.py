@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bubsub.core.projection.backends.base import Backend, StoredCrossings, check_deadline, deadline_map
+from bubsub.core.projection.backends.base import Backend, StoredCrossings, check_deadline, deadline_map, stop_flag
 
 __all__ = ["Frames", "RayCaster", "EPS_REL"]
 
@@ -144,14 +144,15 @@ class Frames:
         np.minimum(length, 2 * radius, out=length)
         return od, length
 
-    def candidate_pixels(self, scene):
+    def candidate_pixels(self, scene, deadline=None):
         """Pixels whose rays may hit some item's bounding sphere, and how far they need to go.
 
         Each sphere is enclosed in a cube aligned with the detector, whose
         projected corners bound the pixels it can shadow. For each such pixel
         the farthest side of the spheres over it bounds where its last
         crossing can be, so rays stop there instead of casting a last, long
-        miss through the scene.
+        miss through the scene. View by view, ``deadline`` (a
+        :func:`time.monotonic` value) checked before each.
 
         Returns
         -------
@@ -164,9 +165,11 @@ class Frames:
         centre, radius = _item_spheres(scene)
         m = len(centre)
         signs = np.array([[(i >> j) & 1 for j in range(3)] for i in range(8)], float) * 2 - 1
-        far = np.full((self.n, self.rows, self.cols), -np.inf)
+        npix = self.rows * self.cols
+        pixels, fars = [], []
         shift = scene.centre
         for p in range(self.n):
+            check_deadline(deadline)
             d, u, v = self.d[p] - shift, self.u[p], self.v[p]
             nrm = np.cross(u, v)
             axes = np.stack([u / np.linalg.norm(u), v / np.linalg.norm(v), nrm / np.linalg.norm(nrm)])
@@ -177,7 +180,8 @@ class Frames:
                 den = (X - s) @ nrm
                 lam = ((d - s) @ nrm) / np.where(den == 0, np.nan, den)
                 if not np.all(np.isfinite(lam) & (lam > 0)):
-                    far[p] = np.inf  # a sphere around or behind the source: cast everything
+                    pixels.append(np.arange(p * npix, (p + 1) * npix))  # a sphere around or behind the source:
+                    fars.append(np.full(npix, np.inf))  # cast everything
                     continue
                 P = s + lam[:, None] * (X - s)
             else:
@@ -185,7 +189,8 @@ class Frames:
                 item_far = centre @ (ray / np.linalg.norm(ray)) + radius
                 den = ray @ nrm
                 if den == 0:
-                    far[p] = np.inf
+                    pixels.append(np.arange(p * npix, (p + 1) * npix))
+                    fars.append(np.full(npix, np.inf))
                     continue
                 P = X + (((d - X) @ nrm) / den)[:, None] * ray
             rel = P - d
@@ -199,13 +204,24 @@ class Frames:
             r1 = np.clip(np.ceil(row.max(1)) + 2, 0, self.rows).astype(int)
             if self.ndim == 2:
                 r0[:], r1[:] = 0, 1
-            fp = far[p]
+            fp = np.full((self.rows, self.cols), -np.inf)
             for k in range(m):
                 view = fp[r0[k]:r1[k], c0[k]:c1[k]]
                 np.maximum(view, item_far[k], out=view)
-        far = far.ravel()
-        pixel = np.flatnonzero(far > -np.inf)
-        return pixel, far[pixel]
+            fp = fp.ravel()
+            pixel = np.flatnonzero(fp > -np.inf)
+            pixels.append(pixel + p * npix)
+            fars.append(fp[pixel])
+        # joined view by view, the deadline checked before each: writing hundreds of MB into fresh pages
+        # is itself a fair share of a second
+        total = sum(len(a) for a in pixels)
+        pixel, far = np.empty(total, np.int64), np.empty(total)
+        pos = 0
+        for a, f in zip(pixels, fars):
+            check_deadline(deadline)
+            pixel[pos:pos + len(a)], far[pos:pos + len(a)] = a, f
+            pos += len(a)
+        return pixel, far
 
 
 class RayCaster(Backend):
@@ -221,15 +237,18 @@ class RayCaster(Backend):
         size = float(np.max(scene.half[:scene.ndim])) * 2.0
         eps = EPS_REL * max(size, 1e-3)
         caster = self.prepare(scene, eps)
-        pix, far = frames.candidate_pixels(scene)
+        pix, far = frames.candidate_pixels(scene, deadline)
         far += 4 * eps
         # every ray starts just before the scene's bounding sphere
         radius = float(np.linalg.norm(scene.half)) + 4 * eps
         n_rays = pix.size * sub.shape[0]
+        halt = stop_flag(deadline)  # the casters read it every few thousand rays
 
         def chunk(s):  # rays go in pixel order, so a chunk of rays is a chunk of views
             check_deadline(deadline)
-            return caster.trace_chunk(frames, sub, pix, far, radius, s, min(s + RAY_CHUNK, n_rays))
+            out = caster.trace_chunk(frames, sub, pix, far, radius, s, min(s + RAY_CHUNK, n_rays), halt)
+            check_deadline(deadline)  # the chunk may have stopped at the flag
+            return out
 
         chunks = deadline_map(chunk, range(0, n_rays, RAY_CHUNK), threads)
         values = np.zeros(frames.n * frames.rows * frames.cols)
@@ -239,5 +258,6 @@ class RayCaster(Backend):
                                lambda fn, items: deadline_map(fn, items, threads), deadline)
 
     def prepare(self, scene, eps):
-        """An object with ``trace_chunk(frames, sub, pix, far, radius, start, stop)`` for this scene."""
+        """An object with ``trace_chunk(frames, sub, pix, far, radius, start, stop, halt)`` for this scene
+        (``halt``: the stop flag, :func:`~bubsub.core.projection.backends.base.stop_flag`)."""
         raise NotImplementedError

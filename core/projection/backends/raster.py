@@ -88,10 +88,14 @@ forward pass went item by item and kept every crossing, the face sums are
 split among the threads by items instead, into one array (an item's faces
 belong to one thread).
 
-Deadline: with one, a group goes to the kernel in chunks of its views
-(:func:`~bubsub.core.projection.backends.base.view_chunks`), each chunk's
-crossings stored after the previous one's in the group's part of the store;
-values, stores and face sums are the same to the bit as in one call.
+Deadline: the kernels read the call's stop flag
+(:func:`~bubsub.core.projection.backends.base.stop_flag`) per projection, per
+chunk of 256 faces (per face in the gradient pass), per row of a box of
+more than 16,384 lattice points and every 16,384 stored crossings, and
+return early once the deadline has set it; the backend then raises
+:class:`~bubsub.core.projection.backends.base.DeadlineExceeded`. A call
+with a deadline makes the same kernel calls as one without, so its results
+are the same to the bit.
 """
 
 from __future__ import annotations
@@ -101,7 +105,7 @@ import threading
 
 import numpy as np
 
-from bubsub.core.projection.backends.base import Backend, Traversal, check_deadline, deadline_map, view_chunks
+from bubsub.core.projection.backends.base import Backend, Traversal, check_deadline, deadline_map, stop_flag
 from bubsub.core.threads import thread_map
 
 __all__ = ["RasterBackend", "available", "unavailable_reason"]
@@ -139,7 +143,8 @@ class RasterBackend(Backend):
         if not _load():
             raise RuntimeError(f"the raster backend is unavailable: {unavailable_reason()}")
         job = _Job(scene, frames, sub, threads, store=gradient, deadline=deadline)
-        # each group zeroes its own projections (job.run): 26 MB of zeros here would be a serial millisecond per call
+        # each group zeroes its own projections (raster3d, view by view): 26 MB of zeros here would be a serial
+        # millisecond per call
         values = np.empty(frames.n * frames.rows * frames.cols)
         try:
             counts = deadline_map(lambda g: job.run(g, values, None, None), job.groups, job.threads)
@@ -229,8 +234,8 @@ class _RasterTraversal(Traversal):
             acc = np.zeros((nf, k))
             face, pix, coef, n = job.stores[g]
             if n >= 0:  # the forward pass kept this group's crossings
+                _state["stored_face_sums"](face, pix, coef, n, weights, acc, *job.ray_lengths, job.stop)
                 check_deadline(job.deadline)
-                _state["stored_face_sums"](face, pix, coef, n, weights, acc, *job.ray_lengths)
             else:
                 job.run(g, None, weights, acc)
             return acc
@@ -251,9 +256,10 @@ class _RasterTraversal(Traversal):
         starts = np.stack([row for g in job.groups for row in job.store_items[g]])
 
         def items(span):
-            _state["item_face_sums"](*job.store, starts, span[0], span[1], weights, acc, *job.ray_lengths)
+            _state["item_face_sums"](*job.store, starts, span[0], span[1], weights, acc, *job.ray_lengths, job.stop)
 
         thread_map(items, job.scene.item_spans(job.threads), job.threads)
+        check_deadline(job.deadline)
         return acc
 
 
@@ -263,6 +269,7 @@ class _Job:
     def __init__(self, scene, frames, sub, threads, store=False, deadline=None):
         self.scene = scene
         self.deadline = deadline
+        self.stop = stop_flag(deadline)  # set when the deadline passes: the kernels then return early
         k2 = sub.shape[0]
         self.k = int(round(np.sqrt(k2))) if scene.ndim == 3 else k2
         shift = scene.centre
@@ -276,7 +283,7 @@ class _Job:
         Bv = nu / np.einsum("ij,ij->i", V, nu)[:, None]
         self.frames = tuple(np.ascontiguousarray(a, dtype=np.float64) for a in (S, D, U, V, N, Au, Bv))
         self.cone, self.rows, self.cols = bool(cone), int(frames.rows), int(frames.cols)
-        self.ray_lengths = _pixel_ray_lengths(frames) if cone and self.k == 1 and scene.ndim == 3 \
+        self.ray_lengths = _pixel_ray_lengths(frames, self.stop, deadline) if cone and self.k == 1 and scene.ndim == 3 \
             else (np.ones(1), False)
         f = scene.faces
         self.faces = np.ascontiguousarray(f)  # int32 (Scene), int64 for the largest scenes
@@ -318,42 +325,30 @@ class _Job:
                 [np.empty(0, np.int32), np.empty(0, np.int32), np.empty((0, 3)), -1]
 
     def run(self, group, values, weights, acc):
-        """Forward (``values`` given) or face sums (``weights``, ``acc`` given) for projections ``group``,
-        in chunks of views when there is a deadline (checked before each chunk)."""
+        """Forward (``values`` given) or face sums (``weights``, ``acc`` given) for projections ``group``;
+        :class:`DeadlineExceeded` once the deadline has passed (the kernels stop at the flag)."""
         p0, p1 = group
         grad = acc is not None
-        npix = self.rows * self.cols
         dummy1, dummy2 = np.zeros(1), np.zeros((1, 1))
+        if not grad and self.scene.ndim == 2:  # raster3d zeroes its views' values itself
+            values[p0 * self.cols: p1 * self.cols] = 0.0
+        args = (p0, p1, self.vertices, self.faces, self.normals, self.offset, self.face_mu, *self.frames,
+                self.cone, self.rows, self.cols, self.k, values if not grad else dummy1,
+                weights if grad else dummy1, acc if grad else dummy2, grad)
+        if self.scene.ndim == 2:
+            count = _state["raster2d"](*args, self.stop)
+            check_deadline(self.deadline)
+            return count
         face, pix, coef, _ = self.stores[group]
-        # where the next chunk's crossings go in the group's part of the store; -1: not storing
-        pos = 0 if self.scene.ndim == 3 and not grad and len(face) > 0 else -1
-        rows = []  # per chunk: where each item's crossings begin in the whole store (item by item)
-        count = 0
-        for q0, q1 in view_chunks(p0, p1, self.deadline):
-            if not grad:
-                values[q0 * npix: q1 * npix] = 0.0
-            args = (q0, q1, self.vertices, self.faces, self.normals, self.offset, self.face_mu, *self.frames,
-                    self.cone, self.rows, self.cols, self.k, values if not grad else dummy1,
-                    weights if grad else dummy1, acc if grad else dummy2, grad)
-            if self.scene.ndim == 2:
-                count += _state["raster2d"](*args)
-                continue
-            at = pos if pos >= 0 else len(face)  # an empty store: the kernel keeps nothing
-            starts = np.zeros(len(self.item_faces), np.int64)
-            c, stored = _state["raster3d"](*args, self.hit, face[at:], pix[at:], coef[at:], *self.ray_lengths,
-                                           self.item_vertices, self.item_faces, self.by_item, starts)
-            count += c
-            if grad or pos < 0:
-                continue
-            if stored < 0:  # the store filled in this chunk: the earlier chunks' faces are marked as well
-                _state["mark_stored"](face, pix, pos, npix, self.hit)
-                pos = -1
-            else:
-                rows.append(starts + self.store_offset[group] + pos)
-                pos += stored
-        if not grad and self.scene.ndim == 3:
-            self.stores[group][3] = pos
-            self.store_items[group] = rows
+        if grad:  # an empty store: the gradient pass keeps nothing
+            face, pix, coef = face[:0], pix[:0], coef[:0]
+        starts = np.zeros(len(self.item_faces), np.int64)
+        count, stored = _state["raster3d"](*args, self.hit, face, pix, coef, *self.ray_lengths, self.item_vertices,
+                                           self.item_faces, self.by_item, starts, self.stop)
+        check_deadline(self.deadline)
+        if not grad:
+            self.stores[group][3] = stored
+            self.store_items[group] = [starts + self.store_offset[group]] if stored >= 0 else []
         return count
 
     def objective(self, group, data):
@@ -387,21 +382,20 @@ class _Job:
             span = slice(p * npix, q * npix)
             if buffer.size < (q - p) * npix:
                 buffer = np.empty((q - p) * npix)
-            values = buffer[:(q - p) * npix]
-            values[:] = 0.0
+            values = buffer[:(q - p) * npix]  # zeroed by raster3d
             chunk = (*scene, *(a[p:q] for a in self.frames), self.cone, self.rows, self.cols, self.k)
             hit, rl = self.hit[p:q], rl_all[span] if pix_rl else rl_all
             c, stored = _state["raster3d"](0, q - p, *chunk, values, dummy1, dummy2, False, hit, face, pix, coef,
-                                           rl, pix_rl, *items, self.by_item, starts)
+                                           rl, pix_rl, *items, self.by_item, starts, self.stop)
             # the residual over the sub-rays' weights: face_sums' weights are the residual / k^2
             f += residual(values, k2, data[span], values)
             if k2 > 1:
                 values /= k2
             if stored >= 0:
-                _state["stored_face_sums"](face, pix, coef, stored, values, acc, rl, pix_rl)
+                _state["stored_face_sums"](face, pix, coef, stored, values, acc, rl, pix_rl, self.stop)
             else:
                 _state["raster3d"](0, q - p, *chunk, dummy1, values, acc, True, hit, face[:0], pix[:0], coef[:0],
-                                   rl, pix_rl, *items, False, starts)
+                                   rl, pix_rl, *items, False, starts, self.stop)
                 if q - p == 1 and int(1.25 * c) * 32 <= store_bytes():
                     # one view outgrows the group's part of the store: a store of the group's own that holds
                     # one view with a quarter to spare (within the whole budget), or every view is rasterised
@@ -412,6 +406,7 @@ class _Job:
             per_view = max(per_view, c / (q - p))
             size = max(1, int(0.9 * room / per_view)) if room and per_view > 0 else p1 - q
             p = q
+        check_deadline(self.deadline)  # the last chunk's kernels may have stopped at the flag
         return f, acc
 
     def by_item_store(self):
@@ -420,14 +415,16 @@ class _Job:
             self.stores[g][3] >= 0 for g in self.groups)
 
 
-def _pixel_ray_lengths(frames):
+def _pixel_ray_lengths(frames, stop, deadline):
     """``(lengths, True)``: every pixel's source-to-detector ray length, computed once per
-    :class:`Frames` (a square root per crossing would cost 10 % of an objective)."""
+    :class:`Frames` (a square root per crossing would cost 10 % of an objective); kept only when
+    finished (``stop``: the call's stop flag; :class:`DeadlineExceeded` past ``deadline``)."""
     cached = frames.derived.get("raster pixel ray lengths")
     if cached is None:
         S, D, U, V = (np.ascontiguousarray(a, dtype=np.float64) for a in (frames.s, frames.d, frames.u, frames.v))
         cached = np.empty(frames.n * frames.rows * frames.cols)
-        _state["pixel_ray_lengths"](S, D, U, V, int(frames.rows), int(frames.cols), cached)
+        _state["pixel_ray_lengths"](S, D, U, V, int(frames.rows), int(frames.cols), cached, stop)
+        check_deadline(deadline)
         # two threads may both compute it on a projector's first calls: the same array either way
         frames.derived["raster pixel ray lengths"] = cached
     return cached, True
@@ -438,4 +435,4 @@ def _compile():
 
     return {"raster3d": raster_kernels.raster3d, "raster2d": raster_kernels.raster2d,
             "stored_face_sums": raster_kernels.stored_face_sums, "item_face_sums": raster_kernels.item_face_sums,
-            "pixel_ray_lengths": raster_kernels.pixel_ray_lengths, "mark_stored": raster_kernels.mark_stored}
+            "pixel_ray_lengths": raster_kernels.pixel_ray_lengths}

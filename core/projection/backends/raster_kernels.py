@@ -17,13 +17,37 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
 
 from bubsub.core.projection.backends.jit import cached
 
-__all__ = ["raster3d", "raster2d", "stored_face_sums", "item_face_sums", "pixel_ray_lengths"]
+__all__ = ["raster3d", "raster2d", "stored_face_sums", "item_face_sums", "pixel_ray_lengths", "stopped"]
 
 # numpy error model: float division by zero gives inf instead of a checked exception
 jit = cached(numba.njit, nogil=True, error_model="numpy")
+
+# stored crossings (stored_face_sums) and 2D segments (raster2d) between two reads of the stop flag;
+# the 3D passes read it per view, per chunk of CHUNK faces and per row of a large box
+STOP_EVERY = 1 << 14
+
+
+@intrinsic
+def stopped(typingctx, flag):
+    """Whether the stop flag ``flag`` ((1,) uint8, :func:`~bubsub.core.projection.backends.base.stop_flag`)
+    is set. An atomic (monotonic) load: the compiler reads the byte afresh at every call, where a plain
+    ``flag[0]`` could be read once before a loop and never see the watchdog thread set it. On x86 and
+    ARM it is an ordinary load."""
+    if not (isinstance(flag, types.Array) and flag.dtype == types.uint8):
+        return None
+
+    def codegen(context, builder, signature, args):
+        data = context.make_array(signature.args[0])(context, builder, args[0]).data
+        value = builder.load_atomic(data, "monotonic", 1)
+        return builder.icmp_unsigned("!=", value, ir.Constant(value.type, 0))
+
+    return types.boolean(flag), codegen
 
 
 @jit
@@ -43,9 +67,12 @@ def ray_length(p, col, row, cone, S, D, U, V, rows, cols, kc, kr):
 
 
 @jit
-def pixel_ray_lengths(S, D, U, V, rows, cols, out):
-    """``out[p * rows * cols + r * cols + c]``: the ray length (:func:`ray_length`) of every pixel centre."""
+def pixel_ray_lengths(S, D, U, V, rows, cols, out, stop):
+    """``out[p * rows * cols + r * cols + c]``: the ray length (:func:`ray_length`) of every pixel centre
+    (unfinished once ``stop`` is set: see :func:`stopped`)."""
     for p in range(S.shape[0]):
+        if stopped(stop):
+            return
         for r in range(rows):
             for c in range(cols):
                 out[(p * rows + r) * cols + c] = ray_length(p, c, r, True, S, D, U, V, rows, cols, 1, 1)
@@ -454,10 +481,14 @@ def mark_stored(st_face, st_pix, n, npix, hit):
 # both, and evaluating every box so is 30 % slower at level 1
 BOX_POINTS = 96
 
+# lattice points of a box from which faces_pass reads the stop flag per row of it (a face covering a
+# whole supersampled detector is millions of points)
+STOP_POINTS = 1 << 14
+
 
 @jit
 def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, cone, rows, cols, k, XY, iW,
-               fc0, fc1, fr0, fr1, L, grad, acc, hit, st_face, st_pix, st_coef, stored, rl, pix_rl, bufs):
+               fc0, fc1, fr0, fr1, L, grad, acc, hit, st_face, st_pix, st_coef, stored, rl, pix_rl, bufs, stop):
     """Rasterise faces ``fa..fb - 1`` (in the forward pass one item's faces: a chunk takes its
     attenuation from its first face; in the gradient pass the ``n_cand`` faces in ``cand``) in
     projection p, within the lattice box ``fc0..fc1, fr0..fr1``, into the lattice array ``L``
@@ -472,6 +503,10 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
     Each face's crossings keep their order (row by row), so face sums do not
     depend on it. A group whose store has no room for a chunk's boxes stops
     storing (``stored`` -1): its gradient pass rasterises again.
+
+    ``stop`` (:func:`stopped`) is read before each chunk of faces (each face in
+    the gradient pass) and each row of a box of more than :data:`STOP_POINTS`
+    points; once it is set the pass returns what it has.
     """
     w, flags, idx, sidx, qidx, cross = bufs
     count = 0
@@ -483,6 +518,8 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
     C, npix = L.shape[1], rows * cols
     Lf = L.reshape(L.size)
     for block in range(n_cand if grad else (fb - fa + CHUNK - 1) // CHUNK):
+        if stopped(stop):
+            break
         if grad:  # a block of one face
             s = cand[block]
             face_into(faces, s, XY, F0, F1, R0, R1, w)
@@ -558,7 +595,10 @@ def faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, con
             sum0 = sum1 = sum2 = 0.0
             # large boxes (and the gradient pass) skip the points outside, instead of evaluating them
             scan = points > BOX_POINTS or grad
+            large = points > STOP_POINTS
             for row in range(r0, r1 + 1):
+                if large and stopped(stop):
+                    break
                 seen = False
                 for col in range(c0, c1 + 1):
                     g0 = edge_value(bx0, by0, dx0, dy0, s0, col, row)
@@ -613,9 +653,12 @@ def chunk_buffers():
 
 @jit
 def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
-             values, weights, acc, grad, hit, st_face, st_pix, st_coef, rl, pix_rl, item_v, item_f, by_item, st_item):
+             values, weights, acc, grad, hit, st_face, st_pix, st_coef, rl, pix_rl, item_v, item_f, by_item, st_item,
+             stop):
     """Forward pass (``grad`` False: ``values``, ``hit``) or gradient pass (``weights`` into ``acc``)
-    over projections ``p0..p1``. The forward pass also stores each crossing's face, pixel and
+    over projections ``p0..p1``. The forward pass sets the projections' ``values`` (zeroed here, view
+    by view: the first writes to a large fresh array are page faults, and they come between two
+    reads of the stop flag). The forward pass also stores each crossing's face, pixel and
     gradient coefficients while ``st_face`` has room; returns (crossings, stored), with stored
     -1 when the store overflowed or was not asked for (the gradient pass then rasterises again).
 
@@ -632,7 +675,11 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     pixel and each face gets its crossings in the same order either way, so the results are the
     same to the bit. ``st_item`` (n_items + 1,): there, where each item's stored crossings begin
     (and where the last ends) in the group's part of the store, so that face sums can be split
-    among threads by items (:func:`item_face_sums`)."""
+    among threads by items (:func:`item_face_sums`).
+
+    ``stop``: the stop flag (:func:`stopped`), read per projection, per row of the lattice footprint
+    and within :func:`faces_pass`; once it is set the pass returns what it has (the caller raises the
+    deadline's error)."""
     nv, nf = verts.shape[0], faces.shape[0]
     XY, iW = np.empty((nv, 2)), np.empty(nv)
     cand = np.empty(nf + 8, np.int64)  # the listing below writes one place past the last face found
@@ -642,10 +689,16 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
     count = 0
     stored = 0 if not grad and st_face.shape[0] > 0 else -1
     if by_item and not grad and k == 1:
+        for p in range(p0, p1):
+            if stopped(stop):
+                return count, stored
+            values[p * npix:(p + 1) * npix] = 0.0
         for it in range(item_v.shape[0] - 1):
             st_item[it] = stored
             v0, v1 = item_v[it], item_v[it + 1]
             for p in range(p0, p1):
+                if stopped(stop):
+                    return count, stored
                 project_all(verts[v0:v1], p, cone, S, D, N, Au, Bv, rows, cols, k, XY[v0:v1], iW[v0:v1])
                 # boxes clipped to the detector rather than to the item's footprint: the same boxes
                 # (a face's box lies within its item's footprint), without a pass over the item's
@@ -654,7 +707,7 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
                 c, stored = faces_pass(p, item_f[it], item_f[it + 1], cand, 0, faces, nrm, offset, fmu, S, D, U, V,
                                        cone, rows, cols, k, XY, iW, 0, C - 1, 0, R - 1,
                                        values[p * npix:(p + 1) * npix].reshape((rows, cols)), grad, acc, hit,
-                                       st_face, st_pix, st_coef, stored, rl, pix_rl, bufs)
+                                       st_face, st_pix, st_coef, stored, rl, pix_rl, bufs, stop)
                 count += c
         st_item[item_v.shape[0] - 1] = stored
         # the lattice sums times the ray length (the projection-major path adds L * length to a zero)
@@ -669,11 +722,17 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
         return count, stored
     L = np.zeros((R, C))  # per lattice point: sum of mu t / |e| (forward) or w |e| (gradient)
     for p in range(p0, p1):
+        if stopped(stop):
+            break
+        if not grad:
+            values[p * npix:(p + 1) * npix] = 0.0
         project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, XY, iW)
         fc0, fc1, fr0, fr1 = footprint(XY, C, R)
         if fc0 > fc1 or fr0 > fr1:
             continue
         for row in range(fr0, fr1 + 1):
+            if stopped(stop):  # a supersampled footprint is millions of lattice points
+                break
             for col in range(fc0, fc1 + 1):
                 if grad:
                     pix = p * npix + (row // k) * cols + col // k
@@ -695,10 +754,12 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
             fa, fb = (0, nf) if grad else (item_f[it], item_f[it + 1])
             c, stored = faces_pass(p, fa, fb, cand, n_cand, faces, nrm, offset, fmu, S, D, U, V, cone, rows, cols,
                                    k, XY, iW, fc0, fc1, fr0, fr1, L, grad, acc, hit, st_face, st_pix, st_coef,
-                                   stored, rl, pix_rl, bufs)
+                                   stored, rl, pix_rl, bufs, stop)
             count += c
         if not grad:
             for row in range(fr0, fr1 + 1):
+                if stopped(stop):
+                    break
                 for col in range(fc0, fc1 + 1):
                     if L[row, col] != 0.0:
                         pix = p * npix + (row // k) * cols + col // k
@@ -709,13 +770,18 @@ def raster3d(p0, p1, verts, faces, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone
 
 @jit
 def raster2d(p0, p1, verts, segs, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone, rows, cols, k,
-             values, weights, acc, grad):
+             values, weights, acc, grad, stop):
+    """The 2D pass over projections ``p0..p1`` (polygon segments on a one-row detector), forward or
+    gradient as :func:`raster3d`; returns the crossings. Reads ``stop`` (:func:`stopped`) per
+    projection and every :data:`STOP_EVERY` segments, and returns early once it is set."""
     nv, ns = verts.shape[0], segs.shape[0]
     XY, iW = np.empty((nv, 2)), np.empty(nv)
     C = cols * k
     L = np.zeros(C)
     count = 0
     for p in range(p0, p1):
+        if stopped(stop):
+            return count
         project_all(verts, p, cone, S, D, N, Au, Bv, rows, cols, k, XY, iW)
         fc0, fc1, _, _ = footprint(XY, C, 1)
         if fc0 > fc1:
@@ -723,6 +789,8 @@ def raster2d(p0, p1, verts, segs, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone,
         for col in range(fc0, fc1 + 1):
             L[col] = weights[p * cols + col // k] * ray_length(p, col, 0, cone, S, D, U, V, 1, cols, k, 1) if grad else 0.0
         for f in range(ns):
+            if f % STOP_EVERY == 0 and f > 0 and stopped(stop):
+                return count
             i0, i1 = segs[f, 0], segs[f, 1]
             lo, hi = min(XY[i0, 0], XY[i1, 0]), max(XY[i0, 0], XY[i1, 0])
             c0 = max(int(np.ceil(lo)), fc0)
@@ -766,7 +834,7 @@ def raster2d(p0, p1, verts, segs, nrm, offset, fmu, S, D, U, V, N, Au, Bv, cone,
 
 
 @jit
-def item_face_sums(st_face, st_pix, st_coef, starts, i0, i1, weights, acc, rl, pix_rl):
+def item_face_sums(st_face, st_pix, st_coef, starts, i0, i1, weights, acc, rl, pix_rl, stop):
     """:func:`stored_face_sums` of items ``i0..i1 - 1`` from stores kept item by item: group g's
     crossings of item ``it`` are ``starts[g, it] .. starts[g, it + 1] - 1`` of the whole store.
     Item by item across the groups, so that an item's rows of ``acc`` stay in the core's cache
@@ -774,19 +842,23 @@ def item_face_sums(st_face, st_pix, st_coef, starts, i0, i1, weights, acc, rl, p
     for it in range(i0, i1):
         for g in range(starts.shape[0]):
             a, b = starts[g, it], starts[g, it + 1]
-            stored_face_sums(st_face[a:b], st_pix[a:b], st_coef[a:b], b - a, weights, acc, rl, pix_rl)
+            stored_face_sums(st_face[a:b], st_pix[a:b], st_coef[a:b], b - a, weights, acc, rl, pix_rl, stop)
 
 
 @jit
-def stored_face_sums(st_face, st_pix, st_coef, n, weights, acc, rl, pix_rl):
+def stored_face_sums(st_face, st_pix, st_coef, n, weights, acc, rl, pix_rl, stop):
     """``acc[f, j] += weights[pixel] * coef_j`` over the first ``n`` stored crossings (times the pixel's
-    ray length ``rl[pixel]`` when ``pix_rl``: see :func:`raster3d`)."""
-    for i in range(n):
-        w = weights[st_pix[i]]
-        if pix_rl:
-            w *= rl[st_pix[i]]
-        if w != 0.0:
-            f = st_face[i]
-            acc[f, 0] += w * st_coef[i, 0]
-            acc[f, 1] += w * st_coef[i, 1]
-            acc[f, 2] += w * st_coef[i, 2]
+    ray length ``rl[pixel]`` when ``pix_rl``: see :func:`raster3d`). Reads ``stop`` (:func:`stopped`)
+    every :data:`STOP_EVERY` crossings and returns early once it is set."""
+    for i0 in range(0, n, STOP_EVERY):
+        if stopped(stop):
+            return
+        for i in range(i0, min(i0 + STOP_EVERY, n)):
+            w = weights[st_pix[i]]
+            if pix_rl:
+                w *= rl[st_pix[i]]
+            if w != 0.0:
+                f = st_face[i]
+                acc[f, 0] += w * st_coef[i, 0]
+                acc[f, 1] += w * st_coef[i, 1]
+                acc[f, 2] += w * st_coef[i, 2]

@@ -13,6 +13,7 @@ BENCHMARKS = {
     "cluster": ("cluster", "4D and experiment runs in-process versus on a Dask LocalCluster"),
     "attacks": ("attacks", "bounded attacks on a projector server: status codes, memory rise, health latency"),
     "admission": ("admission", "the server's compute memory estimate against its measured peak, per job shape"),
+    "deadline": ("deadline", "how soon a projector server answers 504 past its compute timeout, on a heavy job"),
     "scale": ("scale", "bubsub reconstruct on foam columns of ~150/600/2400 bubbles: phases, peak RSS, DDI, growth"),
     "analysis": ("analysis", "bubsub analyse against FoamQuant's voxel route on a simulated column, and its cost"),
     "levels": ("levels", "the fit's data levels against a long full-detector fit from the same start: objective, cost"),

@@ -7,13 +7,17 @@ and never yields a silent wrong result.
 
 from __future__ import annotations
 
+import logging
+import weakref
+
 import numpy as np
 
 from bubsub.core.contrast import signal_masses
 from bubsub.core.validate import check_int
 
 __all__ = ["check_settings", "check_bubble_signal", "check_lateral_truncation", "side_signal", "CONTROL_POINTS_3D",
-           "MAX_LEVELS", "TRUNCATED_VIEWS", "check_physical_signal", "longest_path", "IMPOSSIBLE_FRACTION"]
+           "MAX_LEVELS", "TRUNCATED_VIEWS", "REFUSED_VIEWS", "side_bubble_signal", "check_physical_signal",
+           "longest_path", "IMPOSSIBLE_FRACTION"]
 
 #: Control vertices of the icosphere control meshes (3D bubbles).
 CONTROL_POINTS_3D = (12, 42, 162)
@@ -118,10 +122,14 @@ def check_bubble_signal(scan, *, background_subtracted=False):
     check_lateral_truncation(scan)
 
 
-#: Least fraction of the projections in which the sample reaches a side of the detector for
-#: :func:`check_lateral_truncation` to refuse the scan (a centred sample wider than the detector reaches both
-#: sides in every projection; one inside the field of view in none).
+#: Least fraction of the projections in which the bubbles' signal reaches a side of the detector for
+#: :func:`check_lateral_truncation` to warn (a few bubbles partly outside the field of view, which the model covers).
 TRUNCATED_VIEWS = 0.1
+#: Least fraction for it to refuse the scan (a foam wider than the detector reaches both sides in every projection).
+REFUSED_VIEWS = 0.5
+#: Fraction of the bubbles' signal's 99th percentile above which a side counts as reached: well above the residue
+#: of flat-field and background errors, well below a foam's signal along the rays that graze the field of view.
+SIDE_FRACTION = 0.15
 
 #: Columns at each side of the detector whose values :func:`side_signal` takes.
 SIDE_COLUMNS = 2
@@ -161,49 +169,101 @@ def side_signal(values):
 
 
 def check_lateral_truncation(scan):
-    """Refuse a scan whose sample is wider than the detector (local tomography).
+    """Refuse a scan whose bubbles reach the detector's sides in most projections; warn where a few do.
 
     The pipeline models what the data see: bubbles within 1.25 times the
     radius of the cylinder every projection sees
     (:data:`bubsub.clients.pipeline.fov.FOV_EXTEND`) and, through
-    ``/exchange/background``, the liquid. A sample (or liquid column) wider
-    than the detector reaches the detector's sides: its gas beyond that
-    radius enters some projections but no modelled bubble, and the fit turns
-    it into spurious or swollen bubbles at the edge, with nothing in the
-    result to say so. It is detected from the data: with a background, the
-    sample's projection ``data`` (the liquid with its bubbles) at the
-    outermost columns stands above the air level (:func:`side_signal`) in
-    at least :data:`TRUNCATED_VIEWS` of the projections; without one (the
-    projections hold only the bubbles' signal, so the liquid's edge is not
-    in them), the bubbles' signal does so in at least half of them (a few
-    bubbles partly outside the field of view, which the model covers, reach
-    a side in fewer).
+    ``/exchange/background``, everything else (the liquid, the container).
+    What can harm is gas the model does not hold: the bubbles' signal
+    ``sign(contrast) * (data - background)`` (:attr:`Scan.bubble_data`,
+    positive along gas) at the detector's sides. A liquid wider than the
+    detector, or its edge spread into the outermost columns by phase
+    retrieval, is in the background and harmless, so the liquid itself is
+    not judged. Per projection, each side's signal (:func:`side_signal`)
+    is taken relative to a slow drift common to both sides (a quadratic
+    over the projections: a flat-field normalisation that follows the
+    beam's decay imperfectly offsets whole projections), and counts when
+    it stands above :data:`SIDE_FRACTION` of the signal's 99th percentile
+    (and the noise). In at least :data:`REFUSED_VIEWS` of the projections:
+    the sample's gas extends beyond the modelled region in most views and
+    the scan is refused; in at least :data:`TRUNCATED_VIEWS`: a warning
+    (logger ``bubsub``, one line) and the reconstruction goes on (bubbles
+    partly outside the field of view are in the model).
 
     Parameters
     ----------
     scan : bubsub.core.io.scanfile.Scan
 
+    Returns
+    -------
+    str or None
+        The warning given, if any.
+
     Raises
     ------
     ValueError
-        Naming the problem (how many projections see the sample at the
+        Naming the problem (how many projections see bubbles at the
         detector's left and right sides) and what to do.
     """
     name = scan.path.name if scan.path is not None else "the scan"
-    if scan.background is not None:
-        values, least, what = scan.data, TRUNCATED_VIEWS, "the sample (data, with its liquid)"
-    else:
-        values, least, what = np.sign(scan.bubble_contrast) * scan.data, 0.5, "the bubbles' signal"
-    left, right, level = side_signal(values)
+    left, right, level = side_bubble_signal(scan.bubble_data, scan.bubble_contrast)
     n = len(left)
     hit_l, hit_r = int(np.count_nonzero(left > level)), int(np.count_nonzero(right > level))
-    if max(hit_l, hit_r) >= least * n:
+    where = (f"the bubbles' signal (data - background) reaches the detector's left side in {hit_l} and its right "
+             f"side in {hit_r} of {n} projections")
+    if max(hit_l, hit_r) >= REFUSED_VIEWS * n:
         raise ValueError(
-            f"{name} is laterally truncated (local tomography): {what} reaches the detector's left side in "
-            f"{hit_l} and its right side in {hit_r} of {n} projections, so the sample is wider than the field of "
+            f"{name} is laterally truncated (local tomography): {where}, so the foam is wider than the field of "
             f"view and its gas outside it would be fitted as spurious bubbles at the edge; bubsub needs a "
-            f"detector wider than the sample (a wider field of view, or the sample centred on the rotation axis "
+            f"detector wider than the foam (a wider field of view, or the sample centred on the rotation axis "
             f"if it is narrower than the detector but off-centre)")
+    if max(hit_l, hit_r) < TRUNCATED_VIEWS * n:
+        return None
+    text = (f"warning: {name}: {where}: bubbles partly outside the field of view are modelled, but check the "
+            f"bubbles flagged truncated at the edge")
+    if _WARNED.get(id(scan)) is not scan:  # once per scan (the command line checks before reconstruct does)
+        _WARNED[id(scan)] = scan
+        logging.getLogger("bubsub").warning(text)
+    return text
+
+
+#: Scans already warned about, by id (entries vanish with their scan).
+_WARNED = weakref.WeakValueDictionary()
+
+
+def side_bubble_signal(bubble_data, contrast):
+    """The bubbles' signal at the detector's sides, view by view, less a drift common to both sides.
+
+    Parameters
+    ----------
+    bubble_data : ndarray, ``(views, cols)`` or ``(views, rows, cols)``
+        ``data - background``.
+    contrast : float
+        Bubble contrast, 1/mm (its sign makes the gas's signal positive).
+
+    Returns
+    -------
+    left, right : (views,) float
+        :func:`side_signal` of ``sign(contrast) * bubble_data``, less a
+        quadratic over the views fitted to the mean of both sides (its mean
+        kept): an offset of whole projections that drifts during the scan is
+        removed, a foam wider than the detector (signal at both sides in
+        every view) or an off-centre one (at one side in half of them) is not.
+    level : float
+        The larger of :func:`side_signal`'s noise level and
+        :data:`SIDE_FRACTION` of the 99th percentile of the signal.
+    """
+    values = np.sign(contrast) * np.asarray(bubble_data, dtype=np.float32)
+    left, right, noise = side_signal(values)
+    if len(left) >= 8:
+        x = np.linspace(-1.0, 1.0, len(left))
+        drift = np.polynomial.polynomial.polyval(x, np.polynomial.polynomial.polyfit(x, 0.5 * (left + right), 2))
+        drift -= drift.mean()
+        left, right = left - drift, right - drift
+    step = max(1, values.shape[0] // 64)
+    return left, right, max(noise, SIDE_FRACTION * float(np.percentile(values[::step], 99)))
+
 
 #: Most fraction of the values that may pass a bound of :func:`check_physical_signal` by more than the noise
 #: before the scan is refused: a few defective detector columns (each 1/cols of the values) stay below it, a

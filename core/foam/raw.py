@@ -22,6 +22,13 @@ object. Per projection angle:
 
 Written as a Data Exchange raw file (``/exchange/data|data_white|data_dark``
 uint16, ``/exchange/theta`` degrees, instrument metadata with units).
+
+A container wider than the detector (local, or interior, tomography) is
+allowed with ``wider_than_detector=True``: the wave is then propagated over
+the whole container's width and the detector crops it, as at a beamline.
+:func:`disc_foam` fills a liquid cylinder with bubbles out to its wall and
+:func:`write_raw_simulation` writes a simulation folder (``raw.h5``,
+``truth.json``, ``phantom.json``) that ``bubsub evaluate`` scores against.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ import numpy as np
 from bubsub.core.io.atomic import atomic_path
 from bubsub.core.prep.phase import fresnel_propagate, wavelength_mm
 
-__all__ = ["RawSettings", "raw_settings", "simulate_raw", "write_raw"]
+__all__ = ["RawSettings", "raw_settings", "simulate_raw", "write_raw", "disc_foam", "write_raw_simulation"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +73,7 @@ class RawSettings:
     hot_pixels: int = 6
     supersample: int = 4
     seed: int = 0
+    wider_than_detector: bool = False  # allow a container the detector does not see whole
 
     def __repr__(self):
         fields = ", ".join(f"{f.name}={getattr(self, f.name)!r}" for f in dataclasses.fields(self)
@@ -95,9 +103,10 @@ def raw_settings(**kw):
         if not getattr(s, name) > 0:
             raise ValueError(f"{name} must be positive, got {getattr(s, name)!r}")
     half = 0.5 * s.cols * s.pixel_size - abs(s.axis_offset) * s.pixel_size
-    if s.container_radius + s.wall >= half:
+    if s.container_radius + s.wall >= half and not s.wider_than_detector:
         raise ValueError(f"the container (outer radius {s.container_radius + s.wall} mm) does not fit in the "
-                         f"{half:.3g} mm the detector sees on each side of the axis")
+                         f"{half:.3g} mm the detector sees on each side of the axis; pass "
+                         f"wider_than_detector=True for a local-tomography scan")
     return s
 
 
@@ -147,13 +156,43 @@ def simulate_raw(phantom, settings):
     k = 2 * np.pi / wavelength_mm(s.energy)
     field = np.exp(-0.5 * (s.liquid_mu * liquid + s.wall_mu * wall)
                    - 1j * k * (s.liquid_delta * liquid + s.wall_delta * wall))
-    pad = fine_cols // 2
+    pad, start = fine_cols // 2, fine_cols // 2
+    if s.wider_than_detector:  # the container's parts beyond the detector propagate too
+        field, extra = _beyond_detector(field, u, s, k, ss)
+        start += extra
     intensity = np.empty((s.n_angles, s.cols))
     for i, f in enumerate(field):
         fz = fresnel_propagate(np.pad(f, pad, mode="edge"), pixel_size=fine_px, energy=s.energy,
-                               distance=s.distance)[pad:pad + fine_cols]
+                               distance=s.distance)[start:start + fine_cols]
         intensity[i] = (np.abs(fz) ** 2).reshape(s.cols, ss).mean(axis=1)
     return _detector(intensity, theta, s, rng)
+
+
+def _beyond_detector(field, u, s, k, ss):
+    """The exit wave widened to the container's whole width.
+
+    Beyond the detector the wave is that of the container and its liquid
+    alone: the bubbles there change the detector's values only through
+    Fresnel fringes a few micrometres wide (``sqrt(wavelength distance)``)
+    at its outermost columns.
+
+    Returns the widened wave ``(n_angles, wide)`` and the number of fine
+    samples it has on each side of the detector, so that the detector's
+    part starts at that index.
+    """
+    fine_px = s.pixel_size / ss
+    reach = s.container_radius + s.wall
+    extra = int(np.ceil(max(reach - u[0], reach + u[-1], 0.0) / fine_px)) + 4 * ss
+    step = u[1] - u[0]
+    left = u[0] - step * np.arange(extra, 0, -1)
+    right = u[-1] + step * np.arange(1, extra + 1)
+    outside = np.concatenate([left, right])
+    inner, outer = _chord(s.container_radius, outside), _chord(s.container_radius + s.wall, outside)
+    wave = np.exp(-0.5 * (s.liquid_mu * inner + s.wall_mu * (outer - inner))
+                  - 1j * k * (s.liquid_delta * inner + s.wall_delta * (outer - inner)))
+    wide = np.concatenate([np.broadcast_to(wave[:extra], (len(field), extra)), field,
+                           np.broadcast_to(wave[extra:], (len(field), extra))], axis=1)
+    return wide, extra
 
 
 def _flat_pattern(s, rng):
@@ -223,3 +262,79 @@ def write_raw(path, raw, settings):
             f.attrs["axis_column"] = s.axis_column
             f.attrs["delta_beta"] = s.delta_beta
     return path
+
+
+def disc_foam(seed, radius, *, n_bubbles, radius_range, liquid_attenuation=0.1, gap=0.02, margin=0.02,
+              perturbation=0.03):
+    """A 2D foam filling a disc: bubbles of :func:`bubsub.core.foam.phantoms.foam2d` inside ``radius``.
+
+    The bubbles are placed in the disc's bounding square (random sequential
+    addition) and those not wholly inside ``radius - margin`` are dropped,
+    so the foam reaches the container's wall all round.
+
+    Parameters
+    ----------
+    seed : int
+    radius : float
+        The liquid cylinder's radius, mm.
+    n_bubbles : int
+        Bubbles placed in the square (about ``pi / 4`` of them stay).
+    radius_range : (2,) float
+        Smallest and largest mean bubble radius, mm.
+    liquid_attenuation, gap, margin, perturbation
+        As for ``foam2d`` (mm, 1/mm).
+
+    Returns
+    -------
+    FoamPhantom
+        2D; its ``size`` is the disc's bounding square.
+    """
+    from bubsub.core.foam.phantoms import foam2d
+
+    ph = foam2d(seed, n_bubbles=n_bubbles, size=2.0 * radius, radius_range=radius_range,
+                liquid_attenuation=liquid_attenuation, gap=gap, margin=margin, perturbation=perturbation)
+    keep = [k for k, b in enumerate(ph.bubbles) if np.hypot(*b.vertices.T).max() < radius - margin]
+    if not keep:
+        raise ValueError(f"no bubble fits inside the disc of radius {radius} mm; reduce radius_range")
+    return dataclasses.replace(ph, bubbles=tuple(ph.bubbles[k] for k in keep),
+                               centres=ph.centres[keep], radii=ph.radii[keep])
+
+
+def write_raw_simulation(out, phantom, settings, *, grid=1000):
+    """Simulate a raw scan of a 2D foam and write a simulation folder.
+
+    Parameters
+    ----------
+    out : str or os.PathLike
+        Folder (created): ``raw.h5`` (:func:`write_raw`), ``truth.json``
+        (the bubbles' outlines) and ``phantom.json`` (what ``bubsub evaluate``
+        reads: the truth grid of ``grid`` pixels across the phantom, the
+        settings, the true axis column and ``delta_beta``).
+    phantom : FoamPhantom
+        2D.
+    settings : RawSettings
+
+    Returns
+    -------
+    pathlib.Path
+        The raw file.
+    """
+    import json
+    from pathlib import Path
+
+    from bubsub.core.io.atomic import atomic_write_text
+    from bubsub.core.io.meshio import write_polygons_json
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_raw(out / "raw.h5", simulate_raw(phantom, settings), settings)
+    write_polygons_json(out / "truth.json", phantom.bubbles)
+    shape, extent = phantom.grid(grid)
+    meta = {"phantom": "foam2d-raw", "ndim": 2, "seed": settings.seed, "size": list(phantom.size),
+            "liquid_attenuation": phantom.liquid_attenuation, "bubble_contrast": phantom.contrast,
+            "bubbles": len(phantom.bubbles), "grid_shape": list(shape), "grid_extent": list(extent),
+            "angles": settings.n_angles, "photons": settings.photons, "beam": "parallel", "truth": "truth.json",
+            "raw": dataclasses.asdict(settings), "axis_column": settings.axis_column,
+            "delta_beta": settings.delta_beta}
+    atomic_write_text(out / "phantom.json", json.dumps(meta, indent=2))
+    return out / "raw.h5"

@@ -11,8 +11,9 @@ The steps, in order (each recorded with its parameters in the report):
 4. pass 1, in slabs of projections: flat/dark correction, bad-pixel
    repair, Paganin phase retrieval (:mod:`.phase`), clamped ``-log``,
    binning, written to the output;
-5. pass 2, in slabs of detector rows: stripe removal (:mod:`.stripes`) and
-   the background (:mod:`.background`);
+5. pass 2, in slabs of detector rows: stripe removal (:mod:`.stripes`),
+   the background (:mod:`.background`) and each projection's offset in air
+   (:func:`air_offsets`);
 6. bubble contrast (given or estimated from a slice) and its sign checked
    against the data;
 7. the geometry (ASTRA vectors, axis at the origin) and the attributes.
@@ -320,7 +321,7 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
     mode = o.background
     file_bg = _background_file(o.background, geometry) if isinstance(mode, Path) else None
     row_geom = geometry if two_d else None
-    liquids, drift = [], []
+    liquids, drift, offsets = [], [], []
     with _bar(out_rows, "pass 2: stripes, background", progress) as bar:
         for a, b in _slabs(out_rows, per):
             block = data_ds[()][:, None] if two_d else data_ds[:, a:b]
@@ -347,6 +348,8 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
                     drift.append(float(np.median(np.abs(envelope_background(block[:half]) -
                                                         envelope_background(block[half:])))))
                     bg = np.broadcast_to(env[None], block.shape)
+                if air_offsets(block, bg, offsets):
+                    _store(data_ds, block, a, b, two_d)
                 _store(bg_ds, bg, a, b, two_d)
             bar.update(b - a)
     if o.stripes != "none":
@@ -360,7 +363,63 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
         if drift:
             entry["halves_median_difference"] = float(np.median(drift))
             entry["noise"] = noise_level(data_ds[: min(n, 32)])
+        entry["air_offset"] = {
+            "rows_corrected": len(offsets), "rows": out_rows,
+            "median_abs_offset": float(np.median(np.abs(np.concatenate(offsets)))) if offsets else 0.0,
+            "method": "each projection's median of data - background over the air columns subtracted (air_offsets)"}
         steps.append(entry)
+
+
+#: A row has air beside its sample where its background's least value is below this fraction of its peak ...
+AIR_LEVEL = 0.1
+#: ... and its air columns are those within this fraction of the background's range of that least value.
+AIR_FRACTION = 0.02
+#: Least number of air columns in a row for :func:`air_offsets` to act on it.
+AIR_COLUMNS = 4
+
+
+def air_offsets(block, background, found=None):
+    """Subtract from each projection's row its offset in air, in place; whether any row had air.
+
+    A flat field interpolated between the flats taken before and after the
+    scan follows the beam's decay and drift only approximately, which
+    offsets whole projections by a few hundredths in ``-log`` (negative line
+    integrals in air, a drift that the fit would take for gas). Where a row
+    has air beside the sample (its background's least value below
+    :data:`AIR_LEVEL` of its peak, and at least :data:`AIR_COLUMNS` columns
+    within :data:`AIR_FRACTION` of its range of it), each projection's
+    median of ``data - background`` there is its offset. A sample wider than
+    the detector (no air) is left as it is.
+
+    Parameters
+    ----------
+    block : (n_angles, rows, cols) float
+        Line integrals; corrected in place.
+    background : (n_angles, rows, cols) or broadcastable float
+        Its background.
+    found : list, optional
+        Each corrected row's ``(n_angles,)`` offsets are appended.
+
+    Returns
+    -------
+    bool
+    """
+    bg = np.broadcast_to(background, block.shape)
+    done = False
+    for r in range(block.shape[1]):
+        level = bg[:, r].max(axis=0)
+        low, peak = float(level.min()), float(level.max())
+        if peak <= 0 or low > AIR_LEVEL * peak:  # no air in this row (a sample wider than the detector)
+            continue
+        air = level <= low + AIR_FRACTION * (peak - low)
+        if np.count_nonzero(air) < AIR_COLUMNS:
+            continue
+        off = np.median((block[:, r] - bg[:, r])[:, air], axis=1)
+        block[:, r] -= off[:, None]
+        if found is not None:
+            found.append(off)
+        done = True
+    return done
 
 
 def _store(ds, block, a, b, two_d):

@@ -47,7 +47,7 @@ distance transform of its part between the cut planes on a one-pixel grid.
 
 ``python -m bubsub.bench dynamic [--data DIR] [--out DIR] [--seed 0] [--bubbles 150] [--det-count 384]
 [--subscans 12] [--projections-per-subscan 40] [--flow 4] [--vanishing 0.12] [--coalescences 4]
-[--sirt-iterations 100] [--voxel-bin 1] [--no-voxel]
+[--sirt-iterations 100] [--voxel-bin 1] [--no-voxel] [--reuse-voxel]
 [--no-bubsub] [--rec DIR] [RECONSTRUCT4D OPTIONS]``
 """
 
@@ -63,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MERGE_COVER", "SMALL_BALL", "flowing_truth", "visible_ball", "truth_subscan", "row_owners",
+__all__ = ["MERGE_COVER", "SMALL_BALL", "flowing_truth", "visible_ball", "truth_subscan", "row_owners", "chain_burden",
            "track_purity", "link_by_overlap", "score_subscan", "score_run", "bubsub_labels", "voxel_labels",
            "run_voxel_route", "simulate_flowing_case", "format_table", "main"]
 
@@ -221,7 +221,7 @@ def link_by_overlap(previous, previous_ids, labels, next_id, share=LINK_SHARE):
     return ids, next_id
 
 
-def score_subscan(truth, truth_ids, rec, ball, anew):
+def score_subscan(truth, truth_ids, rec, ball, anew, anew_forward=()):
     """The scores of one subscan (see the module docstring).
 
     Parameters
@@ -234,12 +234,15 @@ def score_subscan(truth, truth_ids, rec, ball, anew):
         :func:`visible_ball`, pixels.
     anew : set of int
         Truth ids a backward chain must find anew here.
+    anew_forward : set of int
+        Truth ids a forward chain must find anew here (not in view in the previous subscan).
 
     Returns
     -------
     dict
         ``truth, found, missed, merged, spurious, reconstructed, ddi`` of
-        :func:`~bubsub.bench.matching.match` and ``anew, anew_found, anew6, anew6_found, small, small_found``.
+        :func:`~bubsub.bench.matching.match` and ``anew, anew_found, anew6, anew6_found, small, small_found``,
+        and ``fwd, fwd_found, fwd6, fwd6_found`` for ``anew_forward``.
     """
     from bubsub.bench.matching import MIN_IOU, match, overlaps
 
@@ -254,11 +257,13 @@ def score_subscan(truth, truth_ids, rec, ball, anew):
     present = {int(truth_ids[i - 1]): i - 1 for i in status}
     out = {k: m[k] for k in ("truth", "spurious", "reconstructed", "ddi")}
     out.update({k: sum(st == k for st in status.values()) for k in ("found", "missed", "merged")})
-    a = [b for b in anew if b in present]
-    a6 = [b for b in a if ball[present[b]] >= SMALL_BALL[0]]
     small = [b for b, i in present.items() if SMALL_BALL[0] <= ball[i] <= SMALL_BALL[1]]
-    out.update(anew=len(a), anew_found=sum(b in found for b in a), anew6=len(a6),
-               anew6_found=sum(b in found for b in a6), small=len(small), small_found=sum(b in found for b in small))
+    out.update(small=len(small), small_found=sum(b in found for b in small))
+    for name, ids in (("anew", anew), ("fwd", anew_forward)):
+        a = [b for b in ids if b in present]
+        a6 = [b for b in a if ball[present[b]] >= SMALL_BALL[0]]
+        out.update({name: len(a), f"{name}_found": sum(b in found for b in a), f"{name}6": len(a6),
+                    f"{name}6_found": sum(b in found for b in a6)})
     return out
 
 
@@ -291,19 +296,62 @@ def score_run(meta, tables, labels_of, subscans=None):
         rec, rec_ids = got
         truth, truth_ids = truth_subscan(meta, tables[k])
         anew = ids_at[k] - ids_at[k + 1] if k + 1 < len(tables) else set()
-        s = score_subscan(truth, truth_ids, rec, visible_ball(tables[k], meta), anew)
+        fwd = ids_at[k] - ids_at[k - 1] if k > 0 else set()
+        s = score_subscan(truth, truth_ids, rec, visible_ball(tables[k], meta), anew, fwd)
         per.append({"subscan": k, **s})
         owners = row_owners(truth, rec)
         present = np.flatnonzero(np.bincount(rec.ravel(), minlength=len(rec_ids) + 1)[1:] > 0)
         rows += [(int(rec_ids[j]), int(truth_ids[owners[j] - 1]) if owners[j] else -1) for j in present]
     purity, n_tracks, n_rows = track_purity(rows)
     keys = ("truth", "found", "missed", "merged", "spurious", "anew", "anew_found", "anew6", "anew6_found",
+            "fwd", "fwd_found", "fwd6", "fwd6_found",
             "small", "small_found")
     totals = {k: int(sum(p[k] for p in per)) for k in keys}
     totals.update(found_share=totals["found"] / totals["truth"] if totals["truth"] else None,
                   mean_ddi=float(np.mean([p["ddi"] for p in per])) if per else None,
                   track_purity=purity, tracks=n_tracks, rows=n_rows)
     return {"subscans": per, "totals": totals}
+
+
+def chain_burden(meta, tables, events):
+    """What each order of a chain must find anew, from the truth alone.
+
+    A backward chain must find anew at ``k`` the bubbles in view at ``k`` but not
+    at ``k + 1`` (they leave through the top, vanish or coalesce later); a
+    forward chain those in view at ``k`` but not at ``k - 1`` (they entered
+    through the bottom or were born by a coalescence).
+
+    Returns
+    -------
+    dict
+        ``{"backward" | "forward": {"all": n, "ball6": n with a visible ball >= 6 px, "reasons": {reason: n}}}``.
+    """
+    ids_at = [t["id"].astype(int).tolist() if len(t.get("id", ())) else [] for t in tables]
+    balls = [dict(zip(ids, visible_ball(t, meta))) for ids, t in zip(ids_at, tables)]
+    why = {}
+    for e in events:
+        k, b = int(e["subscan"]), int(e["id"])
+        if e["event"] == "coalesce":
+            why[("forward", k, b)] = "coalescence child"
+            for p in e["parents"].split(";"):
+                why[("backward", k, int(p))] = "coalesce later"
+        else:
+            d = "forward" if e["event"] == "enter" else "backward"
+            why[(d, k, b)] = {"enter": "entered through the bottom", "exit": "leave through the top later",
+                              "vanish": "vanish later"}[e["event"]]
+    out = {}
+    for d, step in (("backward", 1), ("forward", -1)):
+        res = {"all": 0, "ball6": 0, "reasons": {}}
+        for k in range(len(tables)):
+            if not 0 <= k + step < len(tables):
+                continue
+            for b in set(ids_at[k]) - set(ids_at[k + step]):
+                reason = why.get((d, k + max(step, 0), b), "other")
+                res["all"] += 1
+                res["ball6"] += int(balls[k][b] >= SMALL_BALL[0])
+                res["reasons"][reason] = res["reasons"].get(reason, 0) + 1
+        out[d] = res
+    return out
 
 
 def bubsub_labels(rec_dir, meta):
@@ -487,6 +535,9 @@ def main(argv=None):
                     help="the voxel route's grid voxel in evaluation-grid voxels (two pixels each; default 1)")
     ap.add_argument("--no-voxel", action="store_true", help="skip the voxel route")
     ap.add_argument("--no-bubsub", action="store_true", help="skip bubsub reconstruct4d")
+    ap.add_argument("--reuse-voxel", action="store_true",
+                    help="reuse the voxel route's labels and measured cost in OUT/voxel when made with the same "
+                         "simulation and settings")
     ap.add_argument("--rec", help="score this reconstruct4d folder instead of running one")
     ap.add_argument("--json", help="also write all scores to this JSON file")
     ap.add_argument("--voxel-child", nargs=2, metavar=("SIM", "OUT"), help=argparse.SUPPRESS)
@@ -508,6 +559,12 @@ def main(argv=None):
           f"{max(f['bubbles_per_subscan'])} bubbles in view, {meta['bubbles']} over the run, flow "
           f"{f['flow_px_per_subscan']:g} px per subscan, {vanishing} vanishing in view, {len(f['coalescences'])} coalescences"
           + (f" (simulated in {sim_s:.0f} s)" if sim_s else " (reused)") + "\n", flush=True)
+    burden = chain_burden(meta, tables, events)
+    for d, b in burden.items():
+        reasons = ", ".join(f"{n} {r}" for r, n in sorted(b["reasons"].items(), key=lambda x: -x[1]))
+        print(f"a {d} chain must find {b['all']} bubbles anew ({reasons}); {b['ball6']} of them show a ball of "
+              f"at least {SMALL_BALL[0]:g} px in view")
+    print(flush=True)
     results = {}
     if not args.no_bubsub:
         if args.rec:
@@ -530,8 +587,16 @@ def main(argv=None):
         print(f"### {name}\n\n{format_table('all', scores, secs)}\n", flush=True)
     if not args.no_voxel:
         vox = out / "voxel"
-        wall, _, rss = run_tree(cli_command("bench", "dynamic", "--voxel-child", sim, vox, "--sirt-iterations",
-                                            args.sirt_iterations, "--voxel-bin", args.voxel_bin))
+        want = {"simulation": json.loads((sim / "bench_key.json").read_text()), "iterations": args.sirt_iterations,
+                "voxel_bin": args.voxel_bin}
+        done = vox / "route.json"
+        if args.reuse_voxel and done.is_file() and json.loads(done.read_text())["settings"] == want:
+            wall, rss = (json.loads(done.read_text())[k] for k in ("wall_s", "peak_rss_mib"))
+        else:
+            done.unlink(missing_ok=True)
+            wall, _, rss = run_tree(cli_command("bench", "dynamic", "--voxel-child", sim, vox, "--sirt-iterations",
+                                                args.sirt_iterations, "--voxel-bin", args.voxel_bin))
+            done.write_text(json.dumps({"settings": want, "wall_s": wall, "peak_rss_mib": rss}))
         scores = score_run(meta, tables, voxel_labels(vox / "labels.npz"))
         sec = json.loads((vox / "seconds.json").read_text())
         secs = {k: ("", s) for k, s in enumerate(sec["seconds"])}
@@ -569,6 +634,8 @@ def _print_summary(results):
         row("worst subscan found", lambda k: f"{worst(k) * 100:.1f} %"),
         row("bubbles found anew (all)", lambda k: pct(t[k]["anew_found"], t[k]["anew"])),
         row("bubbles found anew (ball >= 6 px)", lambda k: pct(t[k]["anew6_found"], t[k]["anew6"])),
+        row("bubbles a forward chain would find anew, found here (all; ball >= 6 px)",
+            lambda k: f"{pct(t[k]['fwd_found'], t[k]['fwd'])}; {pct(t[k]['fwd6_found'], t[k]['fwd6'])}"),
         row("small bubbles found (ball 6-12 px)", lambda k: pct(t[k]["small_found"], t[k]["small"])),
         row("mean DDI in the FOV", lambda k: _fmt(t[k]["mean_ddi"])),
         row("cold subscan DDI", lambda k: _fmt(results[k].get("cold_ddi"))),

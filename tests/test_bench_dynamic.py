@@ -39,7 +39,8 @@ def test_the_truth_itself_scores_perfectly_and_anew_follows_the_events(sim, tmp_
     # anew at k: in view at k, gone at k + 1 by an exit, a vanishing or a coalescence (events.csv, independent)
     for p in s["subscans"][:-1]:
         k = p["subscan"]
-        at_k = set(tables[k]["id"].astype(int))
+        labels, ids = D.truth_subscan(meta, tables[k])
+        at_k = set(ids[np.unique(labels[labels > 0]) - 1].tolist())  # with a voxel in view on the grid
         gone = {int(e["id"]) for e in events if int(e["subscan"]) == k + 1 and e["event"] in ("exit", "vanish")}
         gone |= {int(x) for e in events if int(e["subscan"]) == k + 1 and e["event"] == "coalesce"
                  for x in e["parents"].split(";")}

@@ -189,7 +189,7 @@ def simulate_flowing_to_dir(out, *, subscans=None, projections_per_subscan=None,
         raise ValueError(f"--det-count must be at least 3 for flowing3d (rows are a third of it), got {cols}")
     per = projections_per_subscan or d["projections_per_subscan"]
     flowing = flowing_foam(n_bubbles or d["n_bubbles"], seed=seed, rows=cols // 3, cols=cols,
-                           pixel_size=d["pixel_size"] * d["cols"] / cols, subscans=subscans or d["subscans"], **foam)
+                           pixel_size=d["pixel_size"] * (d["cols"] / cols), subscans=subscans or d["subscans"], **foam)
     scan = simulate_flowing(flowing, projections_per_subscan=per, photons=photons,
                             seconds_per_projection=seconds_per_projection)
     out = Path(out)

@@ -419,7 +419,7 @@ EVENT_COLUMN_INFO = {
     "id": ("", "the bubble the event happens to (coalesce: the child)"),
     "parents": ("", "coalesce: the two merging ids, separated by a semicolon; empty otherwise"),
     "time_subscans": ("subscan", "when it happens, in subscans from the scan's start (subscan k's mid-time is "
-                                 "k + 0.5); enter / exit at the first projection it holds at"),
+                                 "k + 0.5); enter / exit: from when it reaches / no longer reaches into the rows"),
     "seconds": ("s", "the same time in seconds"),
     "subscan": ("", "the first subscan whose truth shows the event's outcome"),
     "in_fov": ("1", "1 if the bubble (vanish: just before; coalesce: the child) is in the detector's rows"),
@@ -429,8 +429,9 @@ EVENT_COLUMN_INFO = {
 def flowing_events(foam, projections_per_subscan, seconds_per_projection=0.01):
     """Enter, exit, vanish and coalesce events during the scan, in time order.
 
-    Enter and exit are resolved to the projection: the first projection time at
-    which the bubble reaches into / no longer reaches into the rows.
+    Enter and exit are found between consecutive projections and bisected to
+    1e-6 subscans: the time from which the bubble reaches into / no longer
+    reaches into the rows.
 
     Returns
     -------
@@ -445,20 +446,33 @@ def flowing_events(foam, projections_per_subscan, seconds_per_projection=0.01):
         return {"event": event, "id": int(bid), "parents": parents, "time_subscans": float(t),
                 "seconds": float(t * unit), "subscan": int(np.ceil(t - 0.5)), "in_fov": int(in_fov)}
 
+    def crossing(b, lo, hi):
+        """The time in (lo, hi] at which bubble b's visibility changes, bisected to 1e-6 subscans."""
+        was = visible(b, lo)
+        while hi - lo > 1e-6:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if visible(b, mid) == was else (lo, mid)
+        return hi
+
+    def visible(b, t):
+        st = foam.at(t)
+        k = np.flatnonzero(st.ids == b)
+        return bool(len(k) and st.fraction_in_fov[k[0]] > 0)
+
     rows = []
+    children = {m["child"] for m in foam.merges}
     before = foam.at(times[0])
     seen = set(before.ids[before.visible].tolist())
-    for t in times[1:]:
+    for t_prev, t in zip(times[:-1], times[1:]):
         st = foam.at(t)
         now = set(st.ids[st.visible].tolist())
         exists = set(st.ids.tolist())
-        children = {m["child"] for m in foam.merges}
         for b in sorted(now - seen):
             if b not in children:
-                rows.append(row("enter", b, t, True))
+                rows.append(row("enter", b, crossing(b, t_prev, t), True))
         for b in sorted(seen - now):
             if b in exists:
-                rows.append(row("exit", b, t, True))
+                rows.append(row("exit", b, crossing(b, t_prev, t), True))
         seen = now
     for b in np.flatnonzero(np.isfinite(foam.vanish_time)):
         tv = foam.vanish_time[b]

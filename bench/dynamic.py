@@ -1,4 +1,4 @@
-"""``bubsub bench dynamic``: ``bubsub reconstruct4d`` on a flowing, coarsening foam, per subscan, beside the voxel route.
+"""``bubsub bench dynamic``: ``bubsub reconstruct4d`` on a flowing, coarsening foam per subscan, beside a voxel route.
 
 The scan is ``bubsub simulate --phantom flowing3d`` (:mod:`bubsub.core.foam.flowing`:
 by default 12 subscans of 40 parallel projections over 180 degrees, continuous
@@ -48,7 +48,13 @@ distance transform of its part between the cut planes on a one-pixel grid.
 ``python -m bubsub.bench dynamic [--data DIR] [--out DIR] [--seed 0] [--bubbles 150] [--det-count 384]
 [--subscans 12] [--projections-per-subscan 40] [--flow 4] [--vanishing 0.12] [--coalescences 4]
 [--sirt-iterations 100] [--voxel-bin 1] [--no-voxel] [--reuse-voxel]
-[--no-bubsub] [--rec DIR] [RECONSTRUCT4D OPTIONS]``
+[--no-bubsub] [--rec DIR] [--order backward|forward] [RECONSTRUCT4D OPTIONS]``
+
+``--order forward`` runs ``reconstruct4d`` on the scan with its subscans in
+reverse order (:func:`reversed_scan`), so that its chain runs forwards in the
+foam's time; its subscans are scored as the simulation's. Before any route, the
+truth alone says how many bubbles each order must find anew and why
+(:func:`chain_burden`).
 """
 
 from __future__ import annotations
@@ -64,6 +70,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["MERGE_COVER", "SMALL_BALL", "flowing_truth", "visible_ball", "truth_subscan", "row_owners", "chain_burden",
+           "reversed_scan",
            "track_purity", "link_by_overlap", "score_subscan", "score_run", "bubsub_labels", "voxel_labels",
            "run_voxel_route", "simulate_flowing_case", "format_table", "main"]
 
@@ -444,6 +451,31 @@ def run_voxel_route(sim_dir, out, *, iterations=100, voxel_bin=1):
     return out / "labels.npz"
 
 
+def reversed_scan(sim_dir, path):
+    """The simulation's scan with its subscans in reverse order (each subscan's projections kept in order).
+
+    ``bubsub reconstruct4d`` goes backwards in time; on this scan its chain runs
+    forwards in the simulation's time. Subscan ``k`` of the file is the
+    simulation's subscan ``n - 1 - k``; ``/exchange/time`` runs on in the new order.
+
+    Returns
+    -------
+    Path
+    """
+    from bubsub.core.io.scanfile import read_scan, write_scan
+    from bubsub.core.io.subscans import subscan_layout
+
+    scan = read_scan(Path(sim_dir) / "scan.h5")
+    layout = subscan_layout(scan)
+    order = np.concatenate([np.arange(scan.n_angles)[layout.projections(k)] for k in reversed(layout.selected)])
+    out = scan.subset(order)
+    step = float(np.median(np.diff(scan.time))) if scan.time is not None and scan.n_angles > 1 else 1.0
+    out.time = np.arange(len(order)) * step
+    out.projections_per_subscan = layout.per_subscan
+    out.attrs["subscans_reversed"] = 1
+    return write_scan(path, out)
+
+
 def simulate_flowing_case(folder, *, seed=0, bubbles=None, det_count=None, subscans=None, per_subscan=None,
                           **foam):
     """The flowing foam's simulation folder, made unless it holds one with these settings.
@@ -539,6 +571,9 @@ def main(argv=None):
                     help="reuse the voxel route's labels and measured cost in OUT/voxel when made with the same "
                          "simulation and settings")
     ap.add_argument("--rec", help="score this reconstruct4d folder instead of running one")
+    ap.add_argument("--order", choices=("backward", "forward"), default="backward",
+                    help="forward: run reconstruct4d on the scan with its subscans reversed, so that its chain runs "
+                         "forwards in time (default backward, as reconstruct4d)")
     ap.add_argument("--json", help="also write all scores to this JSON file")
     ap.add_argument("--voxel-child", nargs=2, metavar=("SIM", "OUT"), help=argparse.SUPPRESS)
     args, extra = ap.parse_known_args(argv)
@@ -557,7 +592,8 @@ def main(argv=None):
     print(f"flowing foam {sim}: {meta['subscans']} subscans of {meta['projections_per_subscan']} x "
           f"{meta['column']['rows']} x {meta['column']['cols']}, {min(f['bubbles_per_subscan'])}-"
           f"{max(f['bubbles_per_subscan'])} bubbles in view, {meta['bubbles']} over the run, flow "
-          f"{f['flow_px_per_subscan']:g} px per subscan, {vanishing} vanishing in view, {len(f['coalescences'])} coalescences"
+          f"{f['flow_px_per_subscan']:g} px per subscan, {vanishing} vanishing in view, "
+          f"{len(f['coalescences'])} coalescences"
           + (f" (simulated in {sim_s:.0f} s)" if sim_s else " (reused)") + "\n", flush=True)
     burden = chain_burden(meta, tables, events)
     for d, b in burden.items():
@@ -567,18 +603,26 @@ def main(argv=None):
     print(flush=True)
     results = {}
     if not args.no_bubsub:
+        forward = args.order == "forward"
         if args.rec:
             rec, wall, rss = Path(args.rec), None, None
         else:
-            rec = out / "bubsub"
-            wall, _, rss = run_tree(cli_command("reconstruct4d", sim / "scan.h5", "--out", rec, "--quiet",
+            rec = out / ("bubsub-forward" if forward else "bubsub")
+            scan_file = reversed_scan(sim, out / "scan_reversed.h5") if forward else sim / "scan.h5"
+            wall, _, rss = run_tree(cli_command("reconstruct4d", scan_file, "--out", rec, "--quiet",
                                                 "--overwrite", *extra))
-        scores = score_run(meta, tables, bubsub_labels(rec, meta))
+        last = meta["subscans"] - 1
+        labels = bubsub_labels(rec, meta)
         secs = _bubsub_seconds(rec)
+        if forward:
+            labels_fwd = labels
+            labels = lambda k: labels_fwd(last - k)  # noqa: E731
+            secs = {last - k: v for k, v in secs.items()}
+        scores = score_run(meta, tables, labels)
         cold = [s for st, s in secs.values() if st == "cold"]
         warm = [s for st, s in secs.values() if st == "warm"]
         name = (f"bubsub reconstruct4d (from {rec})" if args.rec
-                else "bubsub reconstruct4d " + (" ".join(extra) or "(defaults)"))
+                else "bubsub reconstruct4d " + (" ".join(extra) or "(defaults)")) + (", forwards" if forward else "")
         results["bubsub"] = {"route": name, **scores, "wall_s": wall, "peak_rss_mib": rss,
                              "seconds_cold": float(sum(cold)) if cold else None,
                              "seconds_warm_median": float(np.median(warm)) if warm else None,

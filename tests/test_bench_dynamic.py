@@ -114,3 +114,19 @@ def test_voxel_route_runs_tracks_and_scores(sim, tmp_path):
     assert t["track_purity"] > 0.9 and t["tracks"] < t["rows"]  # ids carried from subscan to subscan
     text = D.format_table("voxel", s)
     assert text.count("\n") == len(s["subscans"]) + 2
+
+
+def test_reversed_scan_runs_the_subscans_backwards_and_every_anew_bubble_has_an_event(sim, tmp_path):
+    from bubsub.core.io.scanfile import read_scan
+
+    a = read_scan(sim / "scan.h5")
+    b = read_scan(D.reversed_scan(sim, tmp_path / "rev.h5"))
+    assert b.projections_per_subscan == 8 and np.all(np.diff(b.time) > 0)
+    for k in range(3):
+        np.testing.assert_array_equal(b.data[8 * k:8 * k + 8], a.data[8 * (2 - k):8 * (3 - k)])
+        np.testing.assert_array_equal(b.geometry.vectors[8 * k:8 * k + 8], a.geometry.vectors[8 * (2 - k):8 * (3 - k)])
+    meta, tables, events = D.flowing_truth(sim)
+    burden = D.chain_burden(meta, tables, events)
+    for d in ("backward", "forward"):
+        assert sum(burden[d]["reasons"].values()) == burden[d]["all"] > 0
+        assert "other" not in burden[d]["reasons"]  # the events explain every bubble that comes or goes

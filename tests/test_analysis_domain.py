@@ -80,3 +80,37 @@ def test_domains_intersect_into_a_box_a_cylinder_or_a_box_within_a_cylinder():
     assert cut.contains([[1.79, 0.99, 0.5], [1.7, 0.9, 0.5]]).tolist() == [False, True]  # both in the box, one outside the cylinder
     assert parse_domain("cylinder:1.5", (2.0, 1.0)) == Domain((-1.5, -1.5, -1), (1.5, 1.5, 1), 1.5)
     assert parse_domain("Sample") == "sample"
+
+
+def _scan_of(tmp_path, name, container, size):
+    """A cone-beam scan (no bubbles) whose background is the exact projection of a container mesh."""
+    from bubsub.core.foam.simulate import default_geometry_3d
+    from bubsub.core.io.scanfile import Scan, write_scan
+    from bubsub.core.projection.projector import MeshProjector
+
+    g = default_geometry_3d(16, rows=32, cols=48, source_origin=40.0, origin_detector=20.0, size=size)
+    background = MeshProjector(g).forward([container])
+    return write_scan(tmp_path / f"{name}.h5", Scan(data=background, geometry=g, background=background,
+                                                      bubble_contrast=-0.1))
+
+
+def test_the_sample_is_fitted_to_the_scans_background(tmp_path):
+    """A box and a cylinder, projected by the mesh projector, are told apart and measured from the background."""
+    import trimesh
+
+    from bubsub.clients.analysis.domain import analysed_domain, background_sample
+    from bubsub.core.foam.containers import liquid_box
+    from bubsub.core.projection.mesh import Mesh
+
+    box_scan = _scan_of(tmp_path, "box", liquid_box((3.0, 2.4, 1.6), 0.1), (3.0, 2.4, 1.6))
+    box, residual = background_sample(box_scan)
+    assert box.kind == "box" and residual < 1e-3
+    assert box.lo + box.hi == pytest.approx((-1.5, -1.2, -0.8, 1.5, 1.2, 0.8), abs=0.01)
+    tube = trimesh.creation.cylinder(radius=1.2, height=1.6, sections=256)
+    cyl_scan = _scan_of(tmp_path, "cyl", Mesh(tube.vertices, tube.faces, 0.1), (2.4, 2.4, 1.6))
+    cyl, residual = background_sample(cyl_scan)
+    assert cyl.kind == "cylinder" and residual < 0.01
+    assert cyl.radius == pytest.approx(1.2, abs=0.01) and (cyl.lo[2], cyl.hi[2]) == pytest.approx((-0.8, 0.8), abs=0.01)
+    # a reconstruction of that scan without a phantom.json takes it, and says so
+    domain, source = analysed_domain(None, {"scan": str(cyl_scan)}, tmp_path, (3.0, 1.0))
+    assert domain.kind == "cylinder" and "background" in source and domain.hi[2] == pytest.approx(0.8, abs=0.01)

@@ -13,9 +13,13 @@ in this order,
    scan that report.json names (``bubsub simulate`` writes it): the liquid
    box of ``size`` centred at the origin, or the ``column`` phantom's
    cylinder;
-3. the field of view (report.json's ``field_of_view_mm``), when the sample is
+3. the sample the scan's background shows (:func:`background_sample`): the
+   box or the cylinder about the rotation axis whose chords, times an
+   attenuation, fit the background best, when the fit is within
+   :data:`TRUSTED_FIT`;
+4. the field of view (report.json's ``field_of_view_mm``), when the sample is
    not known;
-4. the bubbles' bounding box, when neither is.
+5. the bubbles' bounding box, when neither is.
 
 The sample is cut to the field of view (what the scan reconstructs). The
 summary's ``domain`` says which was used: ``kind``, bounds, ``radius_mm``
@@ -31,7 +35,7 @@ import numpy as np
 
 from bubsub.core.analysis.regions import Domain
 
-__all__ = ["parse_domain", "simulated_sample", "analysed_domain", "DOMAIN_FORMS"]
+__all__ = ["parse_domain", "simulated_sample", "background_sample", "analysed_domain", "DOMAIN_FORMS"]
 
 #: The forms ``--domain`` takes, for messages and help.
 DOMAIN_FORMS = "sample, fov, box:X0,X1,Y0,Y1,Z0,Z1 or cylinder:R[,Z0,Z1] (mm)"
@@ -125,6 +129,130 @@ def simulated_sample(report, folder):
     return Domain.box([v for h in half for v in (-h, h)]), str(meta_path)
 
 
+#: Views and detector pixels per axis of the background that :func:`background_sample` fits.
+BACKGROUND_VIEWS, BACKGROUND_PIXELS = 12, 32
+#: A box fitting the background this well (relative residual) is taken without trying the cylinder.
+GOOD_FIT = 0.01
+#: A sample fitted to the background worse than this (relative residual) is not taken for the sample.
+TRUSTED_FIT = 0.2
+
+
+def _rays(geometry, step_rows, step_cols):
+    """Origins and unit directions of the rays through every ``step``-th pixel of each view: (k, 3) each."""
+    vec = geometry.vectors
+    s, d, u, v = vec[:, 0:3], vec[:, 3:6], vec[:, 6:9], vec[:, 9:12]
+    rows = np.arange(0, geometry.det_rows, step_rows)
+    cols = np.arange(0, geometry.det_cols, step_cols)
+    r = (rows - geometry.det_rows / 2 + 0.5)[None, :, None, None]
+    c = (cols - geometry.det_cols / 2 + 0.5)[None, None, :, None]
+    pixel = d[:, None, None] + c * u[:, None, None] + r * v[:, None, None]
+    if geometry.is_cone:
+        origin = np.broadcast_to(s[:, None, None], pixel.shape)
+        direction = pixel - origin
+    else:
+        direction = np.broadcast_to(s[:, None, None], pixel.shape)
+        origin = pixel - 1e3 * direction / np.linalg.norm(direction, axis=-1, keepdims=True)
+    direction = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
+    return origin.reshape(-1, 3), direction.reshape(-1, 3), rows, cols
+
+
+def _box_chords(origin, direction, p):
+    """Lengths of the rays inside the box ``p = (x0, x1, y0, y1, z0, z1)``."""
+    lo, hi = np.asarray(p[0::2]), np.asarray(p[1::2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - origin) / direction, (hi - origin) / direction
+    near = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2)).max(axis=1)
+    far = np.where(np.isnan(t2), np.inf, np.maximum(t1, t2)).min(axis=1)
+    return np.maximum(far - near, 0.0)
+
+
+def _cylinder_chords(origin, direction, p):
+    """Lengths of the rays inside the cylinder ``p = (radius, z0, z1)`` about the z axis."""
+    radius, z0, z1 = p
+    ox, oy = origin[:, 0], origin[:, 1]
+    a = direction[:, 0] ** 2 + direction[:, 1] ** 2
+    b = ox * direction[:, 0] + oy * direction[:, 1]
+    disc = b * b - a * (ox * ox + oy * oy - radius * radius)
+    root = np.sqrt(np.maximum(disc, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        near_r, far_r = (-b - root) / a, (-b + root) / a
+        tz1, tz2 = (z0 - origin[:, 2]) / direction[:, 2], (z1 - origin[:, 2]) / direction[:, 2]
+    near = np.maximum(near_r, np.where(np.isnan(tz1), -np.inf, np.minimum(tz1, tz2)))
+    far = np.minimum(far_r, np.where(np.isnan(tz2), np.inf, np.maximum(tz1, tz2)))
+    return np.where((disc > 0) & (a > 0), np.maximum(far - near, 0.0), 0.0)
+
+
+def _fit(model, start, origin, direction, values):
+    """Least-squares fit of ``attenuation x chord`` to the background; ``(params, relative residual)``."""
+    from scipy.optimize import least_squares
+
+    def residual(p):
+        chord = model(origin, direction, p)
+        mu = float(chord @ values) / max(float(chord @ chord), 1e-30)
+        return mu * chord - values
+
+    fit = least_squares(residual, start, diff_step=1e-4, x_scale="jac", xtol=1e-6)
+    return fit.x, float(np.linalg.norm(fit.fun) / max(np.linalg.norm(values), 1e-30))
+
+
+def background_sample(scan_path):
+    """The sample a 3D scan's background shows: a box or a cylinder about a z-parallel axis, fitted.
+
+    The background is the projection of everything but the bubbles: for a
+    sample of uniform liquid, its attenuation times each ray's chord through
+    the sample. Both models (box ``x0..z1``; cylinder ``cx, cy, radius,
+    z0..z1``) are fitted by least squares to :data:`BACKGROUND_VIEWS` views of
+    it on :data:`BACKGROUND_PIXELS` pixels per detector axis (the
+    attenuation solved for at each step), from the bounding box of the pixels
+    it covers; the better fit is the sample (a box within :data:`GOOD_FIT` is
+    taken at once). A cylinder is about the rotation axis, the z axis.
+
+    Parameters
+    ----------
+    scan_path : str or os.PathLike
+        A scan file with ``/exchange/background``.
+
+    Returns
+    -------
+    domain : Domain or None
+        None for a 2D scan, one without a background or with a background of nothing.
+    residual : float or None
+        The fit's relative residual ``|mu L - background| / |background|``.
+    """
+    import h5py
+
+    from bubsub.core.io.scanfile import read_geometry
+
+    g = read_geometry(scan_path)
+    if g.ndim != 3:
+        return None, None
+    with h5py.File(scan_path, "r") as f:
+        if "exchange/background" not in f:
+            return None, None
+        ds = f["exchange/background"]
+        n = min(int(ds.shape[0]), g.n_angles)
+        views = np.unique(np.linspace(0, n - 1, min(BACKGROUND_VIEWS, n)).round().astype(int))
+        sr, sc = max(1, -(-g.det_rows // BACKGROUND_PIXELS)), max(1, -(-g.det_cols // BACKGROUND_PIXELS))
+        values = np.stack([np.asarray(ds[int(i), ::sr, ::sc], dtype=float) for i in views]).reshape(-1)
+    if not np.all(np.isfinite(values)) or not values.max() > 0:
+        return None, None
+    origin, direction, _, _ = _rays(g[views], sr, sc)
+    # a start that holds the sample: the box of the points every covering ray passes nearest the axis
+    covered = values > 0.05 * values.max()
+    t = -np.einsum("ij,ij->i", origin[covered, :2], direction[covered, :2]) / np.maximum(
+        np.einsum("ij,ij->i", direction[covered, :2], direction[covered, :2]), 1e-12)
+    near = origin[covered] + t[:, None] * direction[covered]
+    r0 = float(np.percentile(np.hypot(near[:, 0], near[:, 1]), 99))
+    z0, z1 = float(near[:, 2].min()), float(near[:, 2].max())
+    box, box_res = _fit(_box_chords, [-r0, r0, -r0, r0, z0, z1], origin, direction, values)
+    if box_res < GOOD_FIT:
+        return Domain.box(box), box_res
+    cyl, cyl_res = _fit(_cylinder_chords, [r0, z0, z1], origin, direction, values)
+    if box_res <= cyl_res:
+        return Domain.box(box), box_res
+    return Domain.cylinder(abs(cyl[0]), min(cyl[1], cyl[2]), max(cyl[1], cyl[2])), cyl_res
+
+
 def analysed_domain(spec, report, folder, field_of_view):
     """The analysed domain and where it comes from (see the module docstring).
 
@@ -152,6 +280,13 @@ def analysed_domain(spec, report, folder, field_of_view):
     elif spec == "sample":
         domain, source = simulated_sample(report, folder)
         source = None if source is None else f"the simulated sample ({source})"
+        scan = _scan_path(report, folder)
+        if domain is None and scan is not None:
+            domain, residual = background_sample(scan)
+            if domain is not None and residual > TRUSTED_FIT:
+                domain = None
+            source = None if domain is None else (f"the sample fitted to the scan's background ({scan}, relative "
+                                                  f"residual {residual:.2g})")
     else:
         domain, source = None, None
     if domain is None:

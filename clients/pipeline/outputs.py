@@ -42,7 +42,7 @@ from bubsub.clients.pipeline.figures import write_figures
 from bubsub.clients.pipeline.fov import FOV_COLUMN_INFO, fov_columns
 
 __all__ = ["write_outputs", "json_default", "MANIFEST", "RESULT_NAMES", "OutputFolderError", "folder_problem",
-           "earlier_outputs", "check_output_folder", "finish_outputs"]
+           "earlier_outputs", "check_output_folder", "finish_outputs", "add_outputs"]
 
 #: Name of the manifest: ``{"bubsub": version, "command": str, "files": [relative paths]}``.
 MANIFEST = "bubsub-outputs.json"
@@ -261,3 +261,28 @@ def write_outputs(out_dir, rec, scan_path=None, *, progress=False):
     rec.files = files
     finish_outputs(out, files.values(), command="reconstruct")
     return files
+
+
+def add_outputs(path, files, command):
+    """Add files that a later command wrote into an existing result folder (``bubsub evaluate``'s
+    ``evaluation.json``) to the folder's manifest, so that the next ``--overwrite`` run into the folder
+    removes them with the rest (step 3 of the policy).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The result folder.
+    files : iterable of str or os.PathLike
+        The files written, inside ``path``.
+    command : str
+        Recorded as the manifest's command when the folder has none yet.
+    """
+    folder = Path(path)
+    doc = _manifest(folder)
+    if doc is None:
+        from bubsub.clients import version
+
+        doc = {"bubsub": version(), "command": command, "files": []}
+    names = set(doc["files"]) | {os.path.relpath(Path(f).resolve(), folder.resolve()) for f in files}
+    doc["files"] = sorted(names)
+    atomic_write_text(folder / MANIFEST, json.dumps(doc, indent=2) + "\n")

@@ -120,6 +120,7 @@ def test_analyse_a_reconstruct4d_folder(tmp_path, capsys):
     assert main(["analyse", str(rec), "--out", str(out), "--contact-gap", "0.03"]) == 0
     printed = capsys.readouterr().out
     assert "subscan 2 (3 of 3)" in printed and "1 T1 events" in printed
+    assert "in the cylinder of the field of view" in printed
     # reconstruct4d's tracks.csv has its sidecar, describing every column
     meta = json.loads((rec / "tracks.csv-metadata.json").read_text())
     assert [c["name"] for c in meta["tableSchema"]["columns"]] == list(rows(rec / "tracks.csv")[0])

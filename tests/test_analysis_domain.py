@@ -77,7 +77,8 @@ def test_domains_intersect_into_a_box_a_cylinder_or_a_box_within_a_cylinder():
     assert Domain.box((-1, 1, -1, 1, -2, 2)).intersect(fov) == Domain((-1, -1, -1), (1, 1, 1), None)
     cut = Domain.box((-1.8, 1.8, -1, 1, 0, 2)).intersect(fov)
     assert cut.kind == "box within cylinder" and cut.radius == 2.0 and cut.lo == (-1.8, -1, 0)
-    assert cut.contains([[1.79, 0.99, 0.5], [1.7, 0.9, 0.5]]).tolist() == [False, True]  # both in the box, one outside the cylinder
+    # both in the box, the first outside the cylinder
+    assert cut.contains([[1.79, 0.99, 0.5], [1.7, 0.9, 0.5]]).tolist() == [False, True]
     assert parse_domain("cylinder:1.5", (2.0, 1.0)) == Domain((-1.5, -1.5, -1), (1.5, 1.5, 1), 1.5)
     assert parse_domain("Sample") == "sample"
 

@@ -62,8 +62,11 @@ def cmd_analyse(args):
         law = s["growth_law"]
         fit = (f"growth law k = {law['slope']:.3g} +- {law['slope_stderr']:.2g}, Z0 = {law['z0']:.3g} +- "
                f"{law['z0_stderr']:.2g}" if law.get("z0") is not None else f"no growth law ({law.get('reason')})")
+        fractions = [p["liquid_fraction"] for p in s["per_subscan"] if p.get("liquid_fraction") is not None]
+        liquid = (f"; liquid fraction {min(fractions):.3f} to {max(fractions):.3f} in the {s['domain']['kind']} of "
+                  f"{s['domain']['source']}" if fractions else "")
         print(f"{s['subscans']} subscans at a {s['contact_gap_mm']:.4g} mm contact gap: {s['t1_events']} T1 events, "
-              f"{s['coalescences']} coalescences, {s['disappearances']} disappearances; {fit}")
+              f"{s['coalescences']} coalescences, {s['disappearances']} disappearances; {fit}{liquid}")
     print(f"wrote {len(files)} files to {args.out}")
     return 0
 

@@ -148,7 +148,8 @@ def bubble_table(items, ids=None):
     bid = bubble_ids(ids, len(resolved))
     rows = []
     if want is Mesh:
-        from bubsub.core.analysis.shape import bubble_sizes  # the analysis' definitions (imported late: it imports this)
+        # the analysis' definitions, imported here because that module imports this one
+        from bubsub.core.analysis.shape import bubble_sizes
 
         volume, area, centroid = bubble_sizes(resolved)
         for i, v, a, c in zip(bid, volume, area, centroid):

@@ -101,3 +101,14 @@ def test_the_longest_path_is_the_modelled_cylinder_crossed_by_the_steepest_ray()
     x = 0.5 * pix
     tilt = np.hypot(so + od, np.hypot(x, z)) / np.hypot(so + od, x)
     assert longest_path(g3) == pytest.approx(2 * 1.25 * r * tilt, rel=1e-9)
+
+
+def test_reconstruct4d_refuses_a_sign_flipped_dynamic_scan_before_making_its_folder(tmp_path, capsys):
+    sim = tmp_path / "sim4"
+    assert main(["simulate", "--phantom", "expanding2d", "--subscans", "2", "--projections-per-subscan", "8",
+                 "--det-count", "200", "--bubbles", "4", "--seed", "1", "--out", str(sim)]) == 0
+    scan = _altered(sim, tmp_path / "flipped4d.h5", data=lambda d, bg: -np.abs(d) - 1)
+    assert main(["reconstruct4d", str(scan), "--out", str(tmp_path / "rec4"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "flipped4d.h5: 100 % of the line integrals" in err
+    assert not (tmp_path / "rec4").exists()

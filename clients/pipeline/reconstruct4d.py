@@ -21,6 +21,7 @@ from bubsub.core.io.subscans import subscan, subscan_layout, subscan_times
 from bubsub.clients.cluster.dynamic import ScanFileSubscans, run_chunks
 from bubsub.clients.cluster.engine import workers_of
 from bubsub.clients.pipeline import dynamic_outputs as outputs
+from bubsub.clients.pipeline.checks import check_bubble_signal
 from bubsub.clients.pipeline.dynamic import DynamicSettings, reconstruct_subscan, run_chain
 
 __all__ = ["reconstruct_dynamic"]
@@ -73,6 +74,8 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
     settings = settings or DynamicSettings()
     layout = subscan_layout(scan, projections_per_subscan, subscans)
     times, unit = subscan_times(scan, layout)
+    # the whole scan's signal and physics, before any file: a refused scan leaves no folder behind
+    check_bubble_signal(scan, background_subtracted=settings.static.background_subtracted)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     record = _run_record(scan, layout, settings)

@@ -125,7 +125,7 @@ def test_a_warm_subscan_in_slabs_keeps_every_track_id_once_and_matches_the_whole
     for entry in report["slabs"]:
         assert {"read_rows", "seconds_total", "iterations", "stop_reason", "fit_levels"} <= set(entry)
     assert report["iterations"] == sum(s["iterations"] for s in report["slabs"])
-    assert set(report["seconds_parts"]) == {"remesh", "fit"}
+    assert set(report["seconds_parts"]) == {"remesh", "fit", "detect"}  # the detection runs on the whole subscan
 
 
 def test_a_bubble_whose_fit_crosses_the_seam_stays_with_the_slab_of_its_start(foam):

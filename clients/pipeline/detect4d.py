@@ -216,6 +216,78 @@ def assign_tracks(ids, before, after, successor_sizes, geometry, next_id):
     return new_ids, lineage, next_id
 
 
+def _new_bubble(surfaces, geometry, settings):
+    """``new_bubble(centre, radius)``: a round bubble with the fitted bubbles' control mesh, subdivided by its size."""
+    from bubsub.core.projection.subdivision import circle_surface, sphere_surface
+    from bubsub.clients.pipeline.resolution import levels_by_size
+
+    contrast, k = surfaces[0].attenuation, len(surfaces[0].vertices)
+    if surfaces[0].ndim == 2:
+        return lambda c, r: circle_surface(c, r, contrast, control=k, levels=surfaces[0].levels)
+    k = k if k in (12, 42, 162) else 42
+    return lambda c, r: levels_by_size([sphere_surface(c, r, contrast, control=k, levels=settings.levels)], geometry,
+                                       settings.levels, settings.facet_pixels)[0]
+
+
+def edge_seeds(projector, data, surfaces, settings, voxel):
+    """Bubbles cut by the detector's top or bottom row that no fitted bubble explains, seeded and fitted.
+
+    The unexplained part of the residual (the bubbles' sign of ``data - Proj(fit)``) is reconstructed on the
+    first and last rows' slices (:func:`~bubsub.clients.pipeline.initial.edge_slices`); each disc no fitted
+    bubble accounts for becomes a sphere of the fitted bubbles' median radius beyond the edge plane with that
+    disc as its section (:func:`~bubsub.clients.pipeline.initial.edge_centres`: a bubble that leaves through
+    the edge later shows only a cap), kept when it lowers the objective, then refitted with its neighbours free
+    on a detector window. Parallel-beam 3D scans only (rows are slices there).
+
+    Parameters
+    ----------
+    projector : MeshProjector
+        Of ``data``.
+    data : ndarray
+    surfaces : list of SubdivisionSurface
+    settings : DynamicSettings
+    voxel : float
+        Pixel of the edge slices, mm.
+
+    Returns
+    -------
+    list of SubdivisionSurface
+        ``surfaces`` and the seeds after them.
+    """
+    from bubsub.clients.pipeline.initial import edge_centres, edge_slices
+    from bubsub.clients.pipeline.local import footprint, scene_residual
+    from bubsub.clients.pipeline.preview import preview_grid
+    from bubsub.clients.pipeline.fov import preview_extension
+
+    g = projector.geometry
+    if g.ndim != 3 or not surfaces or not settings.fov_model:
+        return surfaces
+    contrast = surfaces[0].attenuation
+    residual = scene_residual(projector, surfaces, data)
+    unexplained = np.where(np.sign(contrast) * residual < 0, -residual, 0.0).astype(np.float32)
+    extent = preview_grid(g, voxel, preview_extension(settings.fov_model, data, contrast))[1]
+    edges = edge_slices(unexplained, g, contrast, extent, voxel)
+    if not any(len(e[2]) for e in edges):
+        return surfaces
+    radii = np.array([equivalent_radius(_size(s), 3) for s in surfaces])
+    radius = float(np.median(radii))
+    new_bubble = _new_bubble(surfaces, g, settings)
+    seeds = []
+    for c in edge_centres([_centre(s) for s in surfaces], radii, edges, radius):
+        cand = new_bubble(c, radius)
+        p = footprint(projector, cand)
+        if p.addition_gain(residual) < 0:
+            p.add_to(residual)
+            seeds.append(cand)
+    if not seeds:
+        return surfaces
+    from bubsub.clients.pipeline.local import local_refit
+
+    out, _, _ = local_refit(projector, list(surfaces) + seeds, data, range(len(surfaces), len(surfaces) + len(seeds)),
+                            iterations=max(10, settings.iterations // 2), touch=radius, residual=residual)
+    return out
+
+
 def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, next_id):
     """The warm fit's bubbles after the topology rounds of :data:`WARM_STEPS`, with their track ids.
 
@@ -267,7 +339,10 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
         # (:func:`~bubsub.clients.pipeline.topology.adapt_bubbles`), and a bubble added is at least 3 voxels in
         # radius; a finer grid costs a warm subscan more than its fit
         voxel = max(voxel, 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0]))
-    after, summary = adapt_bubbles(surfaces, geometry, data, contrast, None, None, voxel, settings,
+    # caps at the detector's top and bottom first: the rounds' remove step then judges them by the static rule
+    seeded = edge_seeds(MeshProjector(geometry, supersampling=settings.supersampling), data, surfaces, settings,
+                        voxel)
+    after, summary = adapt_bubbles(seeded, geometry, data, contrast, None, None, voxel, settings,
                                    steps=WARM_STEPS, unexplained_only=True)
     new_ids, lineage, next_id = assign_tracks(ids, surfaces, after, successor_sizes, geometry, next_id)
     born = [k for k, i in enumerate(new_ids) if i not in set(ids)]
@@ -281,5 +356,6 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
     counts = {}
     for c in summary["changes"]:
         counts[c["change"]] = counts.get(c["change"], 0) + 1
+    counts["edge_seed"] = len(seeded) - len(surfaces)
     return new_ids, after, lineage, {"rounds": summary["rounds"], "changes": counts,
                                      "objective": summary["objective"], "voxel_mm": voxel}, next_id

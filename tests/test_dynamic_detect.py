@@ -144,3 +144,34 @@ def test_analysis_takes_coalescences_and_appearances_from_the_lineage():
     rows = track_events([s0, s1], lineage)
     assert {(r["kind"], r["bubble_id"], r["partner_id"]) for r in rows} == {
         ("coalescence", 3, 7), ("coalescence", 4, 7), ("appearance", 5, None)}
+
+
+def test_ids_of_new_bubbles_stay_unique_across_chunks(monkeypatch):
+    """Each chunk numbers its new bubbles from its own cold start; the linker gives them fresh ids."""
+    from bubsub.clients.cluster.dynamic import run_chunks
+    from bubsub.clients.pipeline import dynamic
+
+    def scripted(scan, previous, settings, index=0, time=0.0):
+        if previous is None:  # the same two bubbles wherever a chunk starts cold
+            state = BubbleState.from_surfaces([0, 1], [circle_surface((0, 0), 1, CONTRAST),
+                                                       circle_surface((3, 0), 1, CONTRAST)])
+            return SubscanResult(index, time, state, (), {"start": "cold", "ended": {}})
+        new = previous.next_id  # one bubble found anew per warm subscan, at a place of its own
+        items = previous.surfaces() + [circle_surface((10.0 * index, 5), 1, CONTRAST)]
+        state = BubbleState.from_surfaces([*previous.ids, new], items, next_id=new + 1)
+        return SubscanResult(index, time, state, (), {"start": "warm", "ended": {}, "new": {str(new): "inside"},
+                                                      "coalescences": []})
+
+    monkeypatch.setattr(dynamic, "reconstruct_subscan", scripted)
+    results, interrupted, links = run_chunks(None, lambda k: None, [3, 2, 1, 0], DynamicSettings(progress=False),
+                                             chunks=2)
+    assert not interrupted and sorted(r.index for r in results) == [0, 1, 2, 3]
+    states = {r.index: r for r in results}
+    # chunk 0 (subscans 3, 2, 1) found ids 2 and 3; chunk 1's own id 2 (found at subscan 0) must not reuse them
+    assert states[1].state.ids == (0, 1, 2, 3)
+    assert states[0].state.ids == (0, 1, 4) and set(states[0].report["new"]) == {"4"}
+    places = {}
+    for r in results:  # one id, one bubble: every id keeps its place through the subscans it has
+        for i, s in zip(r.state.ids, r.state.surfaces()):
+            places.setdefault(i, set()).add(tuple(np.round(s.vertices.mean(axis=0), 6)))
+    assert all(len(p) == 1 for p in places.values()) and len({next(iter(p)) for p in places.values()}) == 5

@@ -18,11 +18,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core import Mesh, MeshProjector, Polygon, ScanGeometry, SubdivisionSurface, loop_subdivision
+from ..core.projection.backends.base import check_deadline
 from .errors import APIError
 
 __all__ = ["Group", "Job", "regular_polygon", "topology_bytes", "build_job", "check_compute_timeout"]
 
 _F32_MAX = float(np.finfo(np.float32).max)
+#: values per block of :meth:`Job.check_projection` (16 MB of float32)
+_CHECK_BLOCK = 1 << 22
 
 
 def regular_polygon(n):
@@ -237,23 +240,38 @@ class Job:
             raise APIError(422, f"{name} contain NaN or inf ({bad} of {len(x)} vertices)", "not_finite")
         return x
 
-    def check_projection(self, a, name):
-        """Validate an array of the projection shape; returns float32 (copy-free when possible)."""
+    def check_projection(self, a, name, deadline=None):
+        """Validate an array of the projection shape; returns a float32 copy.
+
+        Block by block (:data:`_CHECK_BLOCK` values), ``deadline`` (a
+        :func:`time.monotonic` value, for a computation's arrays) checked before
+        each: checking and copying a scan's 31 million pixels into fresh pages
+        takes a fair share of a second.
+        """
         if a.dtype.kind not in "fiu":
             raise APIError(422, f"{name} must be a real float array, got dtype {a.dtype.str!r}", "bad_dtype")
         if a.shape != tuple(self.geometry.shape):
             raise APIError(422, f"{name} must have the projection shape {tuple(self.geometry.shape)} "
                                 f"(angle, row, col / angle, col), got {a.shape}", "bad_shape")
-        if not np.all(np.isfinite(a)):
-            raise APIError(422, f"{name} contains NaN or inf", "not_finite")
-        if a.dtype.itemsize > 4 or a.dtype.kind != "f":
-            # float64 (or int64) beyond float32's range would be stored as inf and poison every objective
-            big = float(np.max(np.abs(a), initial=0.0))
-            if big > _F32_MAX:
-                raise APIError(422, f"{name} has values up to {big:.4g}, outside float32's range "
-                                    f"(+-{_F32_MAX:.4g}); the server stores projections as float32",
-                               "out_of_range")
-        return np.array(a, dtype=np.float32, copy=True)
+        # float64 (or int64) beyond float32's range would be stored as inf and poison every objective
+        wide = a.dtype.itemsize > 4 or a.dtype.kind != "f"
+        src = a.reshape(-1)
+        out = np.empty(a.shape, np.float32)
+        dst = out.reshape(-1)
+        big = 0.0
+        for i in range(0, src.size, _CHECK_BLOCK):
+            check_deadline(deadline)
+            part = src[i:i + _CHECK_BLOCK]
+            if not np.all(np.isfinite(part)):
+                raise APIError(422, f"{name} contains NaN or inf", "not_finite")
+            if wide:
+                big = max(big, float(np.max(np.abs(part), initial=0.0)))
+            if big <= _F32_MAX:  # past it the copy is refused below (after every block's NaN check)
+                dst[i:i + _CHECK_BLOCK] = part
+        if big > _F32_MAX:
+            raise APIError(422, f"{name} has values up to {big:.4g}, outside float32's range "
+                                f"(+-{_F32_MAX:.4g}); the server stores projections as float32", "out_of_range")
+        return out
 
     def items(self, x):
         """The surfaces for stacked control vertices ``x`` (already checked)."""

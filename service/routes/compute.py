@@ -91,7 +91,7 @@ def _forward(job, arrays, deadline):
 
 def _vjp(job, arrays, deadline):
     x = arrays["vertices"]
-    r = job.check_projection(arrays["residual"], "residual")
+    r = job.check_projection(arrays["residual"], "residual", deadline)
     return encode_npy(job.vjp(x, r, deadline))
 
 
@@ -99,7 +99,7 @@ def _objective(job, arrays, deadline):
     x = arrays["vertices"]
     data = arrays.get("data")
     if data is not None:
-        data = job.check_projection(data, "data")
+        data = job.check_projection(data, "data", deadline)
     f, g = job.objective(x, data, deadline)
     return f, encode_npz({"value": f, "gradient": g})
 

@@ -136,6 +136,11 @@ def test_reconstruct_against_a_projector_server(sim, rec, tmp_path):
         assert len(server.state.store) == 0  # the CLI deleted its job
     local = json.loads((rec / "report.json").read_text())
     remote = json.loads((out / "report.json").read_text())
+    # where the projections ran: the fit on the server, every other phase here
+    assert remote["projector"]["server"] == server.url and remote["projector"]["remote_phases"] == ["fit"]
+    assert set(remote["projector"]["local_phases"]) == set(remote["seconds_parts"]) - {"fit"}
+    assert local["projector"]["server"] is None and local["projector"]["remote_phases"] == []
+    assert "fit" in local["projector"]["local_phases"]
     assert remote["bubbles"] == local["bubbles"]
     assert remote["final_objective"] == pytest.approx(local["final_objective"], rel=1e-3)
     assert evaluate_dir(out, sim)["ddi"] < 0.03

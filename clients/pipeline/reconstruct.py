@@ -50,7 +50,8 @@ from bubsub.clients.pipeline.resolution import level_counts, levels_by_size
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "load_initial", "split_holdout", "prune",
-           "seen_slab", "settings_preview", "settings_initial", "coarse_radii"]
+           "seen_slab", "settings_preview", "settings_initial", "coarse_radii", "projector_report",
+           "merged_projector_report", "REMOTE_PHASES"]
 
 
 @dataclass
@@ -294,7 +295,56 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         clock.mark("holdout")
     # wall and CPU seconds of each phase (CPU: this process, all threads)
     report["seconds_parts"], report["cpu_seconds_parts"] = clock.parts()
+    report["projector"] = projector_report(projector if projector_factory is not None else None,
+                                           report["seconds_parts"], local.backend)
     return Reconstruction(kept, report, image, extent)
+
+
+#: the phases of :func:`reconstruct` that project through ``projector_factory``'s projectors (the initial
+#: objective and every level of the fit); the others project with local ones
+REMOTE_PHASES = ("fit",)
+
+
+def projector_report(remote, phases, backend):
+    """``report.json``'s ``projector``: where the projections of each phase ran.
+
+    Parameters
+    ----------
+    remote : object or None
+        The projector ``projector_factory`` made (a
+        :class:`~bubsub.clients.remote.client.RemoteJob` says its ``server``); None when every
+        phase projected locally.
+    phases : iterable of str
+        The phases that ran, in order (``seconds_parts``' keys).
+    backend : str
+        The local projectors' backend.
+
+    Returns
+    -------
+    dict
+        ``server`` (URL or None), ``remote_phases``, ``local_phases`` (lists of phase names) and
+        ``local_backend``.
+    """
+    phases = list(phases)
+    remote_phases = [p for p in phases if p in REMOTE_PHASES] if remote is not None else []
+    return {"server": getattr(remote, "server", None) if remote is not None else None,
+            "remote_phases": remote_phases, "local_phases": [p for p in phases if p not in remote_phases],
+            "local_backend": backend}
+
+
+def merged_projector_report(reports):
+    """One :func:`projector_report` for several runs' (the slabs of a scan): the first server named, and
+    the phases that ran remotely in any run, or locally in any, in the order they first appear; None
+    when no run has one."""
+    reports = [r for r in reports if r]
+    if not reports:
+        return None
+    remote, local = [], []
+    for r in reports:
+        remote += [p for p in r["remote_phases"] if p not in remote]
+        local += [p for p in r["local_phases"] if p not in local]
+    return {"server": next((r["server"] for r in reports if r["server"]), None), "remote_phases": remote,
+            "local_phases": local, "local_backend": reports[0]["local_backend"]}
 
 
 def settings_preview(data, geometry, contrast, settings):

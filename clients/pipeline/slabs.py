@@ -777,6 +777,8 @@ _SUMMED = ("iterations", "evaluations", "final_objective", "initial_objective", 
 
 def _report(results, surfaces, summary, geometry, settings, halo, computed, seconds, fov):
     """``report.json`` of a slabbed reconstruction."""
+    from bubsub.clients.pipeline.reconstruct import merged_projector_report
+
     per_slab = []
     for res in results:
         r = res.report
@@ -808,6 +810,7 @@ def _report(results, surfaces, summary, geometry, settings, halo, computed, seco
         "preview": _stitched_preview(results),
         "projections_used": geometry.n_angles,
         "validity": _merged_validity(results),
+        "projector": merged_projector_report([res.report.get("projector") for res in results]),
         "settings": {k: v for k, v in vars(settings).items() if k != "progress"},
     })
     return report

@@ -325,6 +325,8 @@ class RemoteJob:
     supersampling : int
     recreated : int
         How often the job was re-created after the server lost it.
+    server : str
+        The server's URL.
     """
 
     def __init__(self, client, geometry, surfaces, data, background, supersampling):
@@ -355,6 +357,11 @@ class RemoteJob:
     def range_shape(self):
         """Shape of the projections, ``geometry.shape``."""
         return self.geometry.shape
+
+    @property
+    def server(self):
+        """The server's URL (where this projector runs, for reports)."""
+        return self.client.base_url
 
     def __repr__(self):
         return f"RemoteJob({self.id!r} on {self.client.base_url}, {len(self._shapes)} surfaces)"

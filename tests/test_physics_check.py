@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from bubsub.clients.cli import main
-from bubsub.clients.pipeline.checks import check_bubble_signal, check_physical_signal, longest_path
+from bubsub.clients.pipeline.checks import (check_bubble_signal, check_physical_signal, liquid_attenuation,
+                                            longest_path)
 from bubsub.core import ScanGeometry
 from bubsub.core.io.scanfile import read_scan
 
@@ -61,6 +62,9 @@ def test_a_sign_flipped_scan_is_refused_in_one_line_and_leaves_no_folder(sim, tm
     ("tiny contrast", None, -0.002, True, "longer than the"),
     # the bubbles' signal alone, 20x too strong, so no background to compare with
     ("20x signal, no background", lambda d, bg: 20 * (d - bg), None, False, "gas paths up to"),
+    # gas minus liquid larger than the liquid's own attenuation (0.1 1/mm): a contrast in 1/m, or 10x
+    ("contrast in 1/m", None, -100.0, True, "larger in magnitude than the liquid's attenuation"),
+    ("contrast 10x", None, -1.0, True, "larger in magnitude than the liquid's attenuation"),
     ("one value", lambda d, bg: np.full_like(d, 0.5), None, True, "are all 0.5"),
     ("zeros", lambda d, bg: np.zeros_like(d), None, True, "are all 0"),
     # the background's sign flipped, data with it: data - background is still the bubbles' signal
@@ -84,6 +88,17 @@ def test_real_foams_pass(sim, tmp_path):
     assert main(["simulate", "--phantom", "foam2d", "--det-count", "400", "--angles", "12", "--seed", "4",
                  "--photons", "300", "--out", str(noisy)]) == 0
     check_physical_signal(read_scan(noisy / "scan.h5"))
+
+
+def test_the_liquids_attenuation_is_read_from_its_projection(sim):
+    # foam2d: a 10 mm square of liquid of 0.1 1/mm (phantom.json), widest along its diagonal
+    import json
+
+    meta = json.loads((sim / "phantom.json").read_text())
+    scan = read_scan(sim / "scan.h5")
+    mu, width, top = liquid_attenuation(scan.background, scan.geometry, 0.01)
+    assert mu == pytest.approx(meta["liquid_attenuation"], rel=0.05)
+    assert width == pytest.approx(np.hypot(*meta["size"]), rel=0.05)
 
 
 def test_the_longest_path_is_the_modelled_cylinder_crossed_by_the_steepest_ray():

@@ -17,7 +17,7 @@ from bubsub.core.validate import check_int
 
 __all__ = ["check_settings", "check_bubble_signal", "check_lateral_truncation", "side_signal", "CONTROL_POINTS_3D",
            "MAX_LEVELS", "TRUNCATED_VIEWS", "REFUSED_VIEWS", "side_bubble_signal", "check_physical_signal",
-           "longest_path", "IMPOSSIBLE_FRACTION"]
+           "longest_path", "IMPOSSIBLE_FRACTION", "liquid_attenuation", "CONTRAST_MARGIN"]
 
 #: Control vertices of the icosphere control meshes (3D bubbles).
 CONTROL_POINTS_3D = (12, 42, 162)
@@ -328,7 +328,12 @@ def check_physical_signal(scan):
     3. ``L = (data - background) / c`` is at most the longest path through the
        modelled region (:func:`longest_path`): a contrast far too small in
        magnitude (or in the wrong unit), or data scaled by a factor, imply
-       gas paths longer than the sample.
+       gas paths longer than the sample;
+    4. with a background, ``|c|`` is at most the liquid's attenuation (the
+       gas's, liquid plus ``c``, is ``>= 0``), read from the background as
+       its largest value over the liquid's widest shadow
+       (:func:`liquid_attenuation`), within :data:`CONTRAST_MARGIN`: a
+       contrast in 1/m instead of 1/mm is refused.
 
     :func:`check_bubble_signal` checks the signal's sign (most of its mass
     on the contrast's side) before this; this check bounds each value. The
@@ -355,9 +360,12 @@ def check_physical_signal(scan):
 
     name = scan.path.name if scan.path is not None else "the scan"
     data, bg, c = scan.data, scan.background, scan.bubble_contrast
-    step = max(1, data.shape[0] // 64)  # the noise and the scale from some views: the same level, quicker
-    sigma = noise_level(data[::step])
-    tol = max(6.0 * sigma, 0.05 * float(np.percentile(np.abs(data[::step]), 99)))
+    # the noise and the scale from some views (and rows): the same level, a fraction of a second on any scan
+    some = data[::max(1, data.shape[0] // 64)]
+    if some.ndim == 3:
+        some = some[:, ::max(1, -(-some.size // 1_000_000))]
+    sigma = noise_level(some)
+    tol = max(6.0 * sigma, 0.05 * float(np.percentile(np.abs(some), 99)))
     lo, hi = float(data.min()), float(data.max())
     if hi - lo <= tol:
         spread = f"are all {lo:.4g}" if hi == lo else f"vary only from {lo:.4g} to {hi:.4g}, within the noise"
@@ -380,6 +388,13 @@ def check_physical_signal(scan):
                 f"the whole liquid's projection there, more than a bubble filling all the liquid on a ray could "
                 f"remove; /exchange/data must hold -log(transmission) of the sample with its liquid and "
                 f"/exchange/background the liquid's projection alone ({prepare})")
+        mu, width, top = liquid_attenuation(bg, scan.geometry, tol)
+        if mu > 0 and abs(c) > CONTRAST_MARGIN * mu:
+            raise ValueError(
+                f"{name}: bubble_contrast = {c:g} 1/mm is larger in magnitude than the liquid's attenuation can "
+                f"be: its projection (/exchange/background) reaches {top:.4g} across a liquid {width:.4g} mm wide, "
+                f"about {mu:.3g} 1/mm, and gas minus liquid cannot exceed the liquid's own; correct "
+                f"bubble_contrast (gas minus liquid attenuation in 1/mm, not 1/m or 1/cm)")
     longest = longest_path(scan.geometry)
     gas = np.sign(c) * scan.bubble_data  # c L: positive along gas
     n_long = int(np.count_nonzero(gas > abs(c) * longest + tol))
@@ -389,3 +404,52 @@ def check_physical_signal(scan):
             f"{float(gas.max()) / abs(c):.4g} mm on {100 * n_long / gas.size:.3g} % of the rays, longer than the "
             f"{longest:.4g} mm any ray crosses of the field of view: bubble_contrast (gas minus liquid "
             f"attenuation, 1/mm) is too small in magnitude for these data, or the data are scaled; correct it")
+
+#: How many times the liquid's attenuation (:func:`liquid_attenuation`) the bubble contrast's magnitude may be
+#: before :func:`check_physical_signal` refuses it: at most 1 in physics (the gas attenuates at least nothing);
+#: the margin covers a liquid whose longest path is shorter than its width (not convex) and a container's
+#: wall in the background. A contrast in 1/m instead of 1/mm is 1000 times too large.
+CONTRAST_MARGIN = 4.0
+
+
+def liquid_attenuation(background, geometry, tol=0.0):
+    """The liquid's attenuation as its projection shows it: the background's largest value over the
+    liquid's largest width.
+
+    For a convex liquid the longest path a ray takes through it is its widest shadow on the detector (its
+    diameter, for a scan around it), so ``max(background) / width`` is its attenuation (a container's wall
+    in the background makes it larger).
+
+    Parameters
+    ----------
+    background : ndarray, ``(views, cols)`` or ``(views, rows, cols)``
+        The liquid's projection, line integrals.
+    geometry : bubsub.core.ScanGeometry
+        Of ``background``.
+    tol : float
+        Values up to this count as air.
+
+    Returns
+    -------
+    mu : float
+        1/mm; 0 when the background holds no liquid.
+    width : float
+        mm, in the object plane (a cone beam's columns shrunk by the magnification).
+    top : float
+        The background's largest value.
+    """
+    b = np.asarray(background).reshape(background.shape[0], -1, background.shape[-1])
+    wet = b > tol
+    seen = wet.any(axis=-1)
+    if not seen.any():
+        return 0.0, 0.0, 0.0
+    first = np.argmax(wet, axis=-1)
+    last = wet.shape[-1] - 1 - np.argmax(wet[..., ::-1], axis=-1)
+    n = geometry.ndim
+    vec = geometry.vectors
+    pitch = np.linalg.norm(vec[:, 2 * n:3 * n], axis=1)
+    if geometry.is_cone:
+        pitch = pitch * np.linalg.norm(vec[:, :n], axis=1) / np.linalg.norm(vec[:, :n] - vec[:, n:2 * n], axis=1)
+    widths = np.where(seen, (last - first + 1) * pitch[:, None], 0.0)
+    width, top = float(widths.max()), float(b.max())
+    return top / width, width, top

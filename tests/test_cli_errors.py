@@ -45,6 +45,7 @@ def _one_line_error(capsys, command, argv):
                                                                 "--projections-per-subscan"]),
     (["simulate", "--det-count", "1", "--out", "{tmp}/sim"], ["--det-count", "at least 16"]),
     (["simulate", "--seed", "-1", "--out", "{tmp}/sim"], ["--seed", "-1"]),
+    (["prepare", "{sim}/scan.h5", "--out", "{tmp}/p.h5", "--energy", "-1"], ["argument --energy: must be a positive number"]),
     (["serve", "--port", "99999"], ["--port", "0 to 65535", "99999"]),
     (["serve", "--port", "abc"], ["--port", "0 to 65535"]),
     (["serve", "--workers", "0"], ["--workers", ">= 1"]),

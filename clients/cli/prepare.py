@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 
 from bubsub.clients.cli.args import positive_float, positive_int
 
@@ -13,8 +14,8 @@ def _quantity(kind, name):
 
         try:
             return parse_quantity(text, kind, name=name)
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from None
+        except ValueError as exc:  # argparse names the option already
+            raise argparse.ArgumentTypeError(re.sub(rf"^{re.escape(name)}:? ", "", str(exc))) from None
     return parse
 
 

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bubsub.core.io.tables import FOV_COLUMN_INFO
+
 __all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
            "FOV_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns", "FOV_COLUMN_INFO",
            "WHOLE_SIZE_COLUMNS", "fov_mask"]
@@ -91,8 +93,7 @@ def field_of_view(geometry):
 
 
 #: Unit and meaning of the ``truncated`` column of ``bubbles.csv``.
-TRUNCATED_INFO = ("1", "1 if the bubble reaches the edge of the field of view (the disc every projection sees, or "
-                       "the detector's top or bottom): its size and shape are uncertain; 0 otherwise")
+TRUNCATED_INFO = FOV_COLUMN_INFO["truncated"]
 
 
 def fov_report(geometry):
@@ -255,16 +256,8 @@ def fov_mask(shape, extent, fov):
     return inside_fov(points, fov).reshape(shape)
 
 
-#: ``bubbles.csv`` columns added by :func:`fov_columns`: name -> (unit, meaning).
-FOV_COLUMN_INFO = {
-    "truncated": TRUNCATED_INFO,
-    "area_in_fov_mm2": ("mm^2", "area of the part of the refined outline inside the field of view (the measured "
-                                "part; equals area_mm2 when truncated is 0)"),
-    "volume_in_fov_mm3": ("mm^3", "volume of the part of the refined surface inside the field of view (the "
-                                  "measured part; equals volume_mm3 when truncated is 0)"),
-    "unobserved_control_vertices": ("1", "control vertices whose refined neighbourhood no ray of the data sees "
-                                         "(held at their initial position by the fit, not measured)"),
-}
+# FOV_COLUMN_INFO (``bubbles.csv`` columns added by :func:`fov_columns`: name -> (unit, meaning)) is
+# bubsub.core.io.tables', which the analysis' tables share.
 
 #: Size columns left empty for a truncated bubble: its whole size is not a measurement.
 WHOLE_SIZE_COLUMNS = ("area_mm2", "perimeter_mm", "volume_mm3", "surface_area_mm2", "equivalent_diameter_mm")

@@ -22,23 +22,21 @@ from bubsub.core.analysis.contacts import CONTACT_COLUMN_INFO, Surface, find_con
 from bubsub.core.analysis.dynamics import Step
 from bubsub.core.analysis.regions import GRID_COLUMN_INFO, SHELL_COLUMN_INFO, Domain, region_tables
 from bubsub.core.analysis.shape import SHAPE_COLUMN_INFO, bubble_shapes
-from bubsub.core.io.tables import BUBBLE_COLUMN_INFO as BUBBLE_COLUMN_INFO_RECONSTRUCT
+from bubsub.core.io import tables
 
 __all__ = ["Snapshot", "analyse_meshes", "BUBBLE_COLUMN_INFO", "SNAPSHOT_TABLES", "default_regions"]
 
 #: Shape columns a truncated bubble leaves empty (its whole shape is not a measurement).
 WHOLE_SHAPE = tuple(c for c in SHAPE_COLUMN_INFO if not c.startswith("centroid_"))
 
-#: ``column: (unit, meaning)`` of the analysis' ``bubbles.csv``.
+#: ``column: (unit, meaning)`` of the analysis' ``bubbles.csv`` (the columns ``bubsub reconstruct``'s has too
+#: in its words, :data:`bubsub.core.io.tables.BUBBLE_COLUMN_INFO` and ``FOV_COLUMN_INFO``).
 BUBBLE_COLUMN_INFO = {
-    "id": BUBBLE_COLUMN_INFO_RECONSTRUCT["id"],
+    "id": tables.BUBBLE_COLUMN_INFO["id"],
     **SHAPE_COLUMN_INFO,
     "coordination": ("1", "number of contacts (bubbles whose surface comes closer than the contact gap)"),
-    "truncated": ("1", "1 if the bubble reaches the edge of the field of view: its whole-size and shape columns are "
-                       "empty and it is left out of the statistics; 0 otherwise; empty where the field of view is "
-                       "unknown"),
-    "volume_in_fov_mm3": ("mm^3", "volume of the part inside the field of view (equals volume_mm3 when truncated "
-                                  "is 0; empty where the field of view is unknown)"),
+    "truncated": tables.FOV_COLUMN_INFO["truncated"],
+    "volume_in_fov_mm3": tables.FOV_COLUMN_INFO["volume_in_fov_mm3"],
 }
 
 

@@ -58,6 +58,7 @@ __all__ = [
     "BUBBLE_COLUMNS_2D",
     "BUBBLE_COLUMNS_3D",
     "BUBBLE_COLUMN_INFO",
+    "FOV_COLUMN_INFO",
 ]
 
 #: Significant digits of every float in a bubsub table (0.1 um on a 100 mm coordinate; relative 5e-6).
@@ -104,6 +105,23 @@ BUBBLE_COLUMN_INFO = {
                 "volume (bubsub.core.analysis.shape.bubble_sizes)"),
     unit_column("equivalent_diameter", "mm"): (
         "mm", "diameter of the disc (2D) or ball (3D) of the same area (volume): 2 sqrt(A / pi), (6 V / pi)^(1/3)"),
+}
+
+#: ``column name: (unit, meaning)`` of the field-of-view columns of ``bubbles.csv`` (and ``tracks.csv``), which
+#: ``bubsub.clients.pipeline.fov.fov_columns`` adds and ``bubsub analyse`` carries over.
+FOV_COLUMN_INFO = {
+    "truncated": ("1", "1 if the bubble reaches the edge of the field of view (the disc every projection sees, or "
+                       "the detector's top or bottom): its whole-size and shape columns are empty (not measured) and "
+                       "bubsub analyse leaves it out of its statistics; 0 otherwise; empty where the field of view is "
+                       "unknown"),
+    unit_column("area_in_fov", "mm^2"): (
+        "mm^2", "area of the part of the refined outline inside the field of view (the measured part; equals "
+                "area_mm2 when truncated is 0)"),
+    unit_column("volume_in_fov", "mm^3"): (
+        "mm^3", "volume of the part of the refined surface inside the field of view (the measured part; equals "
+                "volume_mm3 when truncated is 0; empty where the field of view is unknown)"),
+    "unobserved_control_vertices": ("1", "control vertices whose refined neighbourhood no ray of the data sees "
+                                         "(held at their initial position by the fit, not measured)"),
 }
 
 #: Columns of :func:`bubble_table` for 2D bubbles.

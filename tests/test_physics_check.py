@@ -65,6 +65,8 @@ def test_a_sign_flipped_scan_is_refused_in_one_line_and_leaves_no_folder(sim, tm
     # gas minus liquid larger than the liquid's own attenuation (0.1 1/mm): a contrast in 1/m, or 10x
     ("contrast in 1/m", None, -100.0, True, "larger in magnitude than the liquid's attenuation"),
     ("contrast 10x", None, -1.0, True, "larger in magnitude than the liquid's attenuation"),
+    # transmissions written as line integrals: 1 in air, where nothing attenuates
+    ("transmission", lambda d, bg: np.exp(-d), None, True, "on 100 % of the rays that miss the liquid"),
     ("one value", lambda d, bg: np.full_like(d, 0.5), None, True, "are all 0.5"),
     ("zeros", lambda d, bg: np.zeros_like(d), None, True, "are all 0"),
     # the background's sign flipped, data with it: data - background is still the bubbles' signal

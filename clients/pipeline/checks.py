@@ -17,7 +17,8 @@ from bubsub.core.validate import check_int
 
 __all__ = ["check_settings", "check_bubble_signal", "check_lateral_truncation", "side_signal", "CONTROL_POINTS_3D",
            "MAX_LEVELS", "TRUNCATED_VIEWS", "REFUSED_VIEWS", "side_bubble_signal", "check_physical_signal",
-           "longest_path", "IMPOSSIBLE_FRACTION", "liquid_attenuation", "CONTRAST_MARGIN"]
+           "longest_path", "IMPOSSIBLE_FRACTION", "liquid_attenuation", "CONTRAST_MARGIN",
+           "away_from", "AIR_MARGIN", "AIR_FRACTION"]
 
 #: Control vertices of the icosphere control meshes (3D bubbles).
 CONTROL_POINTS_3D = (12, 42, 162)
@@ -333,7 +334,12 @@ def check_physical_signal(scan):
        gas's, liquid plus ``c``, is ``>= 0``), read from the background as
        its largest value over the liquid's widest shadow
        (:func:`liquid_attenuation`), within :data:`CONTRAST_MARGIN`: a
-       contrast in 1/m instead of 1/mm is refused.
+       contrast in 1/m instead of 1/mm is refused;
+    5. with a background, the rays that miss the liquid (:data:`AIR_MARGIN`
+       columns or more from its shadow) cross nothing that attenuates and no
+       bubble: their data are 0 (refused when more than
+       :data:`AIR_FRACTION` of them are not: transmissions written as line
+       integrals, say).
 
     :func:`check_bubble_signal` checks the signal's sign (most of its mass
     on the contrast's side) before this; this check bounds each value. The
@@ -388,6 +394,17 @@ def check_physical_signal(scan):
                 f"the whole liquid's projection there, more than a bubble filling all the liquid on a ray could "
                 f"remove; /exchange/data must hold -log(transmission) of the sample with its liquid and "
                 f"/exchange/background the liquid's projection alone ({prepare})")
+        air = away_from(bg > tol, AIR_MARGIN)
+        n_air = int(np.count_nonzero(air))
+        lit = air & (np.abs(data) > tol)
+        n_lit = int(np.count_nonzero(lit))
+        if n_lit > AIR_FRACTION * n_air:
+            raise ValueError(
+                f"{name}: on {100 * n_lit / n_air:.3g} % of the rays that miss the liquid (/exchange/background "
+                f"0, {AIR_MARGIN} columns or more from it) /exchange/data is not 0 (up to "
+                f"{float(np.abs(data[lit]).max()):.4g}, beyond the tolerance {tol:.2g}): nothing attenuates there "
+                f"and bubbles lie in the liquid; /exchange/data must hold -log(transmission), 0 in air (check the "
+                f"flat-field correction), and /exchange/background the liquid's projection ({prepare})")
         mu, width, top = liquid_attenuation(bg, scan.geometry, tol)
         if mu > 0 and abs(c) > CONTRAST_MARGIN * mu:
             raise ValueError(
@@ -453,3 +470,28 @@ def liquid_attenuation(background, geometry, tol=0.0):
     widths = np.where(seen, (last - first + 1) * pitch[:, None], 0.0)
     width, top = float(widths.max()), float(b.max())
     return top / width, width, top
+
+#: Columns a ray must lie from the liquid's shadow for :func:`check_physical_signal` to count it as missing the
+#: liquid (its edge blurs by a pixel or two, more with phase retrieval), and the most fraction of those rays whose
+#: data may stand beyond the tolerance (a sample in transmission instead of line integrals: all of them).
+AIR_MARGIN = 4
+AIR_FRACTION = 0.05
+
+
+def away_from(mask, margin):
+    """Where ``mask`` is False and stays so for ``margin`` columns either way (along the last axis).
+
+    Parameters
+    ----------
+    mask : bool ndarray, ``(..., cols)``
+    margin : int
+
+    Returns
+    -------
+    bool ndarray, ``mask.shape``
+    """
+    from scipy import ndimage
+
+    size = [1] * mask.ndim
+    size[-1] = 2 * margin + 1
+    return ~ndimage.maximum_filter(mask, size=size, mode="nearest")

@@ -115,3 +115,11 @@ def test_the_sample_is_fitted_to_the_scans_background(tmp_path):
     # a reconstruction of that scan without a phantom.json takes it, and says so
     domain, source = analysed_domain(None, {"scan": str(cyl_scan)}, tmp_path, (3.0, 1.0))
     assert domain.kind == "cylinder" and "background" in source and domain.hi[2] == pytest.approx(0.8, abs=0.01)
+
+
+def test_an_unreadable_scan_leaves_the_field_of_view(tmp_path):
+    from bubsub.clients.analysis.domain import analysed_domain
+
+    (tmp_path / "scan.h5").write_text("not HDF5")
+    domain, source = analysed_domain("sample", {"scan": str(tmp_path / "scan.h5")}, tmp_path, (2.0, 1.0))
+    assert domain == Domain.field_of_view(2.0, 1.0) and "the sample is not known: pass --domain" in source

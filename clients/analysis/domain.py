@@ -282,7 +282,10 @@ def analysed_domain(spec, report, folder, field_of_view):
         source = None if source is None else f"the simulated sample ({source})"
         scan = _scan_path(report, folder)
         if domain is None and scan is not None:
-            domain, residual = background_sample(scan)
+            try:
+                domain, residual = background_sample(scan)
+            except (OSError, ValueError, KeyError):  # a scan file that cannot say: the field of view, as without one
+                domain, residual = None, None
             if domain is not None and residual > TRUSTED_FIT:
                 domain = None
             source = None if domain is None else (f"the sample fitted to the scan's background ({scan}, relative "

@@ -376,6 +376,9 @@ def _warm(scan, previous, settings):
     else:
         lineage = {"new": {}, "coalescences": []}
     kept_ids, kept = _survivors(ids, fitted, scan, settings, ended)
+    # a bubble found here that is too small to keep has no track: only the successor's tracks end
+    known = set(previous.ids)
+    ended = {i: why for i, why in ended.items() if i in known}
     alive = set(kept_ids)
     report["new"] = {str(i): v for i, v in sorted(lineage["new"].items()) if i in alive}
     report["coalescences"] = [c for c in lineage["coalescences"] if set(c["children"]) <= alive]

@@ -93,3 +93,10 @@ print("ok")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr[-2000:]
     assert all((tmp_path / n).stat().st_size > 1000 for n in ("o.png", "s.png", "m.png", "g.png", "e.png"))
+
+
+def test_size_histogram_of_equal_sizes(tmp_path):
+    # sizes differing in the last bit (a monodisperse foam) gave numpy no finite bins and stopped write_outputs
+    d = [0.5, 0.5 + 1e-16, 0.5]
+    write_size_histogram(tmp_path / "s.png", d, 3)
+    assert (tmp_path / "s.png").stat().st_size > 1000

@@ -238,7 +238,12 @@ def write_size_histogram(path, diameters, ndim, title="Bubble size distribution"
     fig = _figure(figsize=(7, 4.5), dpi=100)
     ax = fig.subplots()
     if d.size:
-        ax.hist(d, bins=max(5, min(40, int(np.sqrt(d.size)) + 3)), color="tab:blue", edgecolor="white")
+        # sizes equal to the last bits (a monodisperse foam) span no finite bins: give them a range of their own
+        lim = None
+        if np.ptp(d) <= 1e-9 * max(1.0, float(np.abs(d).max())):
+            half = 0.05 * max(abs(float(d.mean())), 1e-3)
+            lim = (d.mean() - half, d.mean() + half)
+        ax.hist(d, bins=max(5, min(40, int(np.sqrt(d.size)) + 3)), range=lim, color="tab:blue", edgecolor="white")
         ax.axvline(d.mean(), color="tab:orange", lw=1.5, label=f"mean {d.mean():.3g} mm")
         ax.legend(fontsize=9)
     shape = "disc of equal area" if ndim == 2 else "ball of equal volume"

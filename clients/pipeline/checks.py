@@ -16,7 +16,7 @@ from bubsub.core.contrast import signal_masses
 from bubsub.core.validate import check_int
 
 __all__ = ["check_settings", "check_bubble_signal", "check_lateral_truncation", "side_signal", "CONTROL_POINTS_3D",
-           "MAX_LEVELS", "TRUNCATED_VIEWS", "REFUSED_VIEWS", "side_bubble_signal", "check_physical_signal",
+           "MAX_LEVELS", "TRUNCATED_VIEWS", "LOCAL_VIEWS", "side_bubble_signal", "check_physical_signal",
            "longest_path", "IMPOSSIBLE_FRACTION", "liquid_attenuation", "CONTRAST_MARGIN",
            "away_from", "AIR_MARGIN", "AIR_FRACTION"]
 
@@ -126,8 +126,9 @@ def check_bubble_signal(scan, *, background_subtracted=False):
 #: Least fraction of the projections in which the bubbles' signal reaches a side of the detector for
 #: :func:`check_lateral_truncation` to warn (a few bubbles partly outside the field of view, which the model covers).
 TRUNCATED_VIEWS = 0.1
-#: Least fraction for it to refuse the scan (a foam wider than the detector reaches both sides in every projection).
-REFUSED_VIEWS = 0.5
+#: Least fraction for it to call the scan local tomography (a foam wider than the detector reaches both sides in
+#: every projection).
+LOCAL_VIEWS = 0.5
 #: Fraction of the bubbles' signal's 99th percentile above which a side counts as reached: well above the residue
 #: of flat-field and background errors, well below a foam's signal along the rays that graze the field of view.
 SIDE_FRACTION = 0.15
@@ -170,7 +171,7 @@ def side_signal(values):
 
 
 def check_lateral_truncation(scan):
-    """Refuse a scan whose bubbles reach the detector's sides in most projections; warn where a few do.
+    """Say when the bubbles reach the detector's sides: a foam wider than the detector, or a few bubbles.
 
     The pipeline models what the data see: bubbles within 1.25 times the
     radius of the cylinder every projection sees
@@ -186,11 +187,17 @@ def check_lateral_truncation(scan):
     over the projections: a flat-field normalisation that follows the
     beam's decay imperfectly offsets whole projections), and counts when
     it stands above :data:`SIDE_FRACTION` of the signal's 99th percentile
-    (and the noise). In at least :data:`REFUSED_VIEWS` of the projections:
-    the sample's gas extends beyond the modelled region in most views and
-    the scan is refused; in at least :data:`TRUNCATED_VIEWS`: a warning
-    (logger ``bubsub``, one line) and the reconstruction goes on (bubbles
-    partly outside the field of view are in the model).
+    (and the noise). In at least :data:`LOCAL_VIEWS` of the projections the
+    foam is wider than the detector (local tomography); in at least
+    :data:`TRUNCATED_VIEWS` some bubbles reach beyond the field of view.
+    Either way one line is logged (logger ``bubsub``, once per scan) and the
+    reconstruction goes on: the field-of-view model fits the bubbles out to
+    1.25 times the field of view's radius, which is what keeps the gas
+    beyond it from becoming spurious or swollen bubbles inside (measured on
+    foams 1.5 times the field of view's radius: docs/prepare.md), bubbles
+    cut by the cylinder's side are flagged ``truncated`` and measured by
+    their part inside it, and ``bubsub analyse`` keeps its statistics to the
+    interior.
 
     Parameters
     ----------
@@ -199,13 +206,7 @@ def check_lateral_truncation(scan):
     Returns
     -------
     str or None
-        The warning given, if any.
-
-    Raises
-    ------
-    ValueError
-        Naming the problem (how many projections see bubbles at the
-        detector's left and right sides) and what to do.
+        The line logged, if any.
     """
     name = scan.path.name if scan.path is not None else "the scan"
     left, right, level = side_bubble_signal(scan.bubble_data, scan.bubble_contrast)
@@ -213,16 +214,15 @@ def check_lateral_truncation(scan):
     hit_l, hit_r = int(np.count_nonzero(left > level)), int(np.count_nonzero(right > level))
     where = (f"the bubbles' signal (data - background) reaches the detector's left side in {hit_l} and its right "
              f"side in {hit_r} of {n} projections")
-    if max(hit_l, hit_r) >= REFUSED_VIEWS * n:
-        raise ValueError(
-            f"{name} is laterally truncated (local tomography): {where}, so the foam is wider than the field of "
-            f"view and its gas outside it would be fitted as spurious bubbles at the edge; bubsub needs a "
-            f"detector wider than the foam (a wider field of view, or the sample centred on the rotation axis "
-            f"if it is narrower than the detector but off-centre)")
     if max(hit_l, hit_r) < TRUNCATED_VIEWS * n:
         return None
-    text = (f"warning: {name}: {where}: bubbles partly outside the field of view are modelled, but check the "
-            f"bubbles flagged truncated at the edge")
+    if max(hit_l, hit_r) >= LOCAL_VIEWS * n:
+        text = (f"note: {name} is local tomography (the foam is wider than the detector): {where}; the bubbles are "
+                f"reconstructed within the field of view, those cut by its side flagged truncated, and bubsub "
+                f"analyse keeps its statistics to the interior")
+    else:
+        text = (f"warning: {name}: {where}: bubbles partly outside the field of view are modelled, but check the "
+                f"bubbles flagged truncated at the edge")
     if _WARNED.get(id(scan)) is not scan:  # once per scan (the command line checks before reconstruct does)
         _WARNED[id(scan)] = scan
         logging.getLogger("bubsub").warning(text)
@@ -422,6 +422,7 @@ def check_physical_signal(scan):
             f"{longest:.4g} mm any ray crosses of the field of view: bubble_contrast (gas minus liquid "
             f"attenuation, 1/mm) is too small in magnitude for these data, or the data are scaled; correct it")
 
+
 #: How many times the liquid's attenuation (:func:`liquid_attenuation`) the bubble contrast's magnitude may be
 #: before :func:`check_physical_signal` refuses it: at most 1 in physics (the gas attenuates at least nothing);
 #: the margin covers a liquid whose longest path is shorter than its width (not convex) and a container's
@@ -470,6 +471,7 @@ def liquid_attenuation(background, geometry, tol=0.0):
     widths = np.where(seen, (last - first + 1) * pitch[:, None], 0.0)
     width, top = float(widths.max()), float(b.max())
     return top / width, width, top
+
 
 #: Columns a ray must lie from the liquid's shadow for :func:`check_physical_signal` to count it as missing the
 #: liquid (its edge blurs by a pixel or two, more with phase retrieval), and the most fraction of those rays whose

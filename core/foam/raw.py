@@ -24,8 +24,9 @@ Written as a Data Exchange raw file (``/exchange/data|data_white|data_dark``
 uint16, ``/exchange/theta`` degrees, instrument metadata with units).
 
 A container wider than the detector (local, or interior, tomography) is
-allowed with ``wider_than_detector=True``: the wave is then propagated over
-the whole container's width and the detector crops it, as at a beamline.
+allowed with ``wider_than_detector=True``: the wave (liquid and bubbles) is
+then computed and propagated over the whole container's width and the
+detector crops it, as at a beamline.
 :func:`disc_foam` fills a liquid cylinder with bubbles out to its wall and
 :func:`write_raw_simulation` writes a simulation folder (``raw.h5``,
 ``truth.json``, ``phantom.json``) that ``bubsub evaluate`` scores against.
@@ -142,13 +143,20 @@ def simulate_raw(phantom, settings):
     theta = np.linspace(0.0, 180.0, s.n_angles, endpoint=False)
     ss = s.supersample
     fine_cols, fine_px = s.cols * ss, s.pixel_size / ss
+    # a container wider than the detector: the wave is computed (bubbles and all) over its whole width, so that
+    # the propagation to the detector's outermost columns is that of the whole sample, and the detector crops it
+    extra = 0
+    if s.wider_than_detector:
+        half = 0.5 * s.cols * s.pixel_size + abs(s.axis_offset) * s.pixel_size
+        extra = int(np.ceil(max(s.container_radius + s.wall - half, 0.0) / fine_px)) + 4 * ss
+    wide = fine_cols + 2 * extra
     # signed distance of each fine sample from the axis, mm
-    u = ((np.arange(fine_cols) + 0.5) / ss - 0.5 - s.axis_column) * s.pixel_size
-    geom = ScanGeometry.parallel(np.radians(theta), pixel_size=fine_px, cols=fine_cols)
+    u = ((np.arange(-extra, fine_cols + extra) + 0.5) / ss - 0.5 - s.axis_column) * s.pixel_size
+    geom = ScanGeometry.parallel(np.radians(theta), pixel_size=fine_px, cols=wide)
     vec = np.array(geom.vectors)
     shift = fine_cols / 2 - 0.5 - (s.axis_column + 0.5) * ss + 0.5
     vec[:, 2:4] += shift * vec[:, 4:6]
-    geom = ScanGeometry.from_astra("parallel_vec", vec, det_count=fine_cols)
+    geom = ScanGeometry.from_astra("parallel_vec", vec, det_count=wide)
     gas = MeshProjector(geom).forward(list(phantom.bubbles)) / phantom.contrast  # chord through gas, mm
     inner, outer = _chord(s.container_radius, u), _chord(s.container_radius + s.wall, u)
     liquid = np.maximum(inner[None] - gas, 0.0)
@@ -156,43 +164,13 @@ def simulate_raw(phantom, settings):
     k = 2 * np.pi / wavelength_mm(s.energy)
     field = np.exp(-0.5 * (s.liquid_mu * liquid + s.wall_mu * wall)
                    - 1j * k * (s.liquid_delta * liquid + s.wall_delta * wall))
-    pad, start = fine_cols // 2, fine_cols // 2
-    if s.wider_than_detector:  # the container's parts beyond the detector propagate too
-        field, extra = _beyond_detector(field, u, s, k, ss)
-        start += extra
+    pad = fine_cols // 2
     intensity = np.empty((s.n_angles, s.cols))
     for i, f in enumerate(field):
         fz = fresnel_propagate(np.pad(f, pad, mode="edge"), pixel_size=fine_px, energy=s.energy,
-                               distance=s.distance)[start:start + fine_cols]
+                               distance=s.distance)[pad + extra:pad + extra + fine_cols]
         intensity[i] = (np.abs(fz) ** 2).reshape(s.cols, ss).mean(axis=1)
     return _detector(intensity, theta, s, rng)
-
-
-def _beyond_detector(field, u, s, k, ss):
-    """The exit wave widened to the container's whole width.
-
-    Beyond the detector the wave is that of the container and its liquid
-    alone: the bubbles there change the detector's values only through
-    Fresnel fringes a few micrometres wide (``sqrt(wavelength distance)``)
-    at its outermost columns.
-
-    Returns the widened wave ``(n_angles, wide)`` and the number of fine
-    samples it has on each side of the detector, so that the detector's
-    part starts at that index.
-    """
-    fine_px = s.pixel_size / ss
-    reach = s.container_radius + s.wall
-    extra = int(np.ceil(max(reach - u[0], reach + u[-1], 0.0) / fine_px)) + 4 * ss
-    step = u[1] - u[0]
-    left = u[0] - step * np.arange(extra, 0, -1)
-    right = u[-1] + step * np.arange(1, extra + 1)
-    outside = np.concatenate([left, right])
-    inner, outer = _chord(s.container_radius, outside), _chord(s.container_radius + s.wall, outside)
-    wave = np.exp(-0.5 * (s.liquid_mu * inner + s.wall_mu * (outer - inner))
-                  - 1j * k * (s.liquid_delta * inner + s.wall_delta * (outer - inner)))
-    wide = np.concatenate([np.broadcast_to(wave[:extra], (len(field), extra)), field,
-                           np.broadcast_to(wave[extra:], (len(field), extra))], axis=1)
-    return wide, extra
 
 
 def _flat_pattern(s, rng):

@@ -15,6 +15,10 @@ Two estimates, both per detector row (so they stream in row slabs):
   filtered back-projection of the row, and per ring about the axis the
   mean of its dense (liquid, wall) pixels (:func:`dense_and_gas_masks`), which makes a
   radial profile of the container and liquid, projected again.
+* :func:`chord_background` (``auto`` where a row has no air at its sides,
+  :func:`sees_air`: a liquid cylinder wider than the detector, local
+  tomography): the liquid's chord profile ``mu * 2 sqrt(R^2 - s^2)``, its
+  radius fitted to the mean projection over the angles.
 * :func:`reproject_background` (the paper's route, for any background): a
   filtered back-projection of the row, the foam region (a disc around the
   axis) set to the liquid attenuation, projected again.
@@ -25,7 +29,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["fbp_row", "detector_offsets", "envelope_background", "radial_background", "reproject_background", "liquid_and_gas", "noise_level"]
+__all__ = ["fbp_row", "detector_offsets", "envelope_background", "radial_background", "reproject_background",
+           "liquid_and_gas", "noise_level", "sees_air", "chord_background", "NO_AIR_LEVEL"]
 
 
 def noise_level(block):
@@ -206,3 +211,79 @@ def radial_background(sinogram, geometry, *, min_fraction=0.2, smooth=1.5, grid=
     s = detector_offsets(geometry)
     chords = 2 * np.sqrt(np.maximum(edges[:, None] ** 2 - s[None, :] ** 2, 0))  # (nring + 1, cols)
     return (profile[:, None] * np.diff(chords, axis=0)).sum(axis=0).astype(np.float32)
+
+
+#: A row has no air beside its sample (a container wider than the detector) when the mean over the angles of
+#: its outermost columns stands above this fraction of the mean projection's peak on both sides.
+NO_AIR_LEVEL = 0.1
+
+
+def sees_air(sinogram, level=NO_AIR_LEVEL, side=4):
+    """Whether a row's mean projection falls to air on at least one side of the detector.
+
+    Parameters
+    ----------
+    sinogram : (n_angles, cols) float
+        Line integrals of one detector row.
+
+    Returns
+    -------
+    bool
+        False when both sides' ``side`` outermost columns average above
+        ``level`` times the mean projection's peak (the sample is wider
+        than the detector).
+    """
+    m = np.asarray(sinogram, dtype=float).mean(axis=0)
+    peak = float(m.max())
+    return not (peak > 0 and min(m[:side].mean(), m[-side:].mean()) > level * peak)
+
+
+def chord_background(sinogram, geometry, *, grid=256, max_angles=128):
+    """Background of a row whose rotation-invariant liquid cylinder is wider than the detector.
+
+    The liquid's projection is ``mu * 2 sqrt(R^2 - s^2)`` at the distance
+    ``s`` from the axis, the same at every angle. Over the angles the
+    bubbles of a foam that fills the cylinder lower the mean projection in
+    proportion to the chord too, so the mean projection over the angles is
+    ``A * 2 sqrt(R^2 - s^2)`` with ``A = mu + contrast * gas fraction``: ``R``
+    and ``A`` are fitted to it (least squares, ``R`` searched from the
+    detector's half-width to ten times it). Removing that profile removes
+    the truncated sample's large smooth part, so a filtered
+    back-projection of the rest shows the liquid and the gas without the
+    cupping of local tomography; the mean of its dense (liquid) pixels
+    (:func:`dense_and_gas_masks`) is ``mu - A``.
+
+    Parameters
+    ----------
+    sinogram : (n_angles, cols) float
+    geometry : ScanGeometry
+        2D parallel geometry of the row, axis at the origin.
+    grid, max_angles
+        As for :func:`radial_background`.
+
+    Returns
+    -------
+    background : (cols,) float32
+        The liquid's projection at each column (every angle).
+    fit : dict
+        ``radius_mm``, ``mean_attenuation`` (``A``) and ``liquid_attenuation`` (``mu``), 1/mm.
+    """
+    sino = np.asarray(sinogram, dtype=np.float64)
+    s = detector_offsets(geometry)
+    m = sino.mean(axis=0)
+    half = float(np.abs(s).max())
+    best = None
+    for radius in half * np.geomspace(1.0 + 1e-3, 10.0, 400):
+        chord = 2 * np.sqrt(radius * radius - s * s)
+        a = float(m @ chord / (chord @ chord))
+        err = float(np.sum((m - a * chord) ** 2))
+        if best is None or err < best[0]:
+            best = (err, radius, a, chord)
+    _, radius, a, chord = best
+    step = -(-geometry.n_angles // max_angles)
+    rest = (sino - a * chord[None])[::step].astype(np.float32)
+    image, extent, r, _ = fbp_row(rest, geometry[::step], min(grid, geometry.det_count))
+    dense, _ = dense_and_gas_masks(image, r <= 0.9 * extent[1])
+    mu = a + (float(np.mean(image[dense])) if dense.any() else 0.0)
+    return (mu * chord).astype(np.float32), {"radius_mm": float(radius), "mean_attenuation": a,
+                                             "liquid_attenuation": float(mu)}

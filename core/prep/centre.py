@@ -2,6 +2,9 @@
 
 * :func:`center_vo`: Vo et al. (2014)'s Fourier method on a 180-degree
   sinogram, as implemented by algotom (``find_center_vo``).
+* :func:`center_symmetry`: the mean projection over the angles of a
+  rotation-invariant sample (a liquid cylinder filled with foam) is
+  symmetric about the axis; needs no air at the sides (local tomography).
 * :func:`center_pair`: a projection and its mirror image taken 180 degrees
   later are reflections of each other about the axis; their registration
   shift (scikit-image's sub-pixel phase correlation) gives the axis column.
@@ -14,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["center_vo", "center_pair", "closest_pair"]
+__all__ = ["center_vo", "center_pair", "closest_pair", "center_symmetry"]
 
 
 def center_vo(sinogram):
@@ -66,3 +69,116 @@ def center_pair(p0, p180):
     # a feature at column c + s in p0 sits at c - s in p180, i.e. at cols - 1 - c + s once p180 is mirrored
     shift, _, _ = phase_cross_correlation(a, b[:, ::-1], upsample_factor=20, normalization=None)
     return 0.5 * (a.shape[1] - 1 + float(shift[-1]))
+
+
+def center_symmetry(sinogram, *, search=(0.25, 0.75), step=0.05):
+    """Axis column about which the mean projection over the angles is most symmetric.
+
+    A container and its liquid centred on the axis project the same at
+    every angle, symmetric about the axis, and a foam filling it adds a
+    mean over the angles that is symmetric too up to the few bubbles'
+    differences; the sample's edges need not be on the detector (a sample
+    wider than it, local tomography, where the Fourier method and a mirrored
+    pair need air at the sides). For each candidate ``c`` the mean
+    projection ``m`` is compared with its mirror image about ``c``, ``m(c +
+    x)`` against ``m(c - x)`` (linear interpolation) over the widest ``x``
+    both sides hold, by their mean squared difference relative to ``m``'s
+    variance there; the least, refined by a parabola through it and its
+    neighbours, is the axis.
+
+    Parameters
+    ----------
+    sinogram : (n_angles, cols) float
+        Line integrals of one detector row (180 or 360 degrees).
+    search : (float, float)
+        Fractions of the detector width searched.
+    step : float
+        Candidate spacing, pixels.
+
+    Returns
+    -------
+    float
+        Axis column (pixel index units).
+    """
+    sino = np.asarray(sinogram, dtype=float)
+    if sino.ndim != 2 or sino.shape[0] < 2:
+        raise ValueError(f"the centre search needs a (n_angles, cols) sinogram, got shape {sino.shape}")
+    m = sino.mean(axis=0)
+    cols = m.size
+    k = np.arange(cols, dtype=float)
+    cand = np.arange(search[0] * (cols - 1), search[1] * (cols - 1) + step / 2, step)
+    cost = np.empty(cand.size)
+    for i, c in enumerate(cand):
+        half = min(c, cols - 1 - c)
+        x = np.arange(0.0, half + 1e-9, 0.5)
+        right, left = np.interp(c + x, k, m), np.interp(c - x, k, m)
+        both = np.concatenate([right, left])
+        cost[i] = np.mean((right - left) ** 2) / max(float(np.var(both)), 1e-30)
+    return _least(cand, cost)
+
+
+def center_seam(sinogram, theta_deg, *, search=(0.25, 0.75), step=0.25):
+    """Axis column that joins a 180-degree scan to its mirror image without a seam.
+
+    In a parallel beam the projection at ``theta + 180`` is the one at
+    ``theta`` mirrored about the axis column ``c``: ``p(theta + 180, s) =
+    p(theta, 2c - s)``. Mirrored about the right ``c``, the sinogram of a
+    scan over ``[0, 180)`` continues its own last rows smoothly: the rows
+    around each seam (at 180 and at 360 degrees) have second differences
+    along the angle as small as anywhere else, while a wrong ``c`` shifts
+    the mirrored rows by ``2 (c - c_true)`` pixels. The sum of those second
+    differences' squares, over the columns both rows hold (the interior: no
+    air at the sides is needed), is least at the axis; it is refined by a
+    parabola through the least candidate and its neighbours.
+
+    Parameters
+    ----------
+    sinogram : (n_angles, cols) float
+        Line integrals of one detector row, angles evenly spaced over 180
+        degrees less one step (``n_angles >= 4``).
+    theta_deg : (n_angles,) float
+        The angles, degrees.
+    search : (float, float)
+        Fractions of the detector width searched.
+    step : float
+        Candidate spacing, pixels.
+
+    Returns
+    -------
+    float
+        Axis column (pixel index units).
+
+    Raises
+    ------
+    ValueError
+        If the angles are not evenly spaced over 180 degrees less one step.
+    """
+    sino = np.asarray(sinogram, dtype=float)
+    th = np.asarray(theta_deg, dtype=float)
+    n, cols = sino.shape
+    d = np.diff(th)
+    if n < 4 or th.size != n or np.ptp(d) > 0.01 * abs(d[0]) or abs(abs(n * d[0]) - 180.0) > 0.5 * abs(d[0]):
+        raise ValueError("the seam centre search needs at least 4 angles evenly spaced over 180 degrees less one step")
+    k = np.arange(cols, dtype=float)
+    # rows around the seams: S[n-2], S[n-1] | M[0], M[1] and M[n-2], M[n-1] | S[0], S[1]
+    cand = np.arange(search[0] * (cols - 1), search[1] * (cols - 1) + step / 2, step)
+    cost = np.empty(cand.size)
+    for i, c in enumerate(cand):
+        src = 2 * c - k
+        ok = (src >= 0) & (src <= cols - 1)
+        mirror = lambda row: np.interp(src[ok], k, row)
+        a = [sino[-2, ok], sino[-1, ok], mirror(sino[0]), mirror(sino[1])]
+        b = [mirror(sino[-2]), mirror(sino[-1]), sino[0, ok], sino[1, ok]]
+        cost[i] = sum(np.mean((r[0] - 2 * r[1] + r[2]) ** 2) + np.mean((r[1] - 2 * r[2] + r[3]) ** 2) for r in (a, b))
+    return _least(cand, cost)
+
+
+def _least(candidates, cost):
+    """The evenly spaced candidate of least cost, refined by a parabola through it and its neighbours."""
+    j = int(np.argmin(cost))
+    c = float(candidates[j])
+    if 0 < j < len(candidates) - 1:
+        den = cost[j - 1] - 2 * cost[j] + cost[j + 1]
+        if den > 0:
+            c += 0.5 * (cost[j - 1] - cost[j + 1]) / den * (candidates[1] - candidates[0])
+    return c

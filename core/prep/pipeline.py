@@ -34,12 +34,12 @@ import numpy as np
 from bubsub.core.contrast import contrast_sign_error, signal_masses
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.io.scanfile import create_scan_datasets, set_scan_attrs
-from bubsub.core.prep.background import (fbp_row, envelope_background, liquid_and_gas, noise_level, radial_background,
-                                         reproject_background)
-from bubsub.core.prep.centre import center_pair, center_vo, closest_pair
+from bubsub.core.prep.background import (chord_background, fbp_row, envelope_background, liquid_and_gas, noise_level,
+                                         radial_background, reproject_background, sees_air)
+from bubsub.core.prep.centre import center_pair, center_seam, center_symmetry, center_vo, closest_pair
 from bubsub.core.prep.flats import flat_model, minus_log, repair_pixels
 from bubsub.core.prep.options import check_against_raw, prepare_options
-from bubsub.core.prep.phase import paganin_filter
+from bubsub.core.prep.phase import paganin_filter, wavelength_mm
 from bubsub.core.prep.readers import open_raw
 from bubsub.core.prep.stripes import remove_stripes
 from bubsub.core.projection.geometry import ScanGeometry
@@ -175,7 +175,7 @@ def prepare(raw, out, options=None, *, progress=True):
                   "bad_pixels": int(fm.bad.sum()), "min_transmission": o.min_transmission})
 
     ncols = cols[1] - cols[0]
-    axis, how = _axis(o, src, fm, rows, cols, index, theta)
+    axis, how = _axis(o, src, fm, rows, cols, index, theta, pixel, phase)
     steps.append({"step": "center", "method": how, "axis_column_raw": None if axis is None else axis + cols[0]})
     c_lo, width = 0, ncols
     if axis is not None and o.crop_to_axis:
@@ -190,9 +190,10 @@ def prepare(raw, out, options=None, *, progress=True):
     read_cols = (cols[0] + c_lo, cols[0] + c_lo + width)
     nrows = rows[1] - rows[0]
     k = o.bin
-    out_rows, out_cols = max(1, nrows // k), width // k
+    margin = _phase_margin(o, src, fm, rows, read_cols, index, pixel, phase, width, steps)
+    out_rows, out_cols = max(1, nrows // k), (width - 2 * margin) // k
     two_d = out_rows == 1
-    axis_out = None if axis is None else (axis - c_lo + 0.5) / k - 0.5
+    axis_out = None if axis is None else (axis - c_lo - margin + 0.5) / k - 0.5
     geometry = scan_geometry(theta, pixel_size=(pixel[0] * k, pixel[1] * k), cols=out_cols,
                              rows=None if two_d else out_rows, axis_column=axis_out,
                              source_origin=o.source_origin, origin_detector=o.origin_detector)
@@ -216,7 +217,7 @@ def prepare(raw, out, options=None, *, progress=True):
                     idx = index[a:b]
                     counts = src.read("data", slice(int(idx[0]), int(idx[-1]) + 1, step), rows, read_cols)
                     p = _line_integrals(counts, idx, fm, o, pixel, phase)
-                    p = _bin(p, k)
+                    p = _bin(p[..., margin:p.shape[-1] - margin], k)
                     data_ds[a:b] = p[:, 0] if two_d else p
                     bar.update(b - a)
             steps.append({"step": "minus_log", "slab_projections": per})
@@ -237,6 +238,45 @@ def _jsonable(v):
     if isinstance(v, np.ndarray):
         return v.tolist()
     raise TypeError(type(v).__name__)
+
+
+#: Phase-retrieval lengths cropped from each side of a scan with no air at its sides (see :func:`_phase_margin`).
+PHASE_MARGIN_LENGTHS = 2.0
+
+
+def _phase_margin(o, src, fm, rows, read_cols, index, pixel, phase, width, steps):
+    """Raw columns to drop at each side after phase retrieval when the sample is wider than the detector.
+
+    Paganin's filter (:func:`paganin_filter`) recovers the thickness at a
+    column from the intensity within a few of its lengths
+    ``sqrt(delta_beta * distance * wavelength / (4 pi))`` around it. Beside
+    air that intensity is known (the padding continues the air); a sample
+    wider than the detector continues beyond it with what the detector does
+    not see, so the outermost columns come out wrong by up to the size of
+    the phase-contrast fringes (a tenth in ``-log`` at 16 keV, 300 mm). They
+    are cropped: :data:`PHASE_MARGIN_LENGTHS` lengths at each side, rounded
+    up to whole binned pixels, when the middle row has no air at its sides
+    (:func:`sees_air`). Zero without phase retrieval or when air is there.
+    """
+    if not phase:
+        return 0
+    r = (rows[0] + rows[1]) // 2
+    row_fm = fm.crop(slice(r - rows[0], r - rows[0] + 1), slice(None))
+    sub = index[:: max(1, index.size // 64)]
+    sino = np.stack([_line_integrals(src.read("data", slice(int(i), int(i) + 1), (r, r + 1), read_cols),
+                                     np.array([i]), row_fm, o, None, None)[0, 0] for i in sub])
+    if sees_air(sino):
+        return 0
+    length = np.sqrt(phase["delta_beta"] * phase["distance_mm"] * wavelength_mm(phase["energy_kev"]) / (4 * np.pi))
+    k = o.bin
+    margin = int(np.ceil(PHASE_MARGIN_LENGTHS * length / pixel[1] / k)) * k
+    if width - 2 * margin < 8 * k:
+        raise ValueError(f"the detector ({width} columns) is too narrow for phase retrieval of a sample wider than "
+                         f"it: {margin} columns at each side are within two phase-retrieval lengths of its edge")
+    steps.append({"step": "phase_margin", "cols_each_side": margin, "phase_length_mm": float(length),
+                  "why": "no air at the detector's sides: the outermost columns' phase retrieval lacks the "
+                         "intensity beyond the detector"})
+    return margin
 
 
 def _pixel_size(o, src):
@@ -280,8 +320,18 @@ def _bin(p, k):
     return p.reshape(n, r // k, k, c // k, k).mean(axis=(2, 4))
 
 
-def _axis(o, src, fm, rows, cols, index, theta):
-    """Axis column in ROI coordinates (None: the ROI centre is taken as is) and how it was found."""
+def _axis(o, src, fm, rows, cols, index, theta, pixel=None, phase=None):
+    """Axis column in ROI coordinates (None: the ROI centre is taken as is) and how it was found.
+
+    ``auto``: Vo's method on the middle row; where that row has no air at the
+    detector's sides (:func:`sees_air`: a sample wider than the detector) the
+    symmetry of its mean projection (:func:`center_symmetry`) instead, and
+    where Vo's column stands more than :data:`CENTRE_AGREE` pixels from both
+    the seam search (:func:`center_seam`) and the symmetry while these two
+    agree within it, their mean. The last two run on the phase-retrieved row
+    when ``--delta-beta`` is given (phase-contrast fringes would dominate
+    them).
+    """
     if isinstance(o.center, float):
         c = o.center - cols[0]
         if not 0 <= c <= cols[1] - cols[0] - 1:
@@ -309,7 +359,62 @@ def _axis(o, src, fm, rows, cols, index, theta):
         _line_integrals(src.read("data", slice(int(sub[a]), int(sub[b - 1]) + 1, o.projections[2]), (r, r + 1),
                                  cols), sub[a:b], row_fm, o, None, None)[:, 0]
         for a, b in _slabs(sub.size, 256)])
-    return center_vo(sino), f"vo (row {r}, {sub.size} projections)"
+    if o.center != "auto":
+        return center_vo(sino), f"vo (row {r}, {sub.size} projections)"
+    smooth = sino
+    if phase:
+        smooth = np.concatenate([
+            _line_integrals(src.read("data", slice(int(sub[a]), int(sub[b - 1]) + 1, o.projections[2]), (r, r + 1),
+                                     cols), sub[a:b], row_fm, o, pixel, phase)[:, 0] for a, b in _slabs(sub.size, 256)])
+    where = f"row {r}, {sub.size} projections"
+    if not sees_air(sino):
+        return _axis_without_air(smooth, theta[in180], phase, pixel, where, cols[0])
+    vo = center_vo(sino)
+    try:
+        seam = center_seam(smooth, theta[in180])
+    except ValueError:  # not an even 180-degree scan
+        return vo, f"vo ({where})"
+    sym = center_symmetry(smooth)
+    if abs(seam - sym) <= CENTRE_AGREE < min(abs(vo - seam), abs(vo - sym)):
+        return 0.5 * (seam + sym), (f"seam and symmetry ({where}; Vo's method gave column {vo:.2f}, "
+                                    f"{abs(vo - seam):.1f} pixels away)")
+    return vo, f"vo ({where})"
+
+
+def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
+    """The axis of a row with no air at its sides: the seam and the symmetry searches, which must agree.
+
+    Both search the interior only: with phase retrieval, the columns within
+    :data:`PHASE_MARGIN_LENGTHS` phase-retrieval lengths of the detector's
+    sides are left out (:func:`_phase_margin`). Where the two disagree by
+    more than :data:`CENTRE_AGREE` pixels (the mean of a few large bubbles
+    over 180 degrees is not symmetric; a foam whose outer bubbles move many
+    pixels between projections can seam elsewhere) no axis is guessed: the
+    error asks for ``--center``.
+    """
+    m = 0
+    if phase:
+        length = np.sqrt(phase["delta_beta"] * phase["distance_mm"] * wavelength_mm(phase["energy_kev"]) / (4 * np.pi))
+        m = min(int(np.ceil(PHASE_MARGIN_LENGTHS * length / pixel[1])), sino.shape[1] // 4)
+    inner = sino[:, m:sino.shape[1] - m]
+    sym = center_symmetry(inner) + m
+    try:
+        seam = center_seam(inner, theta) + m
+    except ValueError:  # not an even 180-degree scan: the symmetry alone
+        return sym, f"symmetry of the mean projection ({where}; no air at the detector's sides)"
+    if abs(seam - sym) > CENTRE_AGREE:
+        raise ValueError(
+            f"the rotation axis of this sample, wider than the detector (no air at its sides), could not be found "
+            f"reliably: the seam of the 180-degree sinogram gives detector column {seam + first_col:.1f}, the "
+            f"symmetry of the mean projection {sym + first_col:.1f}; give the axis with --center COLUMN (raw "
+            f"detector column)")
+    return seam, (f"seam of the 180-degree sinogram, checked by the symmetry of the mean projection ({where}; no air "
+                  f"at the detector's sides; {sym - seam:+.2f} pixels apart)")
+
+
+#: Pixels within which the seam and symmetry centres must agree with each other, and beyond which Vo's must
+#: stand from both, for ``--center auto`` to take their mean instead of Vo's.
+CENTRE_AGREE = 2.0
 
 
 def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
@@ -321,7 +426,7 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
     mode = o.background
     file_bg = _background_file(o.background, geometry) if isinstance(mode, Path) else None
     row_geom = geometry if two_d else None
-    liquids, drift, offsets = [], [], []
+    liquids, drift, offsets, chords = [], [], [], []
     with _bar(out_rows, "pass 2: stripes, background", progress) as bar:
         for a, b in _slabs(out_rows, per):
             block = data_ds[()][:, None] if two_d else data_ds[:, a:b]
@@ -337,7 +442,10 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
                         row_geom = _row_geometry(geometry)
                     bg = np.empty_like(block)
                     for r in range(block.shape[1]):
-                        if mode == "auto":
+                        if mode == "auto" and not sees_air(block[:, r]):
+                            bg[:, r], fit = chord_background(block[:, r], row_geom)
+                            chords.append(fit)
+                        elif mode == "auto":
                             bg[:, r] = radial_background(block[:, r], row_geom)[None]
                         else:
                             bg[:, r], lq, _ = reproject_background(block[:, r], row_geom, o.foam_radius)
@@ -356,7 +464,12 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
         steps.append({"step": "stripes", "method": o.stripes, "library": "algotom"})
     if bg_ds is not None:
         entry = {"step": "background", "method": str(mode) if not isinstance(mode, str) else
-                 ("radial (ring medians of an FBP, reprojected)" if mode == "auto" else mode)}
+                 ("radial (ring medians of an FBP, reprojected; where a row has no air at its sides, the liquid "
+                  "cylinder's chord profile)" if mode == "auto" else mode)}
+        if chords:
+            entry["wider_than_detector"] = {
+                "rows": len(chords), "method": "liquid cylinder's chord profile fitted (chord_background)",
+                **{k: float(np.median([c[k] for c in chords])) for k in chords[0]}}
         if liquids:
             entry["liquid_attenuation_per_mm"] = float(np.median(liquids))
             entry["foam_radius_mm"] = o.foam_radius
@@ -468,7 +581,10 @@ def _contrast(data_ds, bg_ds, geometry, o, steps):
         entry["source"] = "given"
     else:
         g2 = _row_geometry(geometry)
-        image, extent, r, _ = fbp_row(sino, g2, min(g2.det_count, 512))
+        row = sino
+        if bg_ds is not None and not sees_air(sino):  # local tomography: the liquid's chords out, no cupping
+            row = sino - (bg_ds[()] if two_d else bg_ds[:, mid])
+        image, extent, r, _ = fbp_row(row, g2, min(g2.det_count, 512))
         liquid, gas = liquid_and_gas(image, r <= (o.foam_radius or 0.9 * extent[1]))
         contrast = gas - liquid
         entry.update(source="estimated from an FBP of the middle row (Otsu split of the foam region)",

@@ -64,7 +64,7 @@ def _one(s, prefix):
     m = s["matching"]
     iou = f", median IoU {m['median_iou']:.3f}" if m.get("median_iou") is not None else ""
     n_rec = s["bubbles"] if "bubbles" in s else s["bubbles_reconstructed"]
-    return (f"{prefix}DDI {s['ddi']:.4f} (lower is better); {s['bubbles_truth']} true bubbles: {m['found']} found"
+    return (f"{prefix}DDI (lower is better): {s['ddi']:.4f}; {s['bubbles_truth']} true bubbles: {m['found']} found"
             f"{iou}, {m['missed']} missed, {m['merged']} merged; {m['spurious']} spurious of {n_rec} reconstructed")
 
 

@@ -20,6 +20,8 @@ BENCHMARKS = {
     "dynamic": ("dynamic", "reconstruct4d on a flowing, coarsening foam per subscan: found, merged, anew, small, "
                            "track purity, cost, beside the voxel route"),
     "bubbles": ("bubbles", "BubSub on one experiment case, bubble by bubble: missed, merged, spurious, boundary error"),
+    "parameters": ("parameters", "bubsub reconstruct with one parameter changed at a time: DDI, iterations, seconds "
+                                 "(the tables of docs/parameters.md)"),
 }
 
 

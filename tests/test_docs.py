@@ -69,3 +69,19 @@ def test_the_checks_catch_what_they_look_for():
     text = "## T\n\nOn foam2d:\n\n| case | DDI |\n|---|---|\n| a | 0.1 |\n"
     assert not COMMAND.search(next(_tables(text))[2])
     assert COMMAND.search(next(_tables(text.replace("On foam2d", "`bubsub evaluate rec sim`")))[2])
+
+
+def test_the_parameter_tables_are_the_benchmarks():
+    """docs/parameters.md's measured examples are the cases ``python -m bubsub.bench parameters`` runs."""
+    from bubsub.bench.parameters import CASES
+
+    text = (ROOT / "docs" / "parameters.md").read_text()
+    text = text[text.index("## Measured examples"):]
+    assert "python -m bubsub.bench parameters --dim 2" in text and "python -m bubsub.bench parameters --dim 3" in text
+    tables = [section for _, header, section in _tables(text) if header.startswith("| arguments | DDI |")]
+    assert len(tables) == 2
+    for ndim, section in zip((2, 3), tables):
+        table = section[section.rindex("| arguments | DDI |"):]  # the section may hold the other table too
+        rows = [line for line in table.splitlines()[2:] if line.startswith("| ")]
+        cases = [re.match(r"\| `?([^`|]*?)`?(?: \(default\))? \|", row).group(1) for row in rows]
+        assert [c if c != "(defaults)" else "" for c in cases] == CASES[ndim][1], ndim

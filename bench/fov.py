@@ -32,6 +32,21 @@ field of view (:mod:`bubsub.bench.matching`: found with IoU >= 0.5, missed,
 merged, spurious; the cut bubbles apart; DDI).
 
 ``python -m bubsub.bench fov --column 600 --column-data /data/column600 [--out DIR] [RECONSTRUCT OPTIONS]``
+
+The local-tomography case (``--local SEED [SEED ...]``): a simulated raw
+beamline scan (:mod:`bubsub.core.foam.raw`: flats, darks, 16 keV, 300 mm
+Fresnel propagation, the axis 5.3 pixels off centre) of a liquid cylinder
+1.5 times the field of view's radius filled with bubbles out to its wall
+(:func:`bubsub.core.foam.raw.disc_foam`), run through ``bubsub prepare --bin
+2 --delta-beta 1450 --center auto --background auto`` (``--local-center
+given`` passes the true axis instead) and ``bubsub reconstruct`` with its
+defaults. Scored inside the interior cylinder, the field of view's radius
+less one largest bubble's diameter (:func:`interior_scores`): the true
+bubbles whose centroid lies there found with IoU >= 0.5, the reconstructed
+bubbles there that are no true bubble's best (spurious), the DDI there, and
+the axis error.
+
+``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--out DIR]``
 """
 
 from __future__ import annotations
@@ -41,7 +56,8 @@ import time
 
 import numpy as np
 
-__all__ = ["fov_phantom", "fov_scan", "fov_ddi", "watershed_bubbles", "voxel_route", "column_case", "main"]
+__all__ = ["fov_phantom", "fov_scan", "fov_ddi", "watershed_bubbles", "voxel_route", "column_case", "local_case",
+           "interior_scores", "main"]
 
 #: (centre mm, radius mm, class): field of view radius 2.4 mm, half height 1.2 mm
 LAYOUT = (
@@ -258,6 +274,117 @@ def _print_column(args, extra):
     return 0
 
 
+#: The local-tomography case's raw scan: 256 columns of 12 um, 90 projections over 180 degrees, 2 rows.
+LOCAL_SCAN = {"cols": 256, "pixel_size": 0.012, "axis_offset": 5.3, "n_angles": 90, "rows": 2, "distance": 300.0,
+              "supersample": 2}
+
+
+def local_case(out, seed, *, center="auto"):
+    """Simulate, prepare, reconstruct and score one local-tomography scan (see the module docstring).
+
+    Returns
+    -------
+    dict
+        :func:`interior_scores` and ``axis_error_px`` (raw pixels), ``center`` (the method or the error),
+        ``prepare_s``, ``reconstruct_s``; ``failed`` with the message where prepare stops.
+    """
+    from pathlib import Path
+
+    from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
+    from bubsub.core.io.meshio import read_polygons_json
+    from bubsub.core.io.scanfile import read_scan
+    from bubsub.core.prep import prepare, prepare_options
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
+
+    out = Path(out)
+    c = LOCAL_SCAN
+    axis = c["cols"] / 2 - 0.5 + c["axis_offset"]
+    half = min(axis + 0.5, c["cols"] - 0.5 - axis) * c["pixel_size"]
+    radius = 1.5 * half
+    s = raw_settings(seed=seed, container_radius=radius, wall=0.0, wider_than_detector=True, **c)
+    write_raw_simulation(out, disc_foam(seed, radius, n_bubbles=80, radius_range=(0.08 * half, 0.15 * half)), s)
+    t0 = time.perf_counter()
+    try:
+        report = prepare(out / "raw.h5", out / "scan.h5", prepare_options(
+            roi="1:2,:", bin=2, delta_beta=1450, center="auto" if center == "auto" else s.axis_column,
+            background="auto"), progress=False)
+    except ValueError as exc:
+        return {"failed": str(exc), "prepare_s": time.perf_counter() - t0}
+    t1 = time.perf_counter()
+    step = next(x for x in report["steps"] if x["step"] == "center")
+    scan = read_scan(out / "scan.h5")
+    rec = reconstruct(scan, ReconstructionSettings(progress=False))
+    t2 = time.perf_counter()
+    scores = interior_scores([x.fine() for x in rec.surfaces], read_polygons_json(out / "truth.json"), scan.geometry)
+    contrast = next(x for x in report["steps"] if x["step"] == "contrast")["bubble_contrast_per_mm"]
+    return {**scores, "axis_error_px": step["axis_column_raw"] - s.axis_column, "center": step["method"],
+            "contrast": contrast, "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
+
+
+def interior_scores(rec, truth, geometry, *, pixels=600):
+    """Bubbles found, spurious bubbles and DDI inside the interior cylinder of a 2D reconstruction.
+
+    The interior is the field of view's disc shrunk by one largest true
+    bubble's diameter: a true bubble whose centroid lies there is wholly
+    inside the field of view. Both outline sets are rasterised on a grid
+    of ``pixels`` across the field of view (outside it set to 0) and matched
+    there (:func:`bubsub.core.matching.match`); a true bubble of the interior
+    is found with IoU >= 0.5; a reconstructed bubble whose centroid lies in
+    the interior and is no true bubble's best is spurious; the DDI counts the
+    interior's pixels.
+
+    Parameters
+    ----------
+    rec, truth : list of Polygon
+    geometry : ScanGeometry
+        2D.
+
+    Returns
+    -------
+    dict
+        ``interior_radius_mm``, ``truth``, ``found``, ``found_percent``, ``spurious``, ``ddi``, ``reconstructed``.
+    """
+    from bubsub.core.matching import match
+    from bubsub.core.metrics import dice_dissimilarity
+    from bubsub.core.voxel.raster import label_image
+    from bubsub.clients.pipeline.fov import field_of_view
+
+    r_fov = field_of_view(geometry)[0]
+    r_int = r_fov - 2 * max(np.sqrt(abs(p.area) / np.pi) for p in truth)
+    extent = (-r_fov, r_fov, -r_fov, r_fov)
+    t_lab, r_lab = label_image(truth, (pixels, pixels), extent), label_image(rec, (pixels, pixels), extent)
+    yy, xx = (np.mgrid[:pixels, :pixels] + 0.5) * (2 * r_fov / pixels) - r_fov
+    r = np.hypot(xx, yy)
+    t_lab[r > r_fov], r_lab[r > r_fov] = 0, 0
+    m = match(t_lab, r_lab)
+    centre = lambda items: np.array([np.hypot(*np.asarray(p.vertices).mean(axis=0)) for p in items])
+    inner_t = set(np.flatnonzero(centre(truth) <= r_int) + 1)
+    inner_r = set(np.flatnonzero(centre(rec) <= r_int) + 1) if rec else set()
+    found = sum(1 for i, _, _, status in m["per_truth"] if i in inner_t and status == "found")
+    owners = {j for _, j, _, _ in m["per_truth"]}
+    return {"interior_radius_mm": r_int, "truth": len(inner_t), "found": found,
+            "found_percent": 100.0 * found / max(1, len(inner_t)), "spurious": len(inner_r - owners),
+            "ddi": float(dice_dissimilarity(r_lab[r <= r_int] > 0, t_lab[r <= r_int] > 0)), "reconstructed": len(rec)}
+
+
+def _print_local(args):
+    from pathlib import Path
+
+    print(f"| seed | centre | axis error (raw px) | contrast (1/mm) | interior bubbles | found (IoU >= 0.5) | spurious "
+          f"| DDI (interior) | prepare s | reconstruct s |")
+    print("|---|---|---|---|---|---|---|---|---|---|", flush=True)
+    for seed in args.local:
+        r = local_case(Path(args.out) / f"local{seed}", seed, center=args.local_center)
+        if "failed" in r:
+            print(f"| {seed} | {args.local_center} | prepare stopped: {r['failed']} | | | | | | "
+                  f"{r['prepare_s']:.0f} | |", flush=True)
+            continue
+        print(f"| {seed} | {args.local_center} | {r['axis_error_px']:+.2f} | {r['contrast']:.4f} | {r['truth']} | "
+              f"{r['found']} ({r['found_percent']:.0f} %) | {r['spurious']} | {r['ddi']:.4f} | {r['prepare_s']:.0f} | "
+              f"{r['reconstruct_s']:.0f} |", flush=True)
+    return 0
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m bubsub.bench fov", description=__doc__.splitlines()[0])
     ap.add_argument("--geometry", nargs="+", default=["parallel", "cone"], choices=["parallel", "cone"])
@@ -270,9 +397,15 @@ def main(argv=None):
     col.add_argument("--rec", metavar="DIR", help="score this bubsub reconstruct output instead of running one")
     col.add_argument("--sirt-iterations", type=int, default=100, help="of the voxel route (default 100)")
     col.add_argument("--out", default="bench-fov", help="folder of the column case's outputs (default bench-fov)")
+    loc = ap.add_argument_group("the local-tomography case")
+    loc.add_argument("--local", type=int, nargs="+", metavar="SEED", help="simulated raw scans of these seeds")
+    loc.add_argument("--local-center", choices=["auto", "given"], default="auto",
+                     help="prepare's --center: auto, or the true axis given (default auto)")
     args, extra = ap.parse_known_args(argv)
     if args.column is not None:
         return _print_column(args, extra)
+    if args.local:
+        return _print_local(args)
     if extra:
         ap.error(f"unrecognized arguments: {' '.join(extra)}")
     print("| geometry | FOV model | class | bubbles | found | flagged truncated | DDI in FOV (mean) | DDI max | "

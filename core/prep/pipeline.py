@@ -387,10 +387,12 @@ def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
     Both search the interior only: with phase retrieval, the columns within
     :data:`PHASE_MARGIN_LENGTHS` phase-retrieval lengths of the detector's
     sides are left out (:func:`_phase_margin`). Where the two disagree by
-    more than :data:`CENTRE_AGREE` pixels (the mean of a few large bubbles
-    over 180 degrees is not symmetric; a foam whose outer bubbles move many
-    pixels between projections can seam elsewhere) no axis is guessed: the
-    error asks for ``--center``.
+    more than :data:`CENTRE_CHECK` of the detector's width (the symmetry is
+    the coarser: the mean of a foam's bubbles over 180 degrees is symmetric
+    only on average; the seam is sharp but can lock onto another column
+    where the outer bubbles move many pixels between projections) no axis
+    is guessed: the error asks for ``--center``. Otherwise the seam's column
+    is the axis.
     """
     m = 0
     if phase:
@@ -402,7 +404,7 @@ def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
         seam = center_seam(inner, theta) + m
     except ValueError:  # not an even 180-degree scan: the symmetry alone
         return sym, f"symmetry of the mean projection ({where}; no air at the detector's sides)"
-    if abs(seam - sym) > CENTRE_AGREE:
+    if abs(seam - sym) > CENTRE_CHECK * sino.shape[1]:
         raise ValueError(
             f"the rotation axis of this sample, wider than the detector (no air at its sides), could not be found "
             f"reliably: the seam of the 180-degree sinogram gives detector column {seam + first_col:.1f}, the "
@@ -412,6 +414,9 @@ def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
                   f"at the detector's sides; {sym - seam:+.2f} pixels apart)")
 
 
+#: Fraction of the detector's width within which the symmetry search must confirm the seam search on a row
+#: with no air at its sides.
+CENTRE_CHECK = 0.03
 #: Pixels within which the seam and symmetry centres must agree with each other, and beyond which Vo's must
 #: stand from both, for ``--center auto`` to take their mean instead of Vo's.
 CENTRE_AGREE = 2.0
@@ -435,6 +440,7 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
                     block[:, r] = remove_stripes(block[:, r], o.stripes)
                 _store(data_ds, block, a, b, two_d)
             if bg_ds is not None:
+                stored = True  # the data as stored; False once a row is corrected here
                 if file_bg is not None:
                     bg = file_bg[:, None] if two_d else file_bg[:, a:b]
                 elif mode in ("reproject", "auto"):
@@ -444,7 +450,9 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
                     for r in range(block.shape[1]):
                         if mode == "auto" and not sees_air(block[:, r]):
                             bg[:, r], fit = chord_background(block[:, r], row_geom)
+                            fit["drift_range"] = drift_offsets(block[:, r], bg[:, r])
                             chords.append(fit)
+                            stored = False
                         elif mode == "auto":
                             bg[:, r] = radial_background(block[:, r], row_geom)[None]
                         else:
@@ -456,7 +464,7 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
                     drift.append(float(np.median(np.abs(envelope_background(block[:half]) -
                                                         envelope_background(block[half:])))))
                     bg = np.broadcast_to(env[None], block.shape)
-                if air_offsets(block, bg, offsets):
+                if air_offsets(block, bg, offsets) or not stored:
                     _store(data_ds, block, a, b, two_d)
                 _store(bg_ds, bg, a, b, two_d)
             bar.update(b - a)
@@ -533,6 +541,41 @@ def air_offsets(block, background, found=None):
             found.append(off)
         done = True
     return done
+
+
+def drift_offsets(sino, background):
+    """Remove a slow drift of whole projections from a row with no air, in place; returns its range.
+
+    Without air beside the sample (:func:`air_offsets` cannot act) the
+    offset a flat field that follows the beam's decay imperfectly adds to
+    each projection is estimated from the bubbles' signal itself: a foam
+    filling a rotation-invariant liquid sends about the same amount of gas
+    through the detector at every angle, so the mean of ``data -
+    background`` over the columns varies with the angle only by the
+    bubbles' chance arrangement, not by a trend. A quadratic over the
+    projection index fitted to that mean is the drift; it is subtracted,
+    its mean kept (the mean is the gas, not a drift).
+
+    Parameters
+    ----------
+    sino : (n_angles, cols) float
+        One row's line integrals; corrected in place.
+    background : (n_angles, cols) or (cols,) float
+
+    Returns
+    -------
+    float
+        The drift's range over the projections (``-log`` units).
+    """
+    n = sino.shape[0]
+    if n < 8:
+        return 0.0
+    x = np.linspace(-1.0, 1.0, n)
+    mean = (sino - background).mean(axis=1)
+    drift = np.polynomial.polynomial.polyval(x, np.polynomial.polynomial.polyfit(x, mean, 2))
+    drift -= drift.mean()
+    sino -= drift[:, None].astype(sino.dtype)
+    return float(np.ptp(drift))
 
 
 def _store(ds, block, a, b, two_d):

@@ -161,12 +161,13 @@ def run_serve(args):
     args : argparse.Namespace
         From the ``serve`` parser.
     """
+    settings = settings_from_args(args)
+    # tried before the app is imported and made: a bad address or a taken port is one line here, at once, not
+    # uvicorn's startup log
+    bind_socket(settings.host, settings.port).close()
     from .app import create_app
     from .server import Server, uvicorn_config
 
-    settings = settings_from_args(args)
-    # tried before the app is made: a bad address or a taken port is one line here, not uvicorn's startup log
-    bind_socket(settings.host, settings.port).close()
     config = uvicorn_config(create_app(settings), settings)
     Server(config).run()
     return 0

@@ -445,6 +445,7 @@ def run_voxel_route(sim_dir, out, *, iterations=100, voxel_bin=1):
         result[f"labels_{k}"], result[f"ids_{k}"] = lab, ids
         previous, prev_ids = lab, ids
         seconds.append(time.perf_counter() - t0)
+        print(f"voxel route: subscan {k}, {int(lab.max())} labels, {seconds[-1]:.0f} s", file=sys.stderr, flush=True)
     np.savez_compressed(out / "labels.npz", **result)
     (out / "seconds.json").write_text(json.dumps({"seconds": seconds, "iterations": iterations,
                                                   "voxel_bin": b, "grid_shape": list(coarse)}))

@@ -173,9 +173,16 @@ def run_serve(args):
     return 0
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """A refused argument is one line (the usage is for ``--help``), as with ``bubsub serve``."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} ({self.prog} --help lists the options)\n")
+
+
 def main(argv=None):
     """``python -m bubsub.service [serve] [options]``."""
-    parser = argparse.ArgumentParser(prog="python -m bubsub.service")
+    parser = _OneLineParser(prog="python -m bubsub.service")
     sub = parser.add_subparsers(dest="command")
     add_serve_command(sub)
     argv = list(argv) if argv is not None else None

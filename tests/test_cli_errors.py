@@ -99,3 +99,13 @@ def test_warnings_are_one_line_without_their_source(sim, tmp_path, capsys, monke
     assert lines == ["bubsub reconstruct4d: warning: projections_per_subscan = 3 does not divide the scan's 8 "
                      "projections: 2 complete subscans, the last 2 projections are ignored",
                      "bubsub reconstruct4d: error: stopped after the layout"]
+
+
+def test_the_stand_alone_server_command_is_one_line_too(capsys):
+    from bubsub.service.cli import main as service_main
+
+    with pytest.raises(SystemExit) as refused:
+        service_main(["--port", "99999"])
+    assert refused.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--port" in err[0] and "usage:" not in err[0]

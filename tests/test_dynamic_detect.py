@@ -175,3 +175,17 @@ def test_ids_of_new_bubbles_stay_unique_across_chunks(monkeypatch):
         for i, s in zip(r.state.ids, r.state.surfaces()):
             places.setdefault(i, set()).add(tuple(np.round(s.vertices.mean(axis=0), 6)))
     assert all(len(p) == 1 for p in places.values()) and len({next(iter(p)) for p in places.values()}) == 5
+
+
+def test_a_bubble_cut_by_the_top_edge_keeps_its_track_as_it_comes_into_view():
+    """Going backwards a bubble that leaves through the top later comes down into view: its warm start is not
+    shrunk toward its centroid above the edge (that would carry its visible cap out of view)."""
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 16, endpoint=False), pixel_size=0.1, cols=32, rows=24)
+    truth = [((-0.5, 0.0, -0.1), 0.45), ((0.5, 0.3, 1.38), 0.4)]  # the top edge is at z = 1.2
+    scan = noisy_scan(g, [ball(*x) for x in truth], seed=3)
+    successor = BubbleState.from_surfaces([0, 1], [sphere_surface(truth[0][0], 0.45, CONTRAST),
+                                                   sphere_surface((0.5, 0.3, 1.48), 0.4, CONTRAST)])
+    res = reconstruct_subscan(scan, successor, DynamicSettings(iterations=20, progress=False), index=2, time=2.0)
+    assert res.state.ids == (0, 1) and res.report["new"] == {} and res.ended == ()
+    c = np.asarray(by_id(res)[1].fine().centroid)
+    assert c[:2] == pytest.approx(truth[1][0][:2], abs=0.05)

@@ -50,7 +50,7 @@ from bubsub.core.projection.remesh import SHRINK, warm_start
 from bubsub.core.validate import check_int
 
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
-from bubsub.clients.pipeline.fov import fov_report, seen_by
+from bubsub.clients.pipeline.fov import field_of_view, fov_report, seen_by
 from bubsub.clients.pipeline.preview import preview_voxel_size
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
 from bubsub.clients.pipeline.resolution import levels_by_size
@@ -290,11 +290,18 @@ def _cold(scan, settings):
 
 
 def _warm_starts(scan, previous, settings):
-    """The successor's bubbles shrunk and remeshed: their ids, the starts, and the ids that have none."""
+    """The successor's bubbles shrunk and remeshed: their ids, the starts, and the ids that have none.
+
+    A bubble cut by the detector's top or bottom row is remeshed unshrunk: its centroid lies toward the unseen
+    part, so shrinking toward it would carry the visible cap out of view, where no gradient brings it back.
+    """
+    fov = field_of_view(scan.geometry) if scan.ndim == 3 else None
+    margin = fov_report(scan.geometry)["margin"] if fov is not None else 0.0
     ids, starts, ended = [], [], {}
     for i, s in zip(previous.ids, previous.surfaces()):
+        cut = fov is not None and float(np.abs(s.fine().vertices[:, 2]).max()) > fov[1] - margin
         try:
-            starts.append(warm_start(s.with_attenuation(scan.bubble_contrast), shrink=settings.shrink,
+            starts.append(warm_start(s.with_attenuation(scan.bubble_contrast), shrink=1.0 if cut else settings.shrink,
                                      control_points=settings.control_points))
             ids.append(i)
         except ValueError as exc:

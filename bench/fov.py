@@ -47,6 +47,14 @@ bubbles there that are no true bubble's best (spurious), the DDI there, and
 the axis error.
 
 ``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--out DIR]``
+
+``--local-ideal SEED ... --local-extend 1.25 1.6``: the reconstruction side
+alone on exact projections of such a foam with its liquid's exact projection
+as background (:func:`local_ideal_case`), the preview's radius for a foam
+wider than the detector varied (the design's alternative: every bubble of
+the foam in the model).
+
+``python -m bubsub.bench fov --local-ideal 0 --local-extend 1.25 1.6``
 """
 
 from __future__ import annotations
@@ -57,7 +65,7 @@ import time
 import numpy as np
 
 __all__ = ["fov_phantom", "fov_scan", "fov_ddi", "watershed_bubbles", "voxel_route", "column_case", "local_case",
-           "interior_scores", "main"]
+           "local_ideal_case", "interior_scores", "main"]
 
 #: (centre mm, radius mm, class): field of view radius 2.4 mm, half height 1.2 mm
 LAYOUT = (
@@ -321,6 +329,53 @@ def local_case(out, seed, *, center="auto"):
             "contrast": contrast, "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
 
 
+def local_ideal_case(seed, extend):
+    """The local-tomography foam on exact projections, its liquid's exact projection as background.
+
+    90 parallel views over 180 degrees of a 128-column detector of 40 um
+    pixels; a liquid disc 1.5 times the field of view's radius filled with
+    bubbles (:func:`bubsub.core.foam.raw.disc_foam`), projected exactly
+    (Gaussian noise 0.003), reconstructed with its defaults but the preview
+    out to ``extend`` times the field of view's radius for a foam wider than
+    the detector (:data:`bubsub.clients.pipeline.fov.LOCAL_EXTEND`): the
+    reconstruction side alone, without the raw scan's preparation.
+
+    Returns
+    -------
+    dict
+        :func:`interior_scores` and ``reconstruct_s``.
+    """
+    from bubsub.core import MeshProjector
+    from bubsub.core.foam.raw import disc_foam
+    from bubsub.core.io.scanfile import Scan
+    from bubsub.core.projection.geometry import ScanGeometry
+    from bubsub.core.projection.mesh import Polygon
+    from bubsub.clients.pipeline import fov as fovmod
+    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
+
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 90, endpoint=False), pixel_size=0.04, cols=128)
+    r_fov = fovmod.field_of_view(g)[0]
+    radius = 1.5 * r_fov
+    phantom = disc_foam(seed, radius, n_bubbles=120, radius_range=(0.06 * r_fov, 0.14 * r_fov))
+    t = np.linspace(0, 2 * np.pi, 96, endpoint=False)
+    liquid = Polygon(radius * np.stack([np.cos(t), np.sin(t)], 1) / np.cos(np.pi / 96), 0.1)  # circumscribed
+    projector = MeshProjector(g, supersampling=2)
+    background = projector.forward([liquid])
+    data = background + projector.forward(list(phantom.bubbles))
+    data += np.random.default_rng(seed).normal(0, 0.003, data.shape)
+    scan = Scan(data=data.astype(np.float32), geometry=g, background=background.astype(np.float32),
+                bubble_contrast=phantom.contrast)
+    before = fovmod.LOCAL_EXTEND
+    fovmod.LOCAL_EXTEND = extend
+    try:
+        t0 = time.perf_counter()
+        rec = reconstruct(scan, ReconstructionSettings(progress=False))
+        seconds = time.perf_counter() - t0
+    finally:
+        fovmod.LOCAL_EXTEND = before
+    return {**interior_scores([x.fine() for x in rec.surfaces], list(phantom.bubbles), g), "reconstruct_s": seconds}
+
+
 def interior_scores(rec, truth, geometry, *, pixels=600):
     """Bubbles found, spurious bubbles and DDI inside the interior cylinder of a 2D reconstruction.
 
@@ -385,6 +440,18 @@ def _print_local(args):
     return 0
 
 
+def _print_local_ideal(args):
+    print("| seed | preview radius / field of view's | interior bubbles | found (IoU >= 0.5) | spurious | "
+          "DDI (interior) | bubbles reconstructed | reconstruct s |")
+    print("|---|---|---|---|---|---|---|---|", flush=True)
+    for seed in args.local_ideal:
+        for extend in args.local_extend:
+            r = local_ideal_case(seed, extend)
+            print(f"| {seed} | {extend:g} | {r['truth']} | {r['found']} ({r['found_percent']:.0f} %) | {r['spurious']} "
+                  f"| {r['ddi']:.4f} | {r['reconstructed']} | {r['reconstruct_s']:.0f} |", flush=True)
+    return 0
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m bubsub.bench fov", description=__doc__.splitlines()[0])
     ap.add_argument("--geometry", nargs="+", default=["parallel", "cone"], choices=["parallel", "cone"])
@@ -401,11 +468,17 @@ def main(argv=None):
     loc.add_argument("--local", type=int, nargs="+", metavar="SEED", help="simulated raw scans of these seeds")
     loc.add_argument("--local-center", choices=["auto", "given"], default="auto",
                      help="prepare's --center: auto, or the true axis given (default auto)")
+    loc.add_argument("--local-ideal", type=int, nargs="+", metavar="SEED",
+                     help="the reconstruction side alone: exact projections and background (local_ideal_case)")
+    loc.add_argument("--local-extend", type=float, nargs="+", default=[1.25], metavar="F",
+                     help="with --local-ideal: the preview's radius over the field of view's (default 1.25)")
     args, extra = ap.parse_known_args(argv)
     if args.column is not None:
         return _print_column(args, extra)
     if args.local:
         return _print_local(args)
+    if args.local_ideal:
+        return _print_local_ideal(args)
     if extra:
         ap.error(f"unrecognized arguments: {' '.join(extra)}")
     print("| geometry | FOV model | class | bubbles | found | flagged truncated | DDI in FOV (mean) | DDI max | "

@@ -23,14 +23,10 @@ wider than the detector, local tomography, is reconstructed with a note).
 Measured with and without the model: docs/prepare.md, ``python -m
 bubsub.bench fov``; local tomography: ``python -m bubsub.bench fov --local``.
 
-Local tomography needs nothing more here: the bubbles out to
-:data:`FOV_EXTEND` times the field of view's radius are fitted where the
-views constrain them, and the gas beyond (seen in fewer than 46 % of a
-180-degree scan's projections at 1.5 times the radius) is left to the fit's
-residual; on a foam 1.5 times as wide as the field of view with the liquid's
-exact projection as background, a preview out to 1.6 times the radius
-(every bubble modelled) gave the same bubbles inside and DDI 0.0104
-against 0.0113, at 1.6 times the seconds (docs/prepare.md).
+Local tomography: the bubbles out to :data:`LOCAL_EXTEND` times the field
+of view's radius are fitted where the views constrain them, and the gas
+beyond (seen in fewer than 46 % of a 180-degree scan's projections at 1.5
+times the radius) is left to the fit's residual.
 """
 
 from __future__ import annotations
@@ -40,18 +36,25 @@ import numpy as np
 from bubsub.core.io.tables import FOV_COLUMN_INFO
 
 __all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
-           "FOV_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns", "FOV_COLUMN_INFO",
-           "WHOLE_SIZE_COLUMNS", "fov_mask"]
+           "FOV_EXTEND", "LOCAL_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns",
+           "FOV_COLUMN_INFO", "WHOLE_SIZE_COLUMNS", "fov_mask"]
 
 #: Radius of the voxel preview's grid over the field of view's radius when the boundary is modelled: a point
 #: at 1.25 times the radius of a 180-degree parallel scan is still seen by 59 % of the projections.
 FOV_EXTEND = 1.25
+#: The same for local tomography (the bubbles' signal at a detector side in most projections,
+#: :func:`bubsub.clients.pipeline.checks.check_lateral_truncation`): measured against 1.6 (every bubble of a
+#: foam 1.5 times the field of view's radius modelled) on exact projections, the same bubbles found inside and
+#: DDI 0.0113 against 0.0104 at 0.63 times the seconds (``python -m bubsub.bench fov --local-ideal 0
+#: --local-extend 1.25 1.6``, docs/prepare.md).
+LOCAL_EXTEND = FOV_EXTEND
 
 
 def preview_extension(fov_model, data=None, contrast=None):
     """Factor by which the voxel preview's grid radius exceeds the field of view's.
 
-    :data:`FOV_EXTEND` with the model, 1 without it, and 1 as well when
+    :data:`FOV_EXTEND` with the model (:data:`LOCAL_EXTEND` for a foam wider
+    than the detector), 1 without it, and 1 as well when
     ``data`` show that nothing lies outside the field of view's cylinder: in
     every projection both sides of the detector see no bubble signal
     (:func:`bubsub.clients.pipeline.checks.side_signal`), so each view's
@@ -72,10 +75,14 @@ def preview_extension(fov_model, data=None, contrast=None):
         return 1.0
     if data is None:
         return FOV_EXTEND
-    from bubsub.clients.pipeline.checks import side_signal
+    from bubsub.clients.pipeline.checks import LOCAL_VIEWS, side_bubble_signal, side_signal
 
     left, right, level = side_signal(np.sign(contrast) * np.asarray(data, dtype=np.float32))
-    return FOV_EXTEND if bool(np.any(left > level) or np.any(right > level)) else 1.0
+    if not bool(np.any(left > level) or np.any(right > level)):
+        return 1.0
+    left, right, level = side_bubble_signal(data, contrast)
+    local = max(np.count_nonzero(left > level), np.count_nonzero(right > level)) >= LOCAL_VIEWS * len(left)
+    return LOCAL_EXTEND if local else FOV_EXTEND
 
 
 def field_of_view(geometry):

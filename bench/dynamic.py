@@ -249,7 +249,8 @@ def score_subscan(truth, truth_ids, rec, ball, anew, anew_forward=()):
     dict
         ``truth, found, missed, merged, spurious, reconstructed, ddi`` of
         :func:`~bubsub.bench.matching.match` and ``anew, anew_found, anew6, anew6_found, small, small_found``,
-        and ``fwd, fwd_found, fwd6, fwd6_found`` for ``anew_forward``.
+        ``fwd, fwd_found, fwd6, fwd6_found`` for ``anew_forward``, and ``truth6, found6``: the truth bubbles whose
+        visible part holds a ball of at least 6 pixels' radius and how many of them are found.
     """
     from bubsub.bench.matching import MIN_IOU, match, overlaps
 
@@ -265,7 +266,9 @@ def score_subscan(truth, truth_ids, rec, ball, anew, anew_forward=()):
     out = {k: m[k] for k in ("truth", "spurious", "reconstructed", "ddi")}
     out.update({k: sum(st == k for st in status.values()) for k in ("found", "missed", "merged")})
     small = [b for b, i in present.items() if SMALL_BALL[0] <= ball[i] <= SMALL_BALL[1]]
-    out.update(small=len(small), small_found=sum(b in found for b in small))
+    big = [b for b, i in present.items() if ball[i] >= SMALL_BALL[0]]
+    out.update(small=len(small), small_found=sum(b in found for b in small), truth6=len(big),
+               found6=sum(b in found for b in big))
     for name, ids in (("anew", anew), ("fwd", anew_forward)):
         a = [b for b in ids if b in present]
         a6 = [b for b in a if ball[present[b]] >= SMALL_BALL[0]]
@@ -311,7 +314,7 @@ def score_run(meta, tables, labels_of, subscans=None):
         rows += [(int(rec_ids[j]), int(truth_ids[owners[j] - 1]) if owners[j] else -1) for j in present]
     purity, n_tracks, n_rows = track_purity(rows)
     keys = ("truth", "found", "missed", "merged", "spurious", "anew", "anew_found", "anew6", "anew6_found",
-            "fwd", "fwd_found", "fwd6", "fwd6_found",
+            "fwd", "fwd_found", "fwd6", "fwd6_found", "truth6", "found6",
             "small", "small_found")
     totals = {k: int(sum(p[k] for p in per)) for k in keys}
     totals.update(found_share=totals["found"] / totals["truth"] if totals["truth"] else None,
@@ -674,6 +677,7 @@ def _print_summary(results):
 
     body = [
         row("true bubbles found, all subscans", lambda k: pct(t[k]["found"], t[k]["truth"])),
+        row("true bubbles found, visible part holding a ball >= 6 px", lambda k: pct(t[k]["found6"], t[k]["truth6"])),
         row("merged (true bubbles)", lambda k: str(t[k]["merged"])),
         row("spurious", lambda k: str(t[k]["spurious"])),
         row("worst subscan found", lambda k: f"{worst(k) * 100:.1f} %"),

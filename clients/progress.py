@@ -66,7 +66,7 @@ class Phase:
                 self.bar.set_postfix(self.postfix)
         elif self.enabled and self.each and n:
             of = f" of {self.total}" if self.total else ""
-            words = [f"{self.unit} {self.n}{of} done", f"{time.perf_counter() - self.t0:.1f} s"]
+            words = [f"{self.n}{of} done", f"{time.perf_counter() - self.t0:.1f} s"]
             print(f"{self.desc}: " + ", ".join(words + self._postfix_words()), file=self.stream, flush=True)
 
     def _postfix_words(self):
@@ -115,8 +115,8 @@ def phase(desc, total=None, *, unit="iteration", enabled=True, stream=None, each
     stream : file, optional
         Default ``sys.stderr``.
     each : bool
-        Without a terminal, also one line per step (``subscans: subscan 2 of 8
-        done, 41.0 s, bubbles = 34``), for phases of many long steps.
+        Without a terminal, also one line per step (``subscans: 2 of 8 done,
+        41.0 s, subscan = 5, bubbles = 34``), for phases of many long steps.
 
     Returns
     -------

@@ -132,5 +132,5 @@ def test_redirected_subscans_print_one_plain_line_each(capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "\r" not in err  # no bar in a log file
     lines = err.strip().splitlines()
-    assert len(lines) == 4 and lines[0].startswith("subscans: subscan 1 of 3 done, ")
+    assert len(lines) == 4 and lines[0].startswith("subscans: 1 of 3 done, ")
     assert "subscan = 2, bubbles = 3, ended = 1" in lines[0] and lines[-1].startswith("subscans: 3 subscans, ")

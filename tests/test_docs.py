@@ -18,7 +18,8 @@ DOCS = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"]
 HASH = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
 #: a revision named by a word that says it is one, whatever its digits
 NAMED_REVISION = re.compile(r"\b(?:commit|revision|git archive)\s+[0-9a-f]{7,40}\b", re.I)
-HISTORY = ("at commit", "before these changes", "this session", "the issue's", "was tried", "earlier run gave")
+HISTORY = ("at commit", "before these changes", "before this change", "before these three", "this session",
+           "the issue's", "was tried", "earlier run gave")
 
 #: a table header with measured quantities
 MEASURED = re.compile(r"\bDDI\b|seconds|\bs\b|\bs \(|MiB|\bMB\b|MSE|wall|CPU|found|spurious", re.I)

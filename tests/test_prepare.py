@@ -229,3 +229,13 @@ def test_sigterm_during_prepare_leaves_no_file(raw, tmp_path, monkeypatch, capsy
     assert code == 130 and "interrupted" in text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["raw.h5"]
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # restored
+
+
+def test_redirected_prepare_prints_one_plain_line_per_pass(raw, tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("BUBSUB_PROGRESS", raising=False)
+    code, text = run(["prepare", str(raw), "--out", str(tmp_path / "scan.h5"), "--center", str(AXIS)], capsys)
+    assert code == 0, text
+    assert "\r" not in text  # no bar in a log file
+    passes = [line for line in text.splitlines() if line.startswith("pass ")]
+    assert len(passes) == 2 and passes[0].startswith(f"pass 1: flats, phase, -log: {N} projections, ")
+    assert passes[1].startswith("pass 2: stripes, background: ") and " rows, " in passes[1]

@@ -156,3 +156,17 @@ def test_a_dense_foam_wider_than_the_detector_is_not_refused_for_its_long_gas_pa
                       background=lambda bg: 0.2 * chord(bg) + 0 * bg)
     with pytest.raises(ValueError, match="gas paths"):
         check_physical_signal(read_scan(narrow))
+
+
+def test_a_flipped_scan_reconstructed_in_slabs_is_refused_before_its_folder(tmp_path, capsys):
+    sim = tmp_path / "col"
+    assert main(["simulate", "--phantom", "column", "--bubbles", "40", "--det-count", "96", "--angles", "8",
+                 "--seed", "1", "--out", str(sim)]) == 0
+    scan = _altered(sim, tmp_path / "flipped.h5", data=lambda d, bg: -np.abs(d) - 1)
+    capsys.readouterr()
+    t0 = time.perf_counter()
+    assert main(["reconstruct", str(scan), "--out", str(tmp_path / "rec"), "--slabs", "2", "--quiet"]) == 2
+    assert time.perf_counter() - t0 < 20  # before the preview that sets the slabs' halo (a minute here)
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "are negative" in err
+    assert not (tmp_path / "rec").exists()

@@ -18,6 +18,10 @@ columns), report.json and PNG pictures. What each parameter does: docs/parameter
 """
 
 
+#: Central detector rows whose bubble signal a reconstruction in slabs checks before it starts.
+SIGNAL_CHECK_ROWS = 64
+
+
 def cmd_reconstruct(args):
     from bubsub.core.io.scanfile import read_geometry, read_scan
 
@@ -42,6 +46,12 @@ def cmd_reconstruct(args):
     geometry = read_geometry(args.scan)
     check_settings(settings, geometry.ndim)
     spec = spec_from_args(args)
+    if args.slabs != 1 and geometry.ndim == 3 and not geometry.is_cone:
+        # slabs read the scan piece by piece and after a preview that sets their halo: its signal is checked
+        # on its central rows first, so that impossible data cost seconds and leave no folder
+        mid, half = geometry.det_rows // 2, max(1, min(geometry.det_rows, SIGNAL_CHECK_ROWS) // 2)
+        check_bubble_signal(read_scan(args.scan, rows=(max(0, mid - half), min(geometry.det_rows, mid + half))),
+                            background_subtracted=args.background_subtracted, sides=False)
     slabs, halo = slab_count(args.scan, geometry, settings, args.slabs, args.slab_halo,
                              whole_needed=bool(args.init or args.holdout), workers=spec.workers)
     if slabs > 1 or not spec.in_process:

@@ -71,7 +71,7 @@ def check_settings(settings, ndim):
         raise ValueError(f"--fit-rtol must be a number in [0, 1), got {s.fit_rtol!r}")
 
 
-def check_bubble_signal(scan, *, background_subtracted=False):
+def check_bubble_signal(scan, *, background_subtracted=False, sides=True):
     """Refuse a scan whose bubble data disagree with the sign of ``bubble_contrast``.
 
     Gas bubbles lower the attenuation, so ``data - background`` of a foam is
@@ -86,6 +86,9 @@ def check_bubble_signal(scan, *, background_subtracted=False):
     background_subtracted : bool
         The user states that ``data`` already holds only the bubbles'
         projection; accepts a positive contrast without a background.
+    sides : bool
+        Also say whether the bubbles reach the detector's sides (:func:`check_lateral_truncation`); False for
+        a probe of some rows ahead of a reconstruction that checks its scan again.
 
     Raises
     ------
@@ -120,7 +123,8 @@ def check_bubble_signal(scan, *, background_subtracted=False):
             f"negative contrast: correct its sign and {prepare}; if the data really hold only the bubbles' "
             f"projection, pass --background-subtracted")
     check_physical_signal(scan)
-    check_lateral_truncation(scan)
+    if sides:
+        check_lateral_truncation(scan)
 
 
 #: Least fraction of the projections in which the bubbles' signal reaches a side of the detector for

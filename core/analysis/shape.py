@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bubsub.core.io.tables import BUBBLE_COLUMN_INFO
+from bubsub.core.io.columns import BUBBLE_COLUMN_INFO
 from bubsub.core.projection.mesh import equivalent_radius
 
 __all__ = ["solid_moments", "bubble_shape", "bubble_shapes", "bubble_sizes", "strain_from_axes", "thomsen_area",
@@ -285,7 +285,7 @@ def bubble_shape(mesh):
 
 
 #: ``column: (unit, meaning)`` of the shape columns of ``bubbles.csv`` (those ``bubsub reconstruct``'s
-#: ``bubbles.csv`` has too in its words, :data:`bubsub.core.io.tables.BUBBLE_COLUMN_INFO`).
+#: ``bubbles.csv`` has too in its words, :data:`bubsub.core.io.columns.BUBBLE_COLUMN_INFO`).
 SHAPE_COLUMN_INFO = {
     **{c: BUBBLE_COLUMN_INFO[c] for c in ("centroid_x_mm", "centroid_y_mm", "centroid_z_mm", "volume_mm3",
                                          "surface_area_mm2", "equivalent_diameter_mm")},

@@ -609,12 +609,17 @@ def main(argv=None):
     if not args.no_bubsub:
         forward = args.order == "forward"
         if args.rec:
-            rec, wall, rss = Path(args.rec), None, None
+            rec = Path(args.rec)
+            cost = out / f"{rec.name}_cost.json"  # what the run that made it measured, when this bench made it
+            wall, rss = (json.loads(cost.read_text())[k] for k in ("wall_s", "peak_rss_mib")) if cost.is_file() \
+                else (None, None)
         else:
             rec = out / ("bubsub-forward" if forward else "bubsub")
             scan_file = reversed_scan(sim, out / "scan_reversed.h5") if forward else sim / "scan.h5"
             wall, _, rss = run_tree(cli_command("reconstruct4d", scan_file, "--out", rec, "--quiet",
                                                 "--overwrite", *extra))
+            (out / f"{rec.name}_cost.json").write_text(json.dumps({"wall_s": wall, "peak_rss_mib": rss,
+                                                                   "options": extra}))
         last = meta["subscans"] - 1
         labels = bubsub_labels(rec, meta)
         secs = _bubsub_seconds(rec)

@@ -69,39 +69,48 @@ class _Watchdog:
 
     Flags are held weakly: a flag whose computation ended (and dropped it)
     before its deadline costs nothing more than its place in the heap,
-    which is cleared of such places as it grows.
+    which is cleared of such places whenever it has doubled. A forked child
+    starts afresh (its parent's thread does not exist there).
     """
 
     def __init__(self):
+        self._reset()
+
+    def _reset(self):
         self._cond = threading.Condition()
         self._heap = []  # (deadline, sequence number, weak reference to the flag)
         self._order = itertools.count()
-        self._pid = None  # the process whose thread serves the heap (a forked child starts its own)
+        self._limit = 1024  # heap size at which the places of flags already gone are dropped
+        self._started = False
 
     def add(self, deadline, flag):
         with self._cond:
-            if self._pid != os.getpid():
-                self._heap.clear()
-                self._pid = os.getpid()
-                threading.Thread(target=self._serve, name="bubsub-deadlines", daemon=True).start()
-            if len(self._heap) >= 1024:  # drop the places of flags already gone
-                self._heap = [e for e in self._heap if e[2]() is not None]
+            if not self._started:
+                threading.Thread(target=self._serve, args=(self._cond, self._heap), name="bubsub-deadlines",
+                                 daemon=True).start()
+                self._started = True
+            if len(self._heap) >= self._limit:
+                self._heap[:] = [e for e in self._heap if e[2]() is not None]
                 heapq.heapify(self._heap)
+                self._limit = max(1024, 2 * len(self._heap))
             heapq.heappush(self._heap, (deadline, next(self._order), weakref.ref(flag)))
             self._cond.notify()
 
-    def _serve(self):
-        with self._cond:
+    @staticmethod
+    def _serve(cond, heap):
+        with cond:
             while True:
                 now = time.monotonic()
-                while self._heap and self._heap[0][0] <= now:
-                    flag = heapq.heappop(self._heap)[2]()
+                while heap and heap[0][0] <= now:
+                    flag = heapq.heappop(heap)[2]()
                     if flag is not None:
                         flag[0] = 1
-                self._cond.wait(self._heap[0][0] - now if self._heap else None)
+                cond.wait(heap[0][0] - now if heap else None)
 
 
 _WATCHDOG = _Watchdog()
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_WATCHDOG._reset)
 
 
 def stop_flag(deadline):

@@ -849,16 +849,26 @@ def item_face_sums(st_face, st_pix, st_coef, starts, i0, i1, weights, acc, rl, p
 def stored_face_sums(st_face, st_pix, st_coef, n, weights, acc, rl, pix_rl, stop):
     """``acc[f, j] += weights[pixel] * coef_j`` over the first ``n`` stored crossings (times the pixel's
     ray length ``rl[pixel]`` when ``pix_rl``: see :func:`raster3d`). Reads ``stop`` (:func:`stopped`)
-    every :data:`STOP_EVERY` crossings and returns early once it is set."""
+    every :data:`STOP_EVERY` crossings and returns early once it is set.
+
+    Block by block through :func:`stored_block` on slices, so that each block is the loop over
+    ``range(len)`` of a single pass (indices numba knows to be non-negative: no wrap-around checks)."""
     for i0 in range(0, n, STOP_EVERY):
         if stopped(stop):
             return
-        for i in range(i0, min(i0 + STOP_EVERY, n)):
-            w = weights[st_pix[i]]
-            if pix_rl:
-                w *= rl[st_pix[i]]
-            if w != 0.0:
-                f = st_face[i]
-                acc[f, 0] += w * st_coef[i, 0]
-                acc[f, 1] += w * st_coef[i, 1]
-                acc[f, 2] += w * st_coef[i, 2]
+        i1 = min(i0 + STOP_EVERY, n)
+        stored_block(st_face[i0:i1], st_pix[i0:i1], st_coef[i0:i1], weights, acc, rl, pix_rl)
+
+
+@jit
+def stored_block(st_face, st_pix, st_coef, weights, acc, rl, pix_rl):
+    """:func:`stored_face_sums` over all of the crossings given."""
+    for i in range(st_face.shape[0]):
+        w = weights[st_pix[i]]
+        if pix_rl:
+            w *= rl[st_pix[i]]
+        if w != 0.0:
+            f = st_face[i]
+            acc[f, 0] += w * st_coef[i, 0]
+            acc[f, 1] += w * st_coef[i, 1]
+            acc[f, 2] += w * st_coef[i, 2]

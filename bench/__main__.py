@@ -17,6 +17,7 @@ BENCHMARKS = {
     "scale": ("scale", "bubsub reconstruct on foam columns of ~150/600/2400 bubbles: phases, peak RSS, DDI, growth"),
     "analysis": ("analysis", "bubsub analyse against FoamQuant's voxel route on a simulated column, and its cost"),
     "levels": ("levels", "the fit's data levels against a long full-detector fit from the same start: objective, cost"),
+    "detection": ("detection", "small bubbles and edge caps seeded and found, per size class, against the voxel route"),
     "dynamic": ("dynamic", "reconstruct4d on a flowing, coarsening foam per subscan: found, merged, anew, small, "
                            "track purity, cost, beside the voxel route"),
     "bubbles": ("bubbles", "BubSub on one experiment case, bubble by bubble: missed, merged, spurious, boundary error"),

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-__all__ = ["main", "count_centres", "per_bubble"]
+__all__ = ["main", "count_centres", "per_bubble", "setting_value"]
 
 
 def count_centres(labels, centres, extent):
@@ -54,7 +54,9 @@ def per_bubble(truth_labels, rec_labels):
     return [(*r, owner[r[2]] if r[2] and len(owner[r[2]]) > 1 else []) for r in rows], owner
 
 
-def _value(text, current):
+def setting_value(text, current):
+    """``--set NAME=VALUE``'s text as a settings field whose value is ``current``: of its type (bool from
+    1/true/yes; an unset field's as int when it reads as one, else the text)."""
     if isinstance(current, bool):
         return text.lower() in ("1", "true", "yes")
     if current is None:
@@ -101,7 +103,7 @@ def main(argv=None):
         name, _, text = item.partition("=")
         if name not in fields:
             p.error(f"--set {item}: ReconstructionSettings has no field {name!r}")
-        setattr(s, name, _value(text, getattr(s, name)))
+        setattr(s, name, setting_value(text, getattr(s, name)))
     cpu, wall = time.process_time(), time.perf_counter()
     rec = reconstruct(scan, s)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall

@@ -50,7 +50,7 @@ from bubsub.clients.pipeline.resolution import level_counts, levels_by_size
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "load_initial", "split_holdout", "prune",
-           "seen_slab", "settings_preview", "settings_initial", "coarse_radii", "projector_report",
+           "seen_slab", "settings_preview", "settings_initial", "coarse_radii", "initial_bubbles", "projector_report",
            "merged_projector_report", "REMOTE_PHASES"]
 
 
@@ -170,15 +170,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     local = MeshProjector(g_fit, supersampling=s.supersampling)
     detector, initialisation = default_detector(s.detector, g_fit.ndim), None
     if init is None:
-        image, extent = settings_preview(d_fit, g_fit, contrast, s)
-        clock.mark("preview")
-        surfaces, initialisation = settings_initial(image, extent, contrast, local, d_fit, s)
-        finer = _finer_voxel(s, surfaces, g_fit, d_fit, contrast)
-        if finer is not None:  # bubbles a few voxels across: seeded again in a preview fine enough for them
-            clock.mark("initial_bubbles")
-            image, extent = settings_preview(d_fit, g_fit, contrast, replace(s, voxel_size=finer))
-            clock.mark("preview")
-            surfaces, initialisation = settings_initial(image, extent, contrast, local, d_fit, s)
+        surfaces, initialisation, image, extent, finer = initial_bubbles(d_fit, g_fit, contrast, local, s, clock=clock)
     else:
         surfaces = [x.with_attenuation(contrast) for x in init]
         finer = _finer_voxel(s, surfaces, g_fit, d_fit, contrast)
@@ -345,6 +337,49 @@ def merged_projector_report(reports):
         local += [p for p in r["local_phases"] if p not in local]
     return {"server": next((r["server"] for r in reports if r["server"]), None), "remote_phases": remote,
             "local_phases": local, "local_backend": reports[0]["local_backend"]}
+
+
+def initial_bubbles(data, geometry, contrast, projector, settings, *, clock=None):
+    """The pipeline's initial bubbles from its voxel preview of ``data`` (bubbles positive).
+
+    :func:`settings_preview` and :func:`settings_initial`, then, when the
+    seeds are a few voxels across (:func:`voxel_for_bubbles`), both again on
+    a finer preview.
+
+    Parameters
+    ----------
+    data : ndarray, ``(angles, rows, cols)`` or ``(angles, cols)``
+    geometry : ScanGeometry
+        Of ``data``.
+    contrast : float
+    projector : MeshProjector
+        Of ``data`` (local).
+    settings : ReconstructionSettings
+    clock : optional
+        The pipeline's phase clock (``preview`` and ``initial_bubbles`` marked).
+
+    Returns
+    -------
+    surfaces : list of SubdivisionSurface
+    initialisation : dict
+        :func:`choose_initial`'s summary.
+    image : ndarray float32
+        The preview the seeds come from; ``extent`` its grid (mm).
+    extent : tuple
+    finer : float or None
+        The finer preview's voxel (mm) when one was made.
+    """
+    mark = clock.mark if clock is not None else (lambda name: None)
+    image, extent = settings_preview(data, geometry, contrast, settings)
+    mark("preview")
+    surfaces, initialisation = settings_initial(image, extent, contrast, projector, data, settings)
+    finer = _finer_voxel(settings, surfaces, geometry, data, contrast)
+    if finer is not None:  # bubbles a few voxels across: seeded again in a preview fine enough for them
+        mark("initial_bubbles")
+        image, extent = settings_preview(data, geometry, contrast, replace(settings, voxel_size=finer))
+        mark("preview")
+        surfaces, initialisation = settings_initial(image, extent, contrast, projector, data, settings)
+    return surfaces, initialisation, image, extent, finer
 
 
 def settings_preview(data, geometry, contrast, settings):

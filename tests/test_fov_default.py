@@ -14,7 +14,7 @@ from bubsub.core.metrics import shapes_dice_dissimilarity
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh
 from bubsub.clients.cli.main import build_parser
-from bubsub.clients.pipeline.checks import check_lateral_truncation
+from bubsub.clients.pipeline.sides import check_lateral_truncation
 from bubsub.clients.pipeline.evaluate import evaluate_dir
 from bubsub.clients.pipeline.fov import field_of_view, size_inside_fov
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct

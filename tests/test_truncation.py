@@ -14,8 +14,8 @@ from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
 from bubsub.core.io.scanfile import Scan, read_scan
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Polygon
-from bubsub.clients.pipeline.checks import (LOCAL_VIEWS, TRUNCATED_VIEWS, check_lateral_truncation,
-                                            side_bubble_signal, side_signal)
+from bubsub.clients.pipeline.sides import (LOCAL_VIEWS, TRUNCATED_VIEWS, check_lateral_truncation,
+                                           side_bubble_signal, side_signal)
 from bubsub.clients.pipeline.fov import field_of_view
 
 C = -0.1

@@ -18,7 +18,7 @@ The model's other parts live where they act: the edge rows' seeds
 the edge (:mod:`bubsub.clients.pipeline.topology`), the unseen parts'
 continuation (:func:`bubsub.clients.pipeline.repair.continued`) and the
 check of what the detector's sides show
-(:func:`bubsub.clients.pipeline.checks.check_lateral_truncation`: a foam
+(:func:`bubsub.clients.pipeline.sides.check_lateral_truncation`: a foam
 wider than the detector, local tomography, is reconstructed with a note).
 Measured with and without the model: docs/prepare.md, ``python -m
 bubsub.bench fov``; local tomography: ``python -m bubsub.bench fov --local``.
@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from bubsub.clients.pipeline.sides import LOCAL_VIEWS, side_bubble_signal, side_signal
 from bubsub.core.io.tables import FOV_COLUMN_INFO
 
 __all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
@@ -43,7 +44,7 @@ __all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "
 #: at 1.25 times the radius of a 180-degree parallel scan is still seen by 59 % of the projections.
 FOV_EXTEND = 1.25
 #: The same for local tomography (the bubbles' signal at a detector side in most projections,
-#: :func:`bubsub.clients.pipeline.checks.check_lateral_truncation`): measured against 1.6 (every bubble of a
+#: :func:`bubsub.clients.pipeline.sides.check_lateral_truncation`): measured against 1.6 (every bubble of a
 #: foam 1.5 times the field of view's radius modelled) on exact projections: every interior bubble found by
 #: both, DDI 0.0115 against 0.0104, 85 bubbles fitted against 87 (``python -m bubsub.bench fov --local-ideal 0
 #: --local-extend 1.25 1.6``, docs/prepare.md).
@@ -57,7 +58,7 @@ def preview_extension(fov_model, data=None, contrast=None):
     than the detector), 1 without it, and 1 as well when
     ``data`` show that nothing lies outside the field of view's cylinder: in
     every projection both sides of the detector see no bubble signal
-    (:func:`bubsub.clients.pipeline.checks.side_signal`), so each view's
+    (:func:`bubsub.clients.pipeline.sides.side_signal`), so each view's
     shadow of the sample lies within the detector and the sample within the
     cylinder (the common case of a column narrower than the detector; the
     wider grid would only add 56 % to the preview's voxels).
@@ -75,7 +76,6 @@ def preview_extension(fov_model, data=None, contrast=None):
         return 1.0
     if data is None:
         return FOV_EXTEND
-    from bubsub.clients.pipeline.checks import LOCAL_VIEWS, side_bubble_signal, side_signal
 
     left, right, level = side_signal(np.sign(contrast) * np.asarray(data, dtype=np.float32))
     if not bool(np.any(left > level) or np.any(right > level)):

@@ -7,7 +7,11 @@ rotated ellipsoids in a liquid cylinder, parallel beam, exact chords with
 where a share of the bubbles (``--small-share``, 0.3) is shrunk in place to
 equivalent radii drawn uniformly from ``--small-range`` pixels (5-13): the
 small bubbles that coarsening leaves between the others. Bubbles cut by the
-top and bottom rows follow from the column's height.
+top and bottom rows follow from the column's height. ``--phantom flowing``
+takes one subscan (``--subscan``) of the flowing foam instead
+(:func:`flowing_subscan`: ``bubsub simulate --phantom flowing3d``'s
+defaults, the foam moving, shrinking and growing during the subscan, the
+truth at its mid-time).
 
 Each truth bubble is put in a class by the radius of the ball of its
 visible part's volume (the part between the detector's top and bottom
@@ -28,7 +32,8 @@ inside the field of view on the evaluation grid (:mod:`bubsub.bench.matching`:
 found when IoU >= 0.5 and not merged). Also the totals (found, missed,
 merged, spurious, DDI) and the seconds.
 
-``python -m bubsub.bench detection [--bubbles 150] [--seed 0] [--data DIR] [--no-voxel] [--set NAME=VALUE ...]``
+``python -m bubsub.bench detection [--bubbles 150] [--seed 0] [--phantom small|flowing] [--subscan K] [--data DIR]
+[--no-voxel] [--seeds-only] [--set NAME=VALUE ...]`` (docs/scale.md)
 """
 
 from __future__ import annotations
@@ -41,12 +46,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["small_column", "size_classes", "seeded", "CLASSES", "main"]
+__all__ = ["small_column", "flowing_subscan", "size_classes", "seeded", "CLASSES", "main"]
 
 #: The classes of truth bubbles, in the tables' order.
 CLASSES = ("small", "cap", "tiny", "large")
 
-#: The target range of the largest ball a visible part holds, pixels.
+#: The target range of the radius of the ball of a visible part's volume, pixels.
 TARGET_BALL = (6.0, 12.0)
 
 

@@ -34,6 +34,10 @@ Two layers, so that another engine can run the same step on workers:
   :func:`bubsub.clients.pipeline.reconstruct4d.reconstruct_dynamic` adds the
   output folder, ``--resume``, the cluster engine and the summary files
   (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
+
+It is one module on purpose: the settings, the chain's state (track ids, the next new id) and the result are
+the step's own inputs and output, and a reader follows a subscan's step from its settings to its result here;
+the warm detection (:mod:`bubsub.clients.pipeline.detect4d`) and the files live apart.
 """
 
 from __future__ import annotations

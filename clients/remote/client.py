@@ -11,6 +11,9 @@ restarts or expires the job, the next call re-creates it and repeats itself:
 a fit survives a server restart and continues from its last iterate.
 
 Only ``httpx`` and ``numpy`` are needed (the ``client`` extra).
+
+It is one module on purpose: :class:`ProjectorClient` and :class:`RemoteJob` share the connection, its
+retries and the re-creation of an expired job, which only make sense together.
 """
 
 from __future__ import annotations

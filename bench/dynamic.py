@@ -55,6 +55,10 @@ reverse order (:func:`reversed_scan`), so that its chain runs forwards in the
 foam's time; its subscans are scored as the simulation's. Before any route, the
 truth alone says how many bubbles each order must find anew and why
 (:func:`chain_burden`).
+
+It is one module on purpose for now: the two routes, their scoring and the table share the truth's
+per-subscan labels; the scoring (:func:`score_run`) is the part to move to a module of its own when another
+benchmark needs it.
 """
 
 from __future__ import annotations

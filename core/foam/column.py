@@ -48,7 +48,7 @@ from bubsub.core.foam.ellipsoids import (contact_function, ellipsoid_mesh, ellip
                                          project_cylinder, project_ellipsoids, shape_matrices)
 from bubsub.core.projection.mesh import equivalent_radius
 
-__all__ = ["ColumnPhantom", "column_phantom", "column_geometry", "simulate_column", "write_column", "COLUMN_PRESETS",
+__all__ = ["ColumnPhantom", "column_phantom", "expected_visible", "column_geometry", "simulate_column", "write_column", "COLUMN_PRESETS",
            "TRUTH_COLUMN_INFO"]
 
 #: Bubble counts of the scale benchmark's columns (all on the default 256 x 768 detector).
@@ -165,8 +165,27 @@ class ColumnPhantom:
                 f"radius={self.radius:.4g} mm, gas fraction {self.gas_fraction:.3f}, seed={self.seed!r})")
 
 
-def _expected_visible(median, n_target, fov_half, area, gas_fraction, spread):
-    """Bubbles expected within the rows for a median radius (minus the target), for the root finder."""
+def expected_visible(median, n_target, fov_half, area, gas_fraction, spread):
+    """Bubbles expected within the rows for a median radius, minus ``n_target`` (a root finder's function).
+
+    Parameters
+    ----------
+    median : float
+        Median bubble radius, mm (log-normal sizes of ``spread``).
+    n_target : float
+        Bubbles wanted in view.
+    fov_half : float
+        Half the height of the rows seen, mm.
+    area : float
+        Cross-section of the liquid column, mm^2.
+    gas_fraction : float
+    spread : float
+        Standard deviation of the log of the size factor.
+
+    Returns
+    -------
+    float
+    """
     mean_cube = np.exp(4.5 * spread**2)  # E[s^3] of the log-normal size factor
     mean_r = median * np.exp(0.5 * spread**2)
     density = gas_fraction / (4.0 / 3.0 * np.pi * median**3 * mean_cube)
@@ -229,7 +248,7 @@ def column_phantom(n_bubbles=600, *, seed=0, rows=256, cols=768, pixel_size=0.01
     steps = count("max_iterations", max_iterations)
     radius, half = frac * 0.5 * cols * px, 0.5 * rows * px
     try:
-        median = brentq(_expected_visible, 1e-4 * radius, radius, args=(n_target, half, np.pi * radius**2, phi, spread))
+        median = brentq(expected_visible, 1e-4 * radius, radius, args=(n_target, half, np.pi * radius**2, phi, spread))
     except ValueError:
         raise ValueError(f"no bubble size gives {n_target} bubbles in the field of view; ask for more") from None
     gap = _GAP * median if gap is None else nonneg("gap", gap)

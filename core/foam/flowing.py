@@ -37,6 +37,9 @@ sub-ray chords of the ellipsoids (:func:`~bubsub.core.foam.ellipsoids.project_el
 not through the subdivision meshes a reconstruction fits. :func:`write_flowing`
 writes the simulation folder ``bubsub reconstruct4d`` and ``bubsub bench
 dynamic`` read.
+
+It is one module on purpose: the foam's history (flow, coarsening, coalescences) and the projections taken
+of it between its events are one simulation whose state each step hands to the next.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ from scipy.optimize import brentq
 from scipy.spatial import cKDTree
 
 from bubsub.core.foam.checks import count, fraction, nonneg, positive, rng_from_seed
-from bubsub.core.foam.column import (TRUTH_COLUMN_INFO, ColumnPhantom, _expected_visible, column_phantom,
+from bubsub.core.foam.column import (TRUTH_COLUMN_INFO, ColumnPhantom, expected_visible, column_phantom,
                                      truth_grid)
 from bubsub.core.foam.ellipsoids import (contact_function, ellipsoid_mesh, ellipsoid_volumes, fraction_below,
                                          project_cylinder, project_ellipsoids, shape_matrices)
@@ -266,13 +269,13 @@ def flowing_foam(n_bubbles=150, *, seed=0, rows=128, cols=384, pixel_size=0.012,
     radius = float(column.get("radius_fraction", 0.9)) * 0.5 * cols * px
     half = 0.5 * rows * px
     try:
-        median = brentq(_expected_visible, 1e-4 * radius, radius,
+        median = brentq(expected_visible, 1e-4 * radius, radius,
                         args=(n_target, half, np.pi * radius**2, gas_fraction, spread))
     except ValueError:
         raise ValueError(f"no bubble size gives {n_target} bubbles in the field of view; ask for more") from None
     travel = flow * px * duration
     extra = int(np.ceil(travel / px))
-    n_pack = max(n_target, int(round(_expected_visible(median, 0, half + 0.5 * extra * px, np.pi * radius**2,
+    n_pack = max(n_target, int(round(expected_visible(median, 0, half + 0.5 * extra * px, np.pi * radius**2,
                                                        gas_fraction, spread))))
     packed = column_phantom(n_pack, seed=int(seed), rows=rows + extra, cols=cols, pixel_size=px,
                             gas_fraction=gas_fraction, gap=_GAP * median if gap is None else gap, **column)

@@ -7,9 +7,9 @@ bubsub.service``, small memory caps), measures the server's peak resident
 memory rise (``VmHWM`` after resetting it through ``/proc/PID/clear_refs``)
 and the worst ``/healthz`` latency while the attack runs, and records the
 status codes the attack got. ``--before DIR`` runs every attack a second time
-against the package found in ``DIR/bubsub`` (e.g. ``git archive c212297``
+against the package found in ``DIR/bubsub`` (e.g. ``git archive REF``
 unpacked there) and prints both side by side. The attacks are scaled to run
-in about a minute each on a small machine; the issue's sizes are noted.
+in about a minute each on a small machine; the full sizes are noted.
 One module on purpose: the attacks share the server harness and the
 measurements, and each is a short function in the one table they are run from.
 """

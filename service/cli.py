@@ -1,6 +1,6 @@
 """``bubsub serve``: run the projection server with uvicorn.
 
-The lead's CLI calls :func:`add_serve_command` on its sub-command parsers;
+The bubsub command line calls :func:`add_serve_command` on its sub-command parsers;
 ``python -m bubsub.service`` runs the same command stand-alone.
 """
 

@@ -43,7 +43,7 @@ FIG6_COLUMN_INFO = {
 }
 
 FIG6_CONFIGS = {
-    # 2D: the target setting (>= 25 bubbles, 8 subscans of 25 + 25 parallel projections, I0 1e4)
+    # 2D: the target setting (>= 25 bubbles, 8 subscans of 25 + 25 parallel projections, I0 1e4)
     (2, False): {"bubbles": 30, "subscans": 8, "per_subscan": 50, "det_count": 2400, "iterations": 80, "grid": 512},
     (2, True): {"bubbles": 6, "subscans": 2, "per_subscan": 16, "det_count": 200, "iterations": 20, "grid": 128},
     # 3D: the paper's 25 + 25 cone projections per subscan on a smaller detector and foam
@@ -99,7 +99,7 @@ def _score_subscan(sim_dir, rec_dir, k, shape, extent, report_k):
         {"subscan": k, "method": "bb", "ddi": dice_dissimilarity(bb_mask, truth), "holdout_mse": bb["holdout_mse"],
          "seconds": bb["seconds"], "start": "", "iterations": BB_ITERATIONS},
     ]
-    if ndim == 2:  # SIRT 200 iterations + Otsu, the 2D reference (too slow to run per 3D subscan)
+    if ndim == 2:  # SIRT 200 iterations + Otsu, the 2D reference (too slow to run per 3D subscan)
         t_sirt = time.perf_counter()
         sirt_mask = _sirt_mask(sub.subset(slice(0, None, 2)), shape, extent)
         rows.append({"subscan": k, "method": "sirt", "ddi": dice_dissimilarity(sirt_mask, truth),

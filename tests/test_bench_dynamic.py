@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from bubsub.bench import dynamic as D
+from bubsub.bench import dynamic_scores as S
 from bubsub.core.foam.ellipsoids import ellipsoid_mesh
 from bubsub.core.io.meshio import read_ply, write_ply
 
@@ -31,15 +32,15 @@ def _fake_run(sim, folder, edit=None):
 
 
 def test_the_truth_itself_scores_perfectly_and_anew_follows_the_events(sim, tmp_path):
-    meta, tables, events = D.flowing_truth(sim)
-    s = D.score_run(meta, tables, D.bubsub_labels(_fake_run(sim, tmp_path / "rec"), meta))
+    meta, tables, events = S.flowing_truth(sim)
+    s = S.score_run(meta, tables, D.bubsub_labels(_fake_run(sim, tmp_path / "rec"), meta))
     t = s["totals"]
     assert t["found"] == t["truth"] > 0 and t["merged"] == t["spurious"] == t["missed"] == 0
     assert t["track_purity"] == 1.0 and t["mean_ddi"] < 0.01
     # anew at k: in view at k, gone at k + 1 by an exit, a vanishing or a coalescence (events.csv, independent)
     for p in s["subscans"][:-1]:
         k = p["subscan"]
-        labels, ids = D.truth_subscan(meta, tables[k])
+        labels, ids = S.truth_subscan(meta, tables[k])
         at_k = set(ids[np.unique(labels[labels > 0]) - 1].tolist())  # with a voxel in view on the grid
         gone = {int(e["id"]) for e in events if int(e["subscan"]) == k + 1 and e["event"] in ("exit", "vanish")}
         gone |= {int(x) for e in events if int(e["subscan"]) == k + 1 and e["event"] == "coalesce"
@@ -49,7 +50,7 @@ def test_the_truth_itself_scores_perfectly_and_anew_follows_the_events(sim, tmp_
 
 
 def test_a_bubble_over_two_true_ones_merges_both_and_swapped_ids_lower_purity(sim, tmp_path):
-    meta, tables, _ = D.flowing_truth(sim)
+    meta, tables, _ = S.flowing_truth(sim)
     tab = tables[1]
     centres = np.stack([tab[f"centre_{a}_mm"] for a in "xyz"], axis=1)
     inner = np.flatnonzero((np.abs(centres[:, 2]) < 0.3) & (tab["cut_top"] == 0) & (tab["cut_bottom"] == 0))
@@ -70,7 +71,7 @@ def test_a_bubble_over_two_true_ones_merges_both_and_swapped_ids_lower_purity(si
             ids = [swap[1] if x == swap[0] else swap[0] if x == swap[1] else x for x in ids]
         return meshes, ids
 
-    s = D.score_run(meta, tables, D.bubsub_labels(_fake_run(sim, tmp_path / "rec", edit), meta))
+    s = S.score_run(meta, tables, D.bubsub_labels(_fake_run(sim, tmp_path / "rec", edit), meta))
     p = s["subscans"][1]
     assert p["merged"] >= 2 and p["found"] == p["truth"] - p["merged"]
     # each swapped track has one of its rows (the last subscan's) on another truth bubble
@@ -79,7 +80,7 @@ def test_a_bubble_over_two_true_ones_merges_both_and_swapped_ids_lower_purity(si
 
 
 def test_track_purity_and_overlap_links():
-    assert D.track_purity([(1, 5), (1, 5), (1, 6), (2, 7), (2, -1)]) == (3 / 5, 2, 5)
+    assert S.track_purity([(1, 5), (1, 5), (1, 6), (2, 7), (2, -1)]) == (3 / 5, 2, 5)
     a = np.zeros((1, 10, 10), np.int32)
     a[0, 1:4, 1:4], a[0, 6:9, 6:9] = 1, 2
     b = np.zeros_like(a)
@@ -89,7 +90,7 @@ def test_track_purity_and_overlap_links():
 
 
 def test_visible_ball_is_the_axis_or_the_cut_part_ball(sim):
-    meta, tables, _ = D.flowing_truth(sim)
+    meta, tables, _ = S.flowing_truth(sim)
     px, h = meta["column"]["pixel_size_mm"], meta["column"]["fov_half_height_mm"]
     # a ball of 10 px whose centre lies 4 px below the top row: its visible part holds a ball of (10 + 4) / 2 px
     table = {f"centre_{a}_mm": np.array([0.0, 0.0]) for a in "xy"}
@@ -100,15 +101,15 @@ def test_visible_ball_is_the_axis_or_the_cut_part_ball(sim):
         for j in (1, 2, 3):
             table[f"rotation_{i}{j}"] = np.array([float(i == j)] * 2)
     table.update(id=np.array([0.0, 1.0]), cut_top=np.array([1.0, 0.0]), cut_bottom=np.array([0.0, 0.0]))
-    ball = D.visible_ball(table, meta)
+    ball = S.visible_ball(table, meta)
     assert ball[1] == pytest.approx(4.0)
     assert ball[0] == pytest.approx(7.0, abs=1.0)
 
 
 def test_voxel_route_runs_tracks_and_scores(sim, tmp_path):
-    meta, tables, _ = D.flowing_truth(sim)
+    meta, tables, _ = S.flowing_truth(sim)
     D.run_voxel_route(sim, tmp_path / "vox", iterations=20)
-    s = D.score_run(meta, tables, D.voxel_labels(tmp_path / "vox" / "labels.npz"))
+    s = S.score_run(meta, tables, D.voxel_labels(tmp_path / "vox" / "labels.npz"))
     t = s["totals"]
     assert t["found"] > 0.5 * t["truth"]
     assert t["track_purity"] > 0.9 and t["tracks"] < t["rows"]  # ids carried from subscan to subscan
@@ -125,8 +126,8 @@ def test_reversed_scan_runs_the_subscans_backwards_and_every_anew_bubble_has_an_
     for k in range(3):
         np.testing.assert_array_equal(b.data[8 * k:8 * k + 8], a.data[8 * (2 - k):8 * (3 - k)])
         np.testing.assert_array_equal(b.geometry.vectors[8 * k:8 * k + 8], a.geometry.vectors[8 * (2 - k):8 * (3 - k)])
-    meta, tables, events = D.flowing_truth(sim)
-    burden = D.chain_burden(meta, tables, events)
+    meta, tables, events = S.flowing_truth(sim)
+    burden = S.chain_burden(meta, tables, events)
     for d in ("backward", "forward"):
         assert sum(burden[d]["reasons"].values()) == burden[d]["all"] > 0
         assert "other" not in burden[d]["reasons"]  # the events explain every bubble that comes or goes

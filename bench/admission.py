@@ -185,7 +185,7 @@ def estimate_bytes(spec, x, op, env, shape):
 
 def measure_on(srv, h, name, env=ENV):
     """``(estimate, measured peak rise in bytes)`` of shape ``name``'s first computation on the running
-    server ``srv`` (a :class:`~bubsub.bench.attacks.ServerProcess` started with ``env``; ``h`` an httpx client)."""
+    server ``srv`` (a :class:`~bubsub.bench.service_harness.ServerProcess` started with ``env``; ``h`` an httpx client)."""
     _, build, op = SHAPES[name]
     geometry, surfaces, k = build()
     spec = _spec(geometry, surfaces, k)
@@ -211,7 +211,7 @@ def measure_on(srv, h, name, env=ENV):
 
 def measure(name, backend=None):
     """One measurement of shape ``name`` on a fresh server: ``(Estimate, measured peak rise in bytes)``."""
-    from bubsub.bench.attacks import ServerProcess
+    from bubsub.bench.service_harness import ServerProcess
 
     env = dict(ENV, **({"BUBSUB_BACKEND": backend} if backend else {}))
     with ServerProcess(**env) as srv, httpx.Client(timeout=600) as h:

@@ -28,7 +28,7 @@ import time
 import httpx
 import numpy as np
 
-from bubsub.bench.attacks import NPY, ServerProcess, npy
+from bubsub.bench.service_harness import NPY, ServerProcess, npy
 
 __all__ = ["issue_case", "main"]
 

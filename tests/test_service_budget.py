@@ -11,7 +11,7 @@ import httpx
 import numpy as np
 import pytest
 
-from bubsub.bench.attacks import ServerProcess, sphere_job
+from bubsub.bench.service_harness import ServerProcess, sphere_job
 from bubsub.core import ScanGeometry
 from bubsub.service.budget import OVERHEAD_BYTES, ComputeBudget
 from bubsub.service.errors import APIError

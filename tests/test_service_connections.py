@@ -11,7 +11,7 @@ import time
 
 import httpx
 
-from bubsub.bench.attacks import ServerProcess, SlowClients, probe_health, raw_request, read_until_closed
+from bubsub.bench.service_harness import ServerProcess, SlowClients, probe_health, raw_request, read_until_closed
 from bubsub.service.config import Settings
 from bubsub.service.server import FD_RESERVE, connection_limits
 from service_support import ServerThread

@@ -13,7 +13,7 @@ import httpx
 import numpy as np
 import pytest
 
-from bubsub.bench.attacks import keepalive_after, npy, raw_npy, small_2d_job, sphere_job
+from bubsub.bench.service_harness import keepalive_after, npy, raw_npy, small_2d_job, sphere_job
 from service_support import ServerThread
 
 NPY = "application/x-npy"

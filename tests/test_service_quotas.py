@@ -12,7 +12,7 @@ import httpx
 import numpy as np
 import pytest
 
-from bubsub.bench.attacks import npy, small_2d_job
+from bubsub.bench.service_harness import npy, small_2d_job
 from bubsub.service.compute import ComputePool
 from bubsub.service.config import Settings
 from bubsub.service.errors import APIError

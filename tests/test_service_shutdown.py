@@ -74,7 +74,8 @@ def test_sigterm_not_ready_first_then_drains():
 
 def test_computation_cancelled_by_the_shutdown_timeout_answers_503_retry_after():
     """Issue 13: when the shutdown timeout expired, in-flight computations got 500 (not retried)."""
-    from bubsub.bench.attacks import ATTACKS, ServerProcess, shutdown_timeout
+    from bubsub.bench.attacks import ATTACKS, shutdown_timeout
+    from bubsub.bench.service_harness import ServerProcess
 
     env = ATTACKS["shutdown_timeout"][1]
     with ServerProcess(**env) as srv, httpx.Client(timeout=60) as h:

@@ -11,7 +11,7 @@ import time
 import httpx
 import pytest
 
-from bubsub.bench.attacks import raw_request, read_until_closed
+from bubsub.bench.service_harness import raw_request, read_until_closed
 from service_support import ServerThread
 
 
@@ -61,7 +61,7 @@ def test_decoding_runs_off_the_event_loop():
     """/healthz answers promptly while large job bodies are parsed."""
     import json
 
-    from bubsub.bench.attacks import sphere_job
+    from bubsub.bench.service_harness import sphere_job
 
     spec, _ = sphere_job(8, 8)
     spec["surfaces"][0]["faces"] = spec["surfaces"][0]["faces"] * 2000  # 160,000 faces, ~2.5 MB of JSON

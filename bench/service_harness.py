@@ -35,6 +35,7 @@ __all__ = ["MiB", "BASE_ENV", "ServerProcess", "HealthProbe", "npy", "raw_npy", 
 
 MiB = 1 << 20
 
+
 #: caps of the attacked servers (small, so that refusals and damage show quickly)
 BASE_ENV = {
     "BUBSUB_WORKERS": "2",
@@ -46,10 +47,12 @@ BASE_ENV = {
     "BUBSUB_BODY_TIMEOUT_SECONDS": "5",
 }
 
+
 def _free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
 
 class ServerProcess:
     """``python -m bubsub.service`` on a free loopback port, with its memory measured.
@@ -117,6 +120,7 @@ class ServerProcess:
     def __exit__(self, *exc):
         self.stop()
 
+
 class HealthProbe:
     """Polls ``/healthz`` in a thread; ``worst`` is the slowest answer (s), ``failed`` the failures."""
 
@@ -150,10 +154,13 @@ class HealthProbe:
         self._stop.set()
         self._thread.join(60)
 
+
 def npy(a):
+    """The bytes of ``a`` as a ``.npy`` file (no pickles)."""
     buf = io.BytesIO()
     np.save(buf, a, allow_pickle=False)
     return buf.getvalue()
+
 
 def raw_npy(shape_literal, payload=b""):
     """A ``.npy`` file whose header declares ``shape_literal`` verbatim."""
@@ -162,6 +169,7 @@ def raw_npy(shape_literal, payload=b""):
     return b"\x93NUMPY\x01\x00" + len(head).to_bytes(2, "little") + head + payload
 
 NPY = {"content-type": "application/x-npy"}
+
 
 def sphere_job(rows, cols, n_angles=1, supersampling=1):
     """JSON of a 3D parallel job with one 42-vertex sphere, and its control vertices."""
@@ -175,12 +183,14 @@ def sphere_job(rows, cols, n_angles=1, supersampling=1):
                           "levels": s.levels, "attenuation": 0.1}], "supersampling": supersampling}
     return spec, s.control.vertices
 
+
 def small_2d_job():
     from bubsub.core import ScanGeometry
 
     g = ScanGeometry.parallel(np.linspace(0, np.pi, 8, endpoint=False), pixel_size=1.0, cols=32)
     return {"geometry": {"kind": g.kind, "vectors": g.vectors.tolist(), "det_rows": None, "det_cols": 32},
             "surfaces": [{"n_control": 6, "levels": 2, "attenuation": 1.0}]}, g
+
 
 def keepalive_after(port, method, path, body, ctype):
     """Send one request, then GET /healthz on the same connection.
@@ -210,11 +220,13 @@ def keepalive_after(port, method, path, body, ctype):
     finally:
         conn.close()
 
+
 def raw_request(port, data):
     """A socket to ``127.0.0.1:port`` that has sent ``data`` (a request, whole or in part)."""
     s = socket.create_connection(("127.0.0.1", port), timeout=5)
     s.sendall(data)
     return s
+
 
 def read_until_closed(sock):
     """Every byte ``sock`` receives until the server closes the connection."""
@@ -222,6 +234,7 @@ def read_until_closed(sock):
     while chunk := sock.recv(4096):
         reply += chunk
     return reply
+
 
 class SlowClients:
     """``n`` connections to ``127.0.0.1:port`` that never finish their request head, in a thread.
@@ -284,6 +297,7 @@ class SlowClients:
     def __exit__(self, *exc):
         self._stop.set()
         self._thread.join(30)
+
 
 def probe_health(url, seconds, interval=0.1, timeout=5.0):
     """``/healthz`` and ``/readyz`` in turn on a fresh connection each (as a load balancer probes) for

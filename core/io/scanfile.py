@@ -1,9 +1,10 @@
 """HDF5 scan files in the Data Exchange layout.
 
-One module on purpose: the :class:`Scan` object's
-validation, the writer and the reader (static, dynamic and raw-count files)
-must agree on every dataset, shape and attribute listed below; keeping them
-together keeps that list in one place.
+The writer and the reader (static, dynamic and raw-count files) agree on
+every dataset, shape and attribute listed below; the :class:`Scan` they write
+and return, and the checks of its fields, are :mod:`bubsub.core.io.scan`
+(``Scan`` and ``theta_from_geometry`` are importable from here too, beside the
+functions that read and write them).
 
 A scan file holds, for one scan::
 
@@ -41,260 +42,21 @@ scan file either exists complete or not at all.
 
 from __future__ import annotations
 
-import dataclasses
 import numbers
 from pathlib import Path
 
 import numpy as np
 
 from bubsub.core.io.atomic import atomic_path
+from bubsub.core.io.scan import (RESERVED_ATTRS, Scan, check_contrast, check_finite, expected_shape,
+                                 per_projection_array, row_slice, row_window_geometry, theta_from_geometry)
 from bubsub.core.projection.geometry import KINDS, ScanGeometry
-from bubsub.core.validate import check_int
 
-__all__ = ["Scan", "read_scan", "read_geometry", "write_scan", "create_scan_datasets", "set_scan_attrs", "theta_from_geometry",
-           "check_finite", "MIN_TRANSMISSION"]
+__all__ = ["Scan", "read_scan", "read_geometry", "write_scan", "create_scan_datasets", "set_scan_attrs",
+           "theta_from_geometry", "MIN_TRANSMISSION"]
 
 #: Smallest transmission accepted when converting raw counts (larger line integrals are clamped).
 MIN_TRANSMISSION = 1e-6
-
-_RESERVED_ATTRS = {"bubble_contrast", "bubsub_format", "projections_per_subscan"}
-
-
-def theta_from_geometry(geometry):
-    """Rotation angle of each projection, degrees, from a circular-scan geometry.
-
-    The angle of the ray direction (parallel beams) or of the source
-    position (cone/fan beams) in the x-y plane, measured as in
-    :meth:`ScanGeometry.parallel` / :meth:`ScanGeometry.cone`
-    (``theta = atan2(x, -y)``), unwrapped so that consecutive angles do not
-    jump by 360 degrees.
-
-    Parameters
-    ----------
-    geometry : ScanGeometry
-
-    Returns
-    -------
-    (n_angles,) float64
-        Degrees.
-    """
-    if not isinstance(geometry, ScanGeometry):
-        raise ValueError(f"geometry must be a ScanGeometry, got {type(geometry).__name__}")
-    v = geometry.vectors
-    th = np.arctan2(v[:, 0], -v[:, 1])
-    return np.degrees(np.unwrap(th))
-
-
-@dataclasses.dataclass(eq=False)
-class Scan:
-    """One scan: projections, geometry and what the fit needs to know.
-
-    Parameters
-    ----------
-    data : ndarray, shape ``geometry.shape``
-        Line integrals (``-log`` of the flat-field-corrected transmission),
-        ``(angle, row, col)`` in 3D or ``(angle, col)`` in 2D; stored float32.
-    geometry : ScanGeometry
-    theta : (n_angles,) float, optional
-        Rotation angles in degrees; derived from the geometry if omitted
-        (:func:`theta_from_geometry`).
-    background : ndarray, shape ``geometry.shape``, optional
-        Projection of everything but the bubbles (e.g. the liquid container),
-        float32. :attr:`bubble_data` is ``data - background``.
-    bubble_contrast : float
-        Attenuation of the gas minus that of the liquid, 1/mm (e.g. -0.1);
-        required and non-zero.
-    path : pathlib.Path, optional
-        File the scan was read from or written to.
-    attrs : dict, optional
-        Extra scalar or string metadata (written as root attributes), e.g.
-        ``photons`` and ``seed`` of a simulation.
-    time : (n_angles,) float, optional
-        Acquisition time of each projection, seconds (dynamic scans).
-    projections_per_subscan : int, optional
-        A dynamic scan's projections per subscan (acquisition order).
-
-    Raises
-    ------
-    ValueError
-        If shapes disagree with the geometry, values are not finite, or
-        ``bubble_contrast`` is missing or zero.
-    """
-
-    data: np.ndarray
-    geometry: ScanGeometry
-    theta: np.ndarray | None = None
-    background: np.ndarray | None = None
-    bubble_contrast: float | None = None
-    path: Path | None = None
-    attrs: dict = dataclasses.field(default_factory=dict)
-    time: np.ndarray | None = None
-    projections_per_subscan: int | None = None
-
-    def __post_init__(self):
-        if not isinstance(self.geometry, ScanGeometry):
-            raise ValueError(f"geometry must be a ScanGeometry, got {type(self.geometry).__name__}")
-        self.data = _projection_array(self.data, "data", self.geometry)
-        if self.background is not None:
-            self.background = _projection_array(self.background, "background", self.geometry)
-        if self.theta is None:
-            self.theta = theta_from_geometry(self.geometry)
-        else:
-            self.theta = _theta_array(self.theta, "theta", self.geometry.n_angles)
-        self.bubble_contrast = _contrast(self.bubble_contrast, "bubble_contrast")
-        if self.time is not None:
-            self.time = _theta_array(self.time, "time", self.geometry.n_angles)
-        if self.projections_per_subscan is not None:
-            k = self.projections_per_subscan
-            check_int(k, "projections_per_subscan", 1)
-            self.projections_per_subscan = int(k)
-        if self.path is not None:
-            self.path = Path(self.path)
-        if not isinstance(self.attrs, dict):
-            raise ValueError(f"attrs must be a dict, got {type(self.attrs).__name__}")
-        bad = _RESERVED_ATTRS.intersection(self.attrs)
-        if bad:
-            raise ValueError(f"attrs may not use the reserved names {sorted(bad)}")
-        self.attrs = dict(self.attrs)
-
-    @property
-    def ndim(self):
-        """2 or 3."""
-        return self.geometry.ndim
-
-    @property
-    def n_angles(self):
-        return self.geometry.n_angles
-
-    @property
-    def bubble_data(self):
-        """``data - background`` (or ``data`` without a background), float32, ``geometry.shape``."""
-        if self.background is None:
-            return self.data
-        return (self.data - self.background).astype(np.float32)
-
-    def subset(self, index):
-        """The scan restricted to some projections (``scan.subset(slice(0, None, 2))``).
-
-        Parameters
-        ----------
-        index : slice, int or array of int
-            Projection indices, as for ``geometry[index]``.
-
-        Returns
-        -------
-        Scan
-            With ``path`` None and ``projections_per_subscan`` None (a subset
-            is one static scan).
-        """
-        idx = np.atleast_1d(np.arange(self.n_angles)[index])
-        if idx.size == 0:
-            raise ValueError("subset selects no projections")
-        return Scan(
-            data=self.data[idx],
-            geometry=self.geometry[idx],
-            theta=self.theta[idx],
-            background=None if self.background is None else self.background[idx],
-            bubble_contrast=self.bubble_contrast,
-            path=None,
-            attrs=dict(self.attrs),
-            time=None if self.time is None else self.time[idx],
-        )
-
-    def row_window(self, rows):
-        """Detector rows ``rows = (start, stop)`` of a 3D scan: what :func:`read_scan` with ``rows=`` reads
-        of the scan's file.
-
-        Parameters
-        ----------
-        rows : (start, stop) int
-
-        Returns
-        -------
-        Scan
-            The geometry :meth:`ScanGeometry.window` of those rows (the same rays, in the same world
-            coordinates), data and background cut to them, every other field kept.
-
-        Raises
-        ------
-        ValueError
-            For a 2D scan, or rows that do not lie within the detector.
-        """
-        geometry = _row_window(self.geometry, rows, self.path.name if self.path is not None else "the scan")
-        cut = (slice(None), _rows_of(rows))
-        return dataclasses.replace(self, data=self.data[cut], geometry=geometry,
-                                   background=None if self.background is None else self.background[cut])
-
-    def __repr__(self):
-        bg = "yes" if self.background is not None else "no"
-        return (
-            f"Scan({self.geometry.kind}, shape={self.data.shape}, background={bg}, "
-            f"bubble_contrast={self.bubble_contrast!r}, path={str(self.path) if self.path else None!r})"
-        )
-
-
-# -- validation helpers ---------------------------------------------------------------
-def _dynamic_hint(shape, geometry):
-    """A hint when ``shape`` looks like several rotations of a geometry given once (a dynamic scan)."""
-    if len(shape) == len(geometry.shape) and shape[0] > geometry.n_angles and shape[0] % geometry.n_angles == 0:
-        return " (a dynamic scan needs one geometry row per projection, in acquisition order)"
-    return ""
-
-
-def _projection_array(a, name, geometry):
-    try:
-        arr = np.asarray(a)
-    except Exception:  # pragma: no cover - exotic inputs
-        raise ValueError(f"{name} must be a numeric array") from None
-    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-        raise ValueError(f"{name} must be a numeric array, got dtype {arr.dtype}")
-    if arr.shape != geometry.shape:
-        raise ValueError(f"{name} has shape {arr.shape} but the geometry needs {_shape_words(geometry)}"
-                         f"{_dynamic_hint(arr.shape, geometry)}")
-    arr = np.ascontiguousarray(arr, dtype=np.float32)
-    check_finite(arr, name)
-    return arr
-
-
-def _shape_words(geometry):
-    if geometry.ndim == 3:
-        return f"(n_angles, rows, cols) = {geometry.shape}"
-    return f"(n_angles, det_count) = {geometry.shape}"
-
-
-def check_finite(arr, name):
-    """Raise a ValueError naming ``name`` and counting the NaN and inf values if ``arr`` holds any."""
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        n_nan = int(np.isnan(arr).sum())
-        raise ValueError(
-            f"{name} contains {int(bad.sum())} non-finite values ({n_nan} NaN, {int(bad.sum()) - n_nan} inf)"
-        )
-
-
-def _theta_array(t, name, n_angles):
-    try:
-        arr = np.asarray(t, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a numeric array") from None
-    if arr.ndim != 1 or arr.shape[0] != n_angles:
-        raise ValueError(f"{name} has shape {np.shape(t)} but the geometry has {n_angles} projections")
-    check_finite(arr, name)
-    return arr
-
-
-def _contrast(value, name):
-    if value is None:
-        raise ValueError(
-            f"{name} is required: attenuation of the gas minus that of the liquid, 1/mm (e.g. -0.1)"
-        )
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not np.isfinite(v) or v == 0:
-        raise ValueError(f"{name} must be finite and non-zero, got {value!r}")
-    return v
 
 
 def _attr_value(key, value):
@@ -376,7 +138,7 @@ def create_scan_datasets(f, geometry, theta, *, background=False, compression=No
     if not isinstance(geometry, ScanGeometry):
         raise ValueError(f"geometry must be a ScanGeometry, got {type(geometry).__name__}")
     g = geometry
-    theta = _theta_array(theta, "theta", g.n_angles)
+    theta = per_projection_array(theta, "theta", g.n_angles)
     f.create_dataset("implements", data="exchange:geometry")
     ex = f.create_group("exchange")
     d = ex.create_dataset("data", shape=g.shape, dtype=np.float32, compression=compression, chunks=chunks)
@@ -403,9 +165,9 @@ def create_scan_datasets(f, geometry, theta, *, background=False, compression=No
 
 def set_scan_attrs(f, bubble_contrast, attrs=None):
     """Write the root attributes of a scan file (``bubble_contrast`` in 1/mm, format version, extras)."""
-    contrast = _contrast(bubble_contrast, "bubble_contrast")
+    contrast = check_contrast(bubble_contrast, "bubble_contrast")
     attrs = dict(attrs or {})
-    bad = _RESERVED_ATTRS.intersection(attrs)
+    bad = RESERVED_ATTRS.intersection(attrs)
     if bad:
         raise ValueError(f"attrs may not use the reserved names {sorted(bad)}")
     values = {k: _attr_value(k, v) for k, v in attrs.items()}
@@ -466,7 +228,7 @@ def read_scan(path, *, bubble_contrast=None, rows=None):
         geometry = _read_geometry(f, p)
         full = geometry
         if rows is not None:
-            geometry = _row_window(geometry, rows, p.name)
+            geometry = row_window_geometry(geometry, rows, p.name)
         if "exchange/data" not in f or not isinstance(f["exchange/data"], h5py.Dataset):
             raise ValueError(f"{p.name}: missing dataset '/exchange/data' (the projections)")
         raw = "exchange/data_white" in f
@@ -489,12 +251,12 @@ def read_scan(path, *, bubble_contrast=None, rows=None):
                 )
             bubble_contrast = f.attrs["bubble_contrast"]
         try:
-            bubble_contrast = _contrast(np.asarray(bubble_contrast).item(), "bubble_contrast")
+            bubble_contrast = check_contrast(np.asarray(bubble_contrast).item(), "bubble_contrast")
         except ValueError as exc:
             raise ValueError(f"{p.name}: {exc}") from None
         attrs = {}
         for k, v in f.attrs.items():
-            if k in _RESERVED_ATTRS:
+            if k in RESERVED_ATTRS:
                 continue
             attrs[k] = v.decode() if isinstance(v, bytes) else (v.item() if isinstance(v, np.generic) else v)
     return Scan(
@@ -545,31 +307,11 @@ def _read_per_projection(f, name, geometry, p):
     return arr
 
 
-def _row_window(geometry, rows, where):
-    """The geometry of detector rows ``rows = (start, stop)`` of ``geometry`` (3D only); ``where`` names the
-    scan in the messages. The one check of a row window, of a file (:func:`read_scan`) or in memory
-    (:meth:`Scan.row_window`)."""
-    if geometry.ndim != 3:
-        raise ValueError(f"{where}: reading a subset of detector rows needs a 3D scan")
-    try:
-        start, stop = (int(r) for r in rows)
-    except (TypeError, ValueError):
-        raise ValueError(f"rows must be (start, stop), got {rows!r}") from None
-    if not 0 <= start < stop <= geometry.det_rows:
-        raise ValueError(f"{where}: rows ({start}, {stop}) do not lie within the detector's {geometry.det_rows} rows")
-    return geometry.window(start, 0, stop - start, geometry.det_cols)
-
-
-def _rows_of(rows):
-    """The index of the detector-row axis of a 3D dataset: all rows, or the slice ``rows``."""
-    return slice(None) if rows is None else slice(int(rows[0]), int(rows[1]))
-
-
 def _read_background(f, geometry, per_subscan, p, rows=None):
     """``/exchange/background``, per projection or (dynamic scans) one subscan's worth repeated."""
     ds = f["exchange/background"]
     if per_subscan is not None and ds.shape == (per_subscan, *geometry.shape[1:]) and ds.shape != geometry.shape:
-        one = np.asarray(ds[(slice(None), _rows_of(rows)) if rows is not None else ()])
+        one = np.asarray(ds[(slice(None), row_slice(rows)) if rows is not None else ()])
         _check_finite_named(one, "/exchange/background", p)
         reps = -(-geometry.n_angles // per_subscan)
         return np.tile(one, (reps,) + (1,) * (one.ndim - 1))[: geometry.n_angles]
@@ -650,11 +392,11 @@ def _read_dataset(f, name, geometry, p, rows=None):
     if ds.shape != geometry.shape:
         raise ValueError(
             f"{p.name}: '/{name}' has shape {ds.shape} but '/geometry/vectors' describes "
-            f"{_shape_words(geometry)}{_dynamic_hint(ds.shape, geometry)}"
+            f"{expected_shape(geometry, ds.shape)}"
         )
     if not (np.issubdtype(ds.dtype, np.floating) or np.issubdtype(ds.dtype, np.integer)):
         raise ValueError(f"{p.name}: '/{name}' must be numeric, got dtype {ds.dtype}")
-    return np.asarray(ds[()] if rows is None else ds[:, _rows_of(rows)])
+    return np.asarray(ds[()] if rows is None else ds[:, row_slice(rows)])
 
 
 def _check_finite_named(arr, name, p):
@@ -666,7 +408,7 @@ def _read_field(f, name, det_shape, p, rows=None):
     """A flat or dark field averaged to the detector shape (float64), or to its rows ``rows``."""
     ds = f[name]
     if rows is not None and ds.ndim in (len(det_shape), len(det_shape) + 1) and ds.shape[-2:] == tuple(det_shape):
-        cut = (_rows_of(rows),) if ds.ndim == len(det_shape) else (slice(None), _rows_of(rows))
+        cut = (row_slice(rows),) if ds.ndim == len(det_shape) else (slice(None), row_slice(rows))
         arr = np.asarray(ds[cut], dtype=np.float64)
         det_shape = (int(rows[1]) - int(rows[0]), *det_shape[1:])
     else:

@@ -10,8 +10,8 @@ lives, so the resident memory of a long run creeps up phase after phase.
 :func:`release_free_memory` (``malloc_trim``) gives the free pages back; the
 pipeline calls it at the end of each phase and fit level, where the arrays
 of the phase are gone. (Fixing the threshold instead keeps every large array
-in a mapping of its own, but then each of them costs fresh pages: on the
-~600-bubble column about 100,000 page faults per objective, 8 % of its time.)
+in a mapping of its own, but then each of them costs fresh pages, page
+faults on every objective of a dense column.)
 """
 
 from __future__ import annotations

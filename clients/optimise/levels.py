@@ -11,11 +11,10 @@ cap. A binned level's surfaces are subdivided one Loop step fewer per
 halving of the detector (:func:`coarse_surfaces`). A binned
 level costs about a quarter of the next one's evaluations, so it may take
 :data:`COARSE_ITERATIONS` times as many iterations for 3/4 of the next
-level's cost. On the ~600-bubble column of ``bubsub bench scale`` (40 x 256
-x 768 pixels, 76k unknowns) both levels end on convergence (113 binned and
-49 full-detector iterations) 0.60 % above a 300-iteration fit on the full
-detector, for 81 full-detector evaluations instead of 302
-(``python -m bubsub.bench levels``; docs/large-scans.md).
+level's cost. On a large column both levels end on convergence within a
+percent of a fit several times as long on the full detector, for a
+fraction of its full-detector evaluations (``python -m bubsub.bench levels``
+measures it; docs/large-scans.md).
 """
 
 from __future__ import annotations
@@ -73,10 +72,8 @@ def level_rtol(rtol, factor):
     of the bubbles is about ``1/f^2`` of the full detector's, but its noise floor, which dominates the objective
     near convergence, ``1/f^4`` (``f^2`` fewer values, each with ``f^2`` less variance). So the same
     progress is up to ``f^2`` times larger relative to a binned objective, and the same relative test held
-    a binned level to up to ``f^2`` times less progress than the full detector. On the ~600-bubble column
-    of ``bubsub bench scale`` the 2 x 2 level ran to its cap of 240 iterations with ``rtol``; with
-    ``4 rtol`` it converged in 113, the full detector then took 49 iterations instead of 54, and the final
-    objective was 0.2 % higher (``python -m bubsub.bench levels``; docs/large-scans.md).
+    a binned level to up to ``f^2`` times less progress than the full detector, and a 2 x 2 level would
+    run to its iteration cap (``python -m bubsub.bench levels`` measures both; docs/large-scans.md).
     """
     return None if rtol is None else float(rtol) * factor ** 2
 
@@ -88,12 +85,10 @@ def coarse_surfaces(surfaces, factor, levels):
     Binning the detector by 2 doubles the pixel and one Loop step fewer doubles the fine edges, so a
     binned level's projected faces cover as many pixels as the full detector's: on the binned detector
     most faces of the full subdivision hit one lattice point or none and the projection's cost is
-    theirs (the ~600-bubble column of ``bubsub bench scale``, 2 x 2 binned: 0.32 s per objective at
-    one level against 0.48 s at two). The control vertices, the unknowns, are the same at every level.
-    One level fewer makes a sphere 1.7 % larger; scaling the control vertices to keep each bubble's size
-    (``SubdivisionSurface.with_levels(keep_size=True)``) did not pay: on the ~600-bubble column of
-    ``bubsub bench scale`` the full-detector level then ran to its cap of 80 iterations (569.62, fit
-    173 s) where it converged in 43 (569.84, fit 120 s).
+    theirs (docs/large-scans.md). The control vertices, the unknowns, are the same at every level.
+    One level fewer makes a sphere 1.7 % larger; the control vertices are not scaled to keep each bubble's
+    size (``SubdivisionSurface.with_levels(keep_size=True)``): the full-detector level then starts farther
+    from its optimum and runs longer for an objective hardly lower.
     """
     drop = int(round(np.log2(factor)))
     return [s.with_levels(max(min(n, 1), n - drop)) for s, n in zip(surfaces, levels)]

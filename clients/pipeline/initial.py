@@ -360,7 +360,8 @@ def edge_slices(data, geometry, contrast, extent, voxel):
 
 
 #: A found bubble may reach this many times its initial radius from its centre along the rotation axis
-#: (:func:`edge_centres`; ~150-bubble column: at 1.0, 7 bubbles whose top the edge cuts got a second seed).
+#: (:func:`edge_centres`): an elongated bubble whose top the edge cuts reaches past its radius, and at 1.0 it
+#: would get a second seed.
 HALF_HEIGHT_OVER_RADIUS = 1.5
 
 

@@ -272,8 +272,8 @@ def local_refit(projector, surfaces, data, changed, *, iterations, touch, near=(
     after another, the residual updated after each: the cost follows the
     pixels the groups shadow, not the scan's size. When the groups' windows
     together hold more pixels than the scan (a repair that touched a large
-    part of a dense foam: on the ~2400-bubble column of ``bubsub bench
-    scale``, 248 groups whose windows averaged a third of the detector), all
+    part of a dense foam: hundreds of groups whose windows each cover a
+    large share of the detector), all
     their bubbles are fitted at once instead, on the whole detector, with the
     rest still held fixed: one fit whose evaluations project only those
     bubbles, instead of one fit per group over mostly the same pixels.
@@ -354,7 +354,7 @@ def _refit_joint(projector, surfaces, members, residual, iterations, penalty, su
     target = projector.forward(items).astype(np.float64)
     target -= residual  # the data minus every other bubble: the members' own projection minus the residual
     # L-BFGS whatever the count: the groups' union can reach dense BFGS's 6000 unknowns, whose inverse Hessian
-    # (288 MB, and as much again while it is made) set the ~600-bubble column's peak memory
+    # (288 MB, and as much again while it is made) would set the peak memory of a large column's run
     res = fit(projector, items, target, iterations=iterations, progress=progress, catch_interrupt=False,
               penalty=penalty, label=label, method="lbfgs")
     for k, s in zip(members, res.surfaces):

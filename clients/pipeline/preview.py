@@ -53,8 +53,8 @@ def preview_grid(geometry, voxel_size=None, extend=1.0):
     return VoxelGrid((nz, n, n), (-half, half, -half, half, -hz, hz))
 
 
-#: Voxels across the median bubble that :func:`voxel_for_bubbles` asks for (the ~600-bubble column of
-#: ``bubsub bench scale`` has 8.5 at the default voxel and seeds 604 of its 614 bubbles once each).
+#: Voxels across the median bubble that :func:`voxel_for_bubbles` asks for: enough for the distance
+#: transform to keep touching bubbles apart, so that nearly every bubble gets one seed (docs/scale.md).
 BUBBLE_VOXELS = 9.0
 
 #: Below this many voxels across the median bubble, :func:`voxel_for_bubbles` makes the preview finer.
@@ -68,11 +68,10 @@ def voxel_for_bubbles(radii, geometry, voxel, extend=1.0):
     """A finer preview voxel (mm) when the median bubble is fewer than :data:`MIN_BUBBLE_VOXELS` voxels
     across, else None.
 
-    The preview's voxel follows the field of view, not the bubbles: on the ~2400-bubble column of
-    ``bubsub bench scale`` (median bubble 30 pixels across, 5.7 voxels) touching bubbles fuse in it and
-    2058 of 2434 true bubbles get one seed each (311 none); at :data:`BUBBLE_VOXELS` voxels across, 2373
-    (49 none); preview and seeding, both passes, took 27 s of its 643 s run (7 s on the ~600 column).
-    The voxel asked for is no finer than a detector pixel at the axis and keeps the grid within
+    The preview's voxel follows the field of view, not the bubbles: where the median bubble is only a few
+    voxels across, touching bubbles fuse in it and many get no seed; at :data:`BUBBLE_VOXELS` voxels across
+    nearly all get one each, for a small share of the run's time (``bubsub bench scale``'s ~2400-bubble
+    column, docs/scale.md). The voxel asked for is no finer than a detector pixel at the axis and keeps the grid within
     :data:`MAX_PREVIEW_VOXELS`.
 
     Parameters

@@ -45,9 +45,8 @@ def refinable(surface):
     """Whether a bubble has a subdivision level to move into its control mesh, keeping one in 3D.
 
     A 3D control mesh left without a subdivision level is its own fine mesh, every vertex moved by the
-    fit on its own: on the ~2400-bubble column of ``bubsub bench scale``, whose small bubbles have one
-    level (:mod:`.resolution`), 830 of the refined bubbles folded. A bubble that small has a control
-    vertex every 4 pixels or so already.
+    fit on its own, and such meshes fold (bubbles small enough to have one level, :mod:`.resolution`). A
+    bubble that small has a control vertex every 4 pixels or so already.
     """
     return surface.levels >= (2 if surface.ndim == 3 else 1)
 
@@ -85,10 +84,9 @@ def out_of_reach(history, bar, left):
     """Whether a fit whose objectives so far are ``history`` (its start first) cannot get below ``bar`` in
     ``left`` more iterations without an iteration better than its best so far.
 
-    On a tomography-size scan the refinement's bar is far off (the ~600-bubble column of ``bubsub bench
-    scale``: 42 -> 162 control vertices per bubble need the objective 5.4 % lower; ten trial iterations
-    lowered it 0.4 %), and the trial's last iterations, each a projection of the whole scan, would change
-    nothing. Quasi-Newton iterations slow down as a fit proceeds, so a fit that would need its best
+    On a tomography-size scan the refinement's bar is far off (42 -> 162 control vertices per bubble
+    need the objective several percent lower, docs/large-scans.md), and the trial's last iterations, each a
+    projection of the whole scan, would change nothing. Quasi-Newton iterations slow down as a fit proceeds, so a fit that would need its best
     iteration's drop, or more, every iteration from here on is not going to make it.
     """
     drops = -np.diff(np.asarray(history, dtype=float))

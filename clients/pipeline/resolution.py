@@ -3,10 +3,9 @@
 Loop subdivision ``L`` times turns a control mesh into ``4^L`` times as many
 flat faces; the projector's cost follows the faces a view holds, not only
 the pixels. At a fixed number of levels a foam of small bubbles pays for
-faces the detector cannot tell apart: on the ~2400-bubble column of
-``bubsub bench scale`` (median diameter 30 pixels) two levels give faces of
-about 2 pixels, four times the ~600-bubble column's faces for 1.6 times its
-crossings, and a full-detector objective costs 2.6 times as much.
+faces the detector cannot tell apart: a bubble 30 pixels across at two
+levels has faces of about 2 pixels (docs/scale.md measures the cost on
+``bubsub bench scale``'s columns).
 
 A flat face of edge ``e`` on a surface of radius ``r`` stands at most
 ``e^2 / (8 r)`` from it (the sagitta of its chord). :func:`levels_by_size`
@@ -15,9 +14,7 @@ stand at most :data:`FACET_PIXELS` detector pixels from a sphere of the
 bubble's size: data resolved to a pixel do not see the difference, and the
 fit moves the control vertices to make up for the rest. With 42 control
 vertices one level meets 0.2 pixels up to a radius of about 18 pixels and
-two levels up to about 70; on the ~600-bubble column (median radius 24
-pixels) most bubbles keep two levels, on the ~2400-bubble one most take
-one.
+two levels up to about 70 (:func:`facet_depth`).
 """
 
 from __future__ import annotations

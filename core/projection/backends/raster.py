@@ -71,14 +71,13 @@ rasterises a chunk storing its crossings, takes the chunk's residual in
 place, and adds its face sums from the store at once. When a single view's
 crossings outgrow a thread's part of the store, the thread takes a store of
 its own holding one view (a quarter to spare, at most the whole budget):
-on the ~2400-bubble column (a view's 3 million crossings against 2.6
-million per thread) every view was otherwise rasterised twice. A scan's crossings
-rarely fit the store (a 40 x 178 x 768 slab of a ~600-bubble column has 53
-million, 1.7 GB), a few views' always do: a whole-scan trace then rasterised
-every view twice, and the objective of that slab took 1.9 s where it now
-takes 0.9 s (medians of three, two threads; the same f and gradient to
-rounding). A chunk that overflows all the same rasterises again for its
-face sums. The kernels see a chunk as a scan of its own views, so its
+otherwise every view of a dense foam, whose single views outgrow a thread's
+part, would be rasterised twice. A scan's crossings rarely fit the store (a
+slab of a dense column has tens of millions, gigabytes), a few views' always
+do: a whole-scan trace would rasterise every view twice, the view-by-view
+objective rasterises it once (docs/projector.md measures both on a slab of
+``bubsub bench scale``'s column). A chunk that overflows all the same
+rasterises again for its face sums. The kernels see a chunk as a scan of its own views, so its
 projection needs a buffer of the chunk's pixels only.
 
 Threads: projections are split into contiguous groups, one per worker thread
@@ -399,7 +398,7 @@ class _Job:
                 if q - p == 1 and int(1.25 * c) * 32 <= store_bytes():
                     # one view outgrows the group's part of the store: a store of the group's own that holds
                     # one view with a quarter to spare (within the whole budget), or every view is rasterised
-                    # twice (the ~2400-bubble column of bubsub bench scale: 6.1 s per objective, 3.4 s with)
+                    # twice (dense foams, whose views each hold millions of crossings)
                     room = int(1.25 * c)
                     face, pix, coef = np.empty(room, np.int32), np.empty(room, np.int32), np.empty((room, 3))
             # the next chunk: as many views as the store held of this one's, with a tenth to spare

@@ -149,11 +149,10 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         The data term ``0.5 ||Proj(S x) - d||^2`` the coarse bubbles had before a
         repair that preceded the refinement: the trial starts from their objective
         less the repair's rise in that term. A repair's separations raise the data
-        term by what any refit regains, coarse or refined: on the ~2400-bubble
-        column of ``bubsub bench scale`` one raised it from 565 to 638, the refined
-        fit passed its trial on the way back and ran its 80 iterations over the
-        whole scan to 555 (the refine phase: 305 s), and its own repair then cost
-        it the advantage.
+        term by what any refit regains, coarse or refined: measured from the
+        raised objective, a refined fit would pass its trial merely by regaining
+        it, run all its iterations over the whole scan, and lose the advantage
+        to its own repair (docs/scale.md, the ~2400-bubble column).
 
     Returns
     -------

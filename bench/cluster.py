@@ -19,19 +19,21 @@ import argparse
 import json
 import os
 import statistics
+import subprocess
 import tempfile
 import time
 from pathlib import Path
 
+from bubsub.bench.reconstruct import cli_command
+
 
 def _simulate(ndim, folder):
-    from bubsub.clients.cli.main import main
-
     args = (["--phantom", "expanding2d", "--bubbles", "10", "--det-count", "240", "--subscans", "6",
              "--projections-per-subscan", "16"] if ndim == 2 else
             ["--phantom", "expanding3d", "--bubbles", "6", "--det-count", "64", "--subscans", "4",
              "--projections-per-subscan", "16"])
-    assert main(["simulate", *args, "--seed", "5", "--out", str(folder)]) == 0
+    subprocess.run(cli_command("simulate", *args, "--seed", "5", "--out", folder), check=True,
+                   stdout=subprocess.DEVNULL)
     return folder / "scan.h5"
 
 

@@ -24,12 +24,12 @@ def version():
 
 def __getattr__(name):
     if name in ("fit", "estimate_radii", "FitResult"):
-        from .optimise import fit as module
+        from bubsub.clients.optimise import fit as module
 
         return getattr(module, name)
     # httpx is optional: import the client only when it is used
     if name in ("ProjectorClient", "RemoteJob", "RemoteError", "RemoteValueError", "UnknownJobError"):
-        from .remote import client
+        from bubsub.clients.remote import client
 
         return getattr(client, name)
     raise AttributeError(f"module 'bubsub.clients' has no attribute {name!r}")

@@ -17,16 +17,16 @@ import threading
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from . import errors
-from .body import BodyLimitMiddleware
-from .concurrency import RequestLimitMiddleware
-from .config import Settings, get_settings
-from .metrics import MetricsMiddleware
-from .openapi import EXTRA_MODELS, add_docs
-from .routes import ROUTERS
-from .schemas import DataFile
-from .server import connection_limits
-from .state import ServiceState
+from bubsub.service import errors
+from bubsub.service.body import BodyLimitMiddleware
+from bubsub.service.concurrency import RequestLimitMiddleware
+from bubsub.service.config import Settings, get_settings
+from bubsub.service.metrics import MetricsMiddleware
+from bubsub.service.openapi import EXTRA_MODELS, add_docs
+from bubsub.service.routes import ROUTERS
+from bubsub.service.schemas import DataFile
+from bubsub.service.server import connection_limits
+from bubsub.service.state import ServiceState
 
 __all__ = ["create_app", "app"]
 

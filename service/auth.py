@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 
-from .errors import APIError
+from bubsub.service.errors import APIError
 
 __all__ = ["TokenAuth", "ANONYMOUS"]
 

@@ -13,7 +13,7 @@ import asyncio
 
 from starlette.requests import ClientDisconnect, Request
 
-from .errors import APIError, error_response
+from bubsub.service.errors import APIError, error_response
 
 __all__ = ["BodyLimitMiddleware", "read_body"]
 

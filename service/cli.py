@@ -89,7 +89,7 @@ def settings_from_args(args):
     """
     from pydantic import ValidationError
 
-    from .config import Settings
+    from bubsub.service.config import Settings
 
     overrides = {key: getattr(args, key) for key in _OPTIONS if getattr(args, key, None) is not None}
     try:
@@ -165,8 +165,8 @@ def run_serve(args):
     # tried before the app is imported and made: a bad address or a taken port is one line here, at once, not
     # uvicorn's startup log
     bind_socket(settings.host, settings.port).close()
-    from .app import create_app
-    from .server import Server, uvicorn_config
+    from bubsub.service.app import create_app
+    from bubsub.service.server import Server, uvicorn_config
 
     config = uvicorn_config(create_app(settings), settings)
     Server(config).run()

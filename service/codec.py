@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib import format as npformat
 
-from .errors import APIError
+from bubsub.service.errors import APIError
 
 __all__ = [
     "NPY",

@@ -19,7 +19,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
-from .errors import APIError
+from bubsub.service.errors import APIError
 
 __all__ = ["ComputePool"]
 

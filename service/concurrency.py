@@ -9,7 +9,7 @@ response ends, also when its client has gone (uvicorn's task still runs).
 
 from __future__ import annotations
 
-from .errors import error_response
+from bubsub.service.errors import error_response
 
 __all__ = ["RequestLimitMiddleware", "MONITORING_PATHS"]
 

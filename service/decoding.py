@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from pydantic import ValidationError
 
-from .codec import JSON, MULTIPART, NPY, NPZ, decode_arrays, decode_npy, parse_multipart
-from .errors import APIError
-from .schemas import DataFile, JobCreate
+from bubsub.service.codec import JSON, MULTIPART, NPY, NPZ, decode_arrays, decode_npy, parse_multipart
+from bubsub.service.errors import APIError
+from bubsub.service.schemas import DataFile, JobCreate
 
 __all__ = ["JOB_PARTS", "check_json_size", "parse_spec", "decode_job_body", "decode_compute_body",
            "decode_upload_body"]

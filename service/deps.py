@@ -11,10 +11,10 @@ from typing import Annotated
 from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from .body import read_body
-from .config import Settings
-from .jobs import Job
-from .state import ServiceState
+from bubsub.service.body import read_body
+from bubsub.service.config import Settings
+from bubsub.service.jobs import Job
+from bubsub.service.state import ServiceState
 
 __all__ = ["StateDep", "SettingsDep", "OwnerDep", "JobDep", "BodyDep", "JobId"]
 

@@ -79,7 +79,7 @@ def error_response(status, detail, code=None, headers=None):
 
 def error_responses(*statuses):
     """``responses=`` entries documenting JSON errors for ``statuses`` (422 always)."""
-    from .schemas import Error
+    from bubsub.service.schemas import Error
 
     statuses = sorted(set(statuses) | {422})  # any route with parameters can fail validation
     return {s: {"description": _CODES.get(s, "error").replace("_", " "), "model": Error} for s in statuses}

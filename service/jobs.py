@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core import Mesh, MeshProjector, Polygon, ScanGeometry, SubdivisionSurface, loop_subdivision
-from ..core.projection.backends.base import check_deadline
-from .errors import APIError
+from bubsub.core import Mesh, MeshProjector, Polygon, ScanGeometry, SubdivisionSurface, loop_subdivision
+from bubsub.core.projection.backends.base import check_deadline
+from bubsub.service.errors import APIError
 
 __all__ = ["Group", "Job", "regular_polygon", "topology_bytes", "build_job", "check_compute_timeout"]
 

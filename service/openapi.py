@@ -6,9 +6,9 @@ from fastapi import HTTPException, Request
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse
 
-from .codec import JSON, MULTIPART, NPY, NPZ
-from .errors import error_responses
-from .schemas import JobCreate
+from bubsub.service.codec import JSON, MULTIPART, NPY, NPZ
+from bubsub.service.errors import error_responses
+from bubsub.service.schemas import JobCreate
 
 __all__ = ["binary_body", "binary_response", "job_create_body", "errors", "add_docs", "DOCS_ASSETS"]
 

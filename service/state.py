@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .auth import TokenAuth
-from .budget import ComputeBudget
-from .compute import ComputePool
-from .config import Settings
-from .metrics import RequestMetrics
-from .store import JobStore
+from bubsub.service.auth import TokenAuth
+from bubsub.service.budget import ComputeBudget
+from bubsub.service.compute import ComputePool
+from bubsub.service.config import Settings
+from bubsub.service.metrics import RequestMetrics
+from bubsub.service.store import JobStore
 
 __all__ = ["ServiceState"]
 

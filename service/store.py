@@ -10,7 +10,7 @@ from __future__ import annotations
 import secrets
 import time
 
-from .errors import APIError
+from bubsub.service.errors import APIError
 
 __all__ = ["JobStore"]
 

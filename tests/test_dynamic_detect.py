@@ -146,10 +146,9 @@ def test_analysis_takes_coalescences_and_appearances_from_the_lineage():
         ("coalescence", 3, 7), ("coalescence", 4, 7), ("appearance", 5, None)}
 
 
-def test_ids_of_new_bubbles_stay_unique_across_chunks(monkeypatch):
+def test_ids_of_new_bubbles_stay_unique_across_chunks():
     """Each chunk numbers its new bubbles from its own cold start; the linker gives them fresh ids."""
     from bubsub.clients.cluster.dynamic import run_chunks
-    from bubsub.clients.pipeline import dynamic
 
     def scripted(scan, previous, settings, index=0, time=0.0):
         if previous is None:  # the same two bubbles wherever a chunk starts cold
@@ -162,9 +161,8 @@ def test_ids_of_new_bubbles_stay_unique_across_chunks(monkeypatch):
         return SubscanResult(index, time, state, (), {"start": "warm", "ended": {}, "new": {str(new): "inside"},
                                                       "coalescences": []})
 
-    monkeypatch.setattr(dynamic, "reconstruct_subscan", scripted)
     results, interrupted, links = run_chunks(None, lambda k: None, [3, 2, 1, 0], DynamicSettings(progress=False),
-                                             chunks=2)
+                                             step=scripted, chunks=2)
     assert not interrupted and sorted(r.index for r in results) == [0, 1, 2, 3]
     states = {r.index: r for r in results}
     # chunk 0 (subscans 3, 2, 1) found ids 2 and 3; chunk 1's own id 2 (found at subscan 0) must not reuse them

@@ -1,3 +1,3 @@
-from .main import main
+from bubsub.clients.cli.main import main
 
 __all__ = ["main"]

@@ -9,8 +9,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from bubsub.clients.cluster.engine import spec_from_options
+from bubsub.clients.pipeline.outputs import folder_problem
+
 __all__ = ["positive_int", "non_negative_int", "int_at_least", "positive_float", "non_negative_float",
-           "existing_file", "output_folder", "add_output_arguments"]
+           "existing_file", "output_folder", "add_output_arguments", "add_cluster_arguments", "spec_from_args"]
 
 
 def _number(text, kind):
@@ -76,8 +79,6 @@ def existing_file(text):
 def output_folder(text):
     """A folder to write into: refused when it names a file or lies under one (the policy on earlier
     results is :func:`bubsub.clients.pipeline.outputs.check_output_folder`)."""
-    from bubsub.clients.pipeline.outputs import folder_problem
-
     problem = folder_problem(text)
     if problem:
         raise argparse.ArgumentTypeError(problem)
@@ -93,3 +94,21 @@ def add_output_arguments(parser, what="results", default=None):
                              f"results is refused unless --overwrite{note})")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the results of an earlier run in --out (its other files are removed)")
+
+
+def add_cluster_arguments(parser):
+    """Add ``--workers N``, ``--scheduler ADDRESS``, ``--scheduler-file F`` and ``--dashboard`` to ``parser``
+    (:func:`spec_from_args` turns them into a :class:`~bubsub.clients.cluster.engine.ClusterSpec`)."""
+    g = parser.add_argument_group("cluster (default: in this process; needs the 'cluster' extra otherwise)")
+    g.add_argument("--workers", type=positive_int, metavar="N",
+                   help="run on an embedded Dask LocalCluster of N worker processes on 127.0.0.1")
+    g.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on an existing Dask cluster, tcp://HOST:PORT (also: $DASK_SCHEDULER_ADDRESS)")
+    g.add_argument("--scheduler-file", metavar="FILE", help="run on the Dask cluster whose scheduler wrote FILE")
+    g.add_argument("--dashboard", action="store_true", help="serve the embedded cluster's dashboard on 127.0.0.1")
+    return g
+
+
+def spec_from_args(args):
+    """:func:`~bubsub.clients.cluster.engine.spec_from_options` of parsed :func:`add_cluster_arguments` options."""
+    return spec_from_options(args.workers, args.scheduler, args.scheduler_file, args.dashboard)

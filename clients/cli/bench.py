@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from bubsub.bench.__main__ import BENCHMARKS
+from bubsub.bench.__main__ import BENCHMARKS, main as bench_main
 
 
 def _epilog():
@@ -15,8 +15,6 @@ def _epilog():
 
 
 def cmd_bench(args):
-    from bubsub.bench.__main__ import main as bench_main
-
     return bench_main([args.name, *args.options])
 
 

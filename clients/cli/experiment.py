@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from bubsub.clients.cli.args import add_output_arguments, positive_int
-from bubsub.clients.cluster.engine import add_cluster_arguments
+from bubsub.clients.cli.args import add_cluster_arguments, add_output_arguments, positive_int, spec_from_args
+from bubsub.clients.experiments.fig6 import FIG6_CONFIGS, run_fig6
+from bubsub.clients.experiments.runner import EXPERIMENTS, run_experiment
 
 
 #: The 4D experiments (clients/experiments/fig6.py) and their dimension; the others are in ``EXPERIMENTS``.
@@ -14,14 +15,10 @@ DYNAMIC_EXPERIMENTS = {"fig6": 2, "fig6-3d": 3}
 
 def experiment_names():
     """Every name ``bubsub experiment`` takes: the sweeps of ``EXPERIMENTS``, then the 4D ones."""
-    from bubsub.clients.experiments.runner import EXPERIMENTS
-
     return tuple(EXPERIMENTS) + tuple(DYNAMIC_EXPERIMENTS)
 
 
 def _dynamic_lines(name, ndim):
-    from bubsub.clients.experiments.fig6 import FIG6_CONFIGS
-
     c = FIG6_CONFIGS[(ndim, False)]
     beam = "parallel" if ndim == 2 else "cone"
     return (f"  {name:<7} {ndim}D expanding foam: 4D BubSub against voxel baselines per subscan (docs/dynamic.md)\n"
@@ -30,8 +27,6 @@ def _dynamic_lines(name, ndim):
 
 
 def _experiments_epilog():
-    from bubsub.clients.experiments.runner import EXPERIMENTS
-
     lines = ["experiments (the setting swept, its paper values, the methods compared):"]
     for e in EXPERIMENTS.values():
         values = ", ".join(f"{v:g}" for v in e.values)
@@ -45,8 +40,7 @@ def _experiments_epilog():
 
 
 def cmd_experiment(args):
-    from bubsub.clients.cluster.engine import open_client, spec_from_args
-    from bubsub.clients.experiments.runner import run_experiment
+    from bubsub.clients.cluster.engine import open_client
 
     spec = spec_from_args(args)
     if args.name in DYNAMIC_EXPERIMENTS:
@@ -62,8 +56,6 @@ def cmd_experiment(args):
 
 
 def _fig6(args):
-    from bubsub.clients.experiments.fig6 import run_fig6
-
     if args.values or args.methods or (args.seeds or 1) != 1:
         raise ValueError(f"{args.name} runs one seed of every method; --values, --methods and --seeds do not apply")
     s = run_fig6(args.out, ndim=DYNAMIC_EXPERIMENTS[args.name], quick=args.quick, progress=not args.quiet,

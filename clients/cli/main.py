@@ -12,8 +12,11 @@ line too (``bubsub COMMAND: warning: ...``), without Python's source line.
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 import warnings
+
+from bubsub.clients import version
 
 __all__ = ["main", "build_parser"]
 
@@ -45,10 +48,6 @@ class OneLineParser(argparse.ArgumentParser):
 
 
 def build_parser():
-    import importlib
-
-    from bubsub.clients import version
-
     ap = OneLineParser(
         prog="bubsub", description="Direct mesh reconstruction of wet-foam bubbles from sparse-view X-ray CT.",
         epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -6,12 +6,11 @@ import argparse
 import re
 
 from bubsub.clients.cli.args import positive_float, positive_int
+from bubsub.core.prep.options import parse_quantity, prepare_options
 
 
 def _quantity(kind, name):
     def parse(text):
-        from bubsub.core.prep.options import parse_quantity
-
         try:
             return parse_quantity(text, kind, name=name)
         except ValueError as exc:  # argparse names the option already
@@ -45,7 +44,6 @@ def _with_sigterm_as_interrupt(func, *args, **kwargs):
 
 
 def cmd_prepare(args):
-    from bubsub.core.prep.options import prepare_options
     from bubsub.core.prep.pipeline import prepare
 
     background = args.background

@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from bubsub.clients.cli.args import add_output_arguments, existing_file, non_negative_int, positive_float, positive_int
-from bubsub.clients.cluster.engine import add_cluster_arguments
+from bubsub.clients.cli.args import (add_cluster_arguments, add_output_arguments, existing_file, non_negative_int,
+                                     positive_float, positive_int, spec_from_args)
+from bubsub.clients.pipeline.outputs import check_output_folder, write_outputs
+from bubsub.clients.remote.jobs import remote_projectors
 
 _EPILOG = """\
 Order of work: the arguments, the output folder, the scan file's metadata and its
@@ -25,9 +27,8 @@ SIGNAL_CHECK_ROWS = 64
 def cmd_reconstruct(args):
     from bubsub.core.io.scanfile import read_geometry, read_scan
 
-    from bubsub.clients.cluster.engine import open_client, spec_from_args
-    from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
-    from bubsub.clients.pipeline.outputs import check_output_folder, write_outputs
+    from bubsub.clients.cluster.engine import open_client
+    from bubsub.clients.pipeline.checks import check_bubble_signal
     from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, load_initial, reconstruct
     from bubsub.clients.pipeline.slabs import slab_count
 
@@ -43,8 +44,9 @@ def cmd_reconstruct(args):
         fov_model=args.fov_model, separation=args.separation, refine=not args.no_refine,
         data_levels=args.data_levels, fit_rtol=None if args.fit_rtol == 0 else args.fit_rtol,
     )
+    # the settings' values are checked as they are made, the rest with the scan: by the pipeline
+    # (reconstruct, reconstruct_slabs), once per scan
     geometry = read_geometry(args.scan)
-    check_settings(settings, geometry.ndim)
     spec = spec_from_args(args)
     if args.slabs != 1 and geometry.ndim == 3 and not geometry.is_cone:
         # slabs read the scan piece by piece and after a preview that sets their halo: its signal is checked
@@ -60,7 +62,7 @@ def cmd_reconstruct(args):
         from bubsub.clients.pipeline.slabs import reconstruct_slabs
 
         if args.server:
-            from bubsub.clients.remote.client import connect
+            from bubsub.clients.remote.client import connect  # the 'client' extra
 
             connect(args.server, args.token).close()  # checked at start, not after the first slab
         with open_client(spec) as client:
@@ -70,33 +72,13 @@ def cmd_reconstruct(args):
     scan = read_scan(args.scan)
     if args.holdout and scan.n_angles < 2:
         raise ValueError("--holdout needs a scan with at least two projections")
-    check_bubble_signal(scan, background_subtracted=args.background_subtracted)
     init = load_initial(args.init, scan.bubble_contrast, args.levels) if args.init else None
     if init is not None and init[0].ndim != scan.ndim:
         raise ValueError(f"--init {args.init} holds {init[0].ndim}D bubbles but the scan is {scan.ndim}D")
-    factory = None
-    client = None
-    jobs = []
-    if args.server:
-        from bubsub.clients.remote.client import connect
-
-        client = connect(args.server, args.token)
-
-        def factory(geometry, data, surfaces):
-            job = client.create_job(geometry, data=data, surfaces=surfaces, supersampling=args.supersampling)
-            jobs.append(job)
-            return job
-
-    try:
+    # the scan's signal and the settings against its dimension are checked by reconstruct()
+    with remote_projectors(args.server, args.token, supersampling=args.supersampling,
+                           on_cleanup_error=_cleanup_warning) as factory:
         rec = reconstruct(scan, settings, init=init, projector_factory=factory)
-    finally:
-        if client is not None:
-            for job in jobs:  # free the server's memory now rather than at expiry
-                try:
-                    job.delete()
-                except Exception as exc:  # noqa: BLE001 - the result matters more than the clean-up
-                    print(f"bubsub reconstruct: could not delete remote job: {exc}", file=sys.stderr)
-            client.close()
     if args.holdout and not rec.report["interrupted"]:
         # the paper's voxel reference on the same projections: 30 BB iterations, x >= 0
         from bubsub.clients.pipeline.voxel4d import voxel_baseline
@@ -106,10 +88,12 @@ def cmd_reconstruct(args):
     return _finish(args, out, rec)
 
 
+def _cleanup_warning(exc):
+    print(f"bubsub reconstruct: could not delete remote job: {exc}", file=sys.stderr)
+
+
 def _finish(args, out, rec):
     """Write the outputs and print the summary; the exit status (130 when interrupted)."""
-    from bubsub.clients.pipeline.outputs import write_outputs
-
     files = write_outputs(out, rec, scan_path=args.scan, progress=not args.quiet)
     r = rec.report
     if r.get("slabs"):

@@ -4,15 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bubsub.clients.cli.args import add_output_arguments, non_negative_float, non_negative_int, positive_int
+from bubsub.clients.cli.args import (add_cluster_arguments, add_output_arguments, non_negative_float,
+                                     non_negative_int, positive_int, spec_from_args)
 from bubsub.clients.cli.reconstruct import add_slab_arguments
-from bubsub.clients.cluster.engine import add_cluster_arguments
 
 
 def cmd_reconstruct4d(args):
     from bubsub.core.io.scanfile import read_scan
 
-    from bubsub.clients.cluster.engine import open_client, spec_from_args
+    from bubsub.clients.cluster.engine import open_client
     from bubsub.clients.pipeline.dynamic import DynamicSettings
     from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
     from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs

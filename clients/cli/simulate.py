@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from bubsub.clients.cli.args import add_output_arguments, int_at_least, non_negative_int, positive_float, positive_int
 from bubsub.clients.pipeline.simulation import DYNAMIC_PHANTOMS, PHANTOMS, simulate_dynamic_to_dir, simulate_to_dir
+from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs
+from bubsub.clients.pipeline.simulation import simulate_flowing_to_dir, simulate_raw_to_dir
+from bubsub.core.foam.column import column_phantom, simulate_column, write_column
 
 
 def cmd_simulate(args):
-    from bubsub.clients.pipeline.outputs import check_output_folder
-
     if args.phantom in DYNAMIC_PHANTOMS:
         if args.angles is not None:
             raise ValueError("a dynamic phantom takes --subscans and --projections-per-subscan, not --angles")
@@ -33,8 +34,6 @@ def cmd_simulate(args):
 
 
 def _simulate_raw(args, out):
-    from bubsub.clients.pipeline.simulation import simulate_raw_to_dir
-
     kw = {"n_angles": args.angles or 180, "photons": args.photons}
     if args.det_count:  # keep the 9.6 mm detector of the default 800 columns of 12 um
         kw.update(cols=args.det_count, pixel_size=9.6 / args.det_count)
@@ -46,9 +45,6 @@ def _simulate_raw(args, out):
 
 
 def _simulate_column(args, out):
-    from bubsub.core.foam.column import column_phantom, simulate_column, write_column
-    from bubsub.clients.pipeline.outputs import finish_outputs
-
     if args.beam == "cone":
         raise ValueError("the column phantom is a parallel-beam scan; drop --beam cone")
     cols = args.det_count or 768
@@ -78,8 +74,6 @@ def _simulate_dynamic(args, out):
 
 
 def _simulate_flowing(args, out):
-    from bubsub.clients.pipeline.simulation import simulate_flowing_to_dir
-
     if args.beam == "cone":
         raise ValueError("the flowing3d phantom is a parallel-beam scan; drop --beam cone")
     foam = {k: v for k in ("flow", "vanishing", "coalescences") if (v := getattr(args, k)) is not None}

@@ -10,8 +10,8 @@ only when a cluster is asked for; it comes with the ``cluster`` extra
 (``pip install 'bubsub[cluster]'``).
 """
 
-from .engine import (ClusterSpec, add_cluster_arguments, from_scheduler_file, in_process, local, open_client,
-                     remote, run_tasks, spec_from_args, spec_from_options)
+from bubsub.clients.cluster.engine import (ClusterSpec, from_scheduler_file, in_process, local, open_client, remote,
+                                           run_tasks, spec_from_options)
 
-__all__ = ["ClusterSpec", "in_process", "local", "remote", "from_scheduler_file", "spec_from_options",
-           "spec_from_args", "add_cluster_arguments", "open_client", "run_tasks"]
+__all__ = ["ClusterSpec", "in_process", "local", "remote", "from_scheduler_file", "spec_from_options", "open_client",
+           "run_tasks"]

@@ -62,24 +62,24 @@ def _read_scan(path, bubble_contrast):
     return read_scan(path, bubble_contrast=bubble_contrast)
 
 
-def run_subscan(source, index, previous, settings, time):
-    """One subscan as a task: ``reconstruct_subscan`` of the subscan read from ``source``.
+def run_subscan(step, source, index, previous, settings, time):
+    """One subscan as a task: ``step`` on the subscan read from ``source``.
 
     Parameters
     ----------
+    step : callable(scan, state, settings, index, time) -> SubscanResult
+        Module-level (picklable): :func:`bubsub.clients.pipeline.dynamic.reconstruct_subscan`.
     source : ScanFileSubscans or Scan
         The scan file to read from, or the subscan itself.
     index : int
     previous : SubscanResult, BubbleState or None
-        The successor's result (a Dask future's value) or state; None: cold start.
+        The successor's result (a Dask future's value) or its state; None: cold start.
     settings : DynamicSettings
     time : float
     """
-    from bubsub.clients.pipeline.dynamic import SubscanResult, reconstruct_subscan
-
     scan = source.get(index) if isinstance(source, ScanFileSubscans) else source
-    state = previous.state if isinstance(previous, SubscanResult) else previous
-    return reconstruct_subscan(scan, state, settings, index, time)
+    state = getattr(previous, "state", previous)  # a SubscanResult's state, or the state itself
+    return step(scan, state, settings, index, time)
 
 
 def chunk_bounds(order, chunks):
@@ -249,7 +249,7 @@ class _Linker:
         return True
 
 
-def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=None, on_result=None, retries=3):
+def run_chunks(client, source, order, settings, *, step, chunks=1, start=None, times=None, on_result=None, retries=3):
     """Reconstruct subscans ``order`` (latest first) as chained tasks, in ``chunks`` chunks.
 
     Parameters
@@ -261,6 +261,9 @@ def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=N
         a scan without a file is shipped subscan by subscan).
     order : sequence of int
     settings : DynamicSettings
+    step : callable(scan, state, settings, index, time) -> SubscanResult
+        One subscan, module-level (picklable):
+        :func:`bubsub.clients.pipeline.dynamic.reconstruct_subscan`.
     chunks : int
     start : BubbleState, optional
         State the latest chunk starts from (a resumed run); others start cold.
@@ -312,7 +315,7 @@ def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=N
             for c, part in enumerate(parts):
                 prev = start if c == 0 else None
                 for k in part:
-                    prev = run_subscan(where(k), k, prev, worker_settings, when(k))
+                    prev = run_subscan(step, where(k), k, prev, worker_settings, when(k))
                     take(c, prev)
         else:
             dd = distributed()
@@ -322,8 +325,8 @@ def run_chunks(client, source, order, settings, *, chunks=1, start=None, times=N
                 for k in part:
                     # the latest chunk first where workers are scarce: its results are final at once and gate
                     # every link
-                    prev = client.submit(run_subscan, where(k), k, prev, worker_settings, when(k), retries=retries,
-                                         priority=-c, key=f"subscan-{k:04d}-chunk{c}-{token}")
+                    prev = client.submit(run_subscan, step, where(k), k, prev, worker_settings, when(k),
+                                         retries=retries, priority=-c, key=f"subscan-{k:04d}-chunk{c}-{token}")
                     futures.append(prev)
                     owner[prev.key] = c
             try:

@@ -20,11 +20,10 @@ from dataclasses import dataclass
 
 from bubsub.core.validate import check_int
 
-from .environment import pinned_environment
+from bubsub.clients.cluster.environment import pinned_environment
 
-__all__ = ["ClusterSpec", "in_process", "local", "remote", "from_scheduler_file", "spec_from_options",
-           "spec_from_args", "add_cluster_arguments", "open_client", "run_tasks", "workers_of",
-           "distributed"]
+__all__ = ["ClusterSpec", "in_process", "local", "remote", "from_scheduler_file", "spec_from_options", "open_client",
+           "run_tasks", "workers_of", "distributed"]
 
 #: what ``import dask.distributed`` failing tells the user
 _INSTALL_HINT = "running on a Dask cluster needs the 'cluster' extra: pip install 'bubsub[cluster]'"
@@ -124,25 +123,6 @@ def spec_from_options(workers=None, scheduler=None, scheduler_file=None, dashboa
     return remote(address) if address else in_process()
 
 
-def add_cluster_arguments(parser):
-    """Add ``--workers N``, ``--scheduler ADDRESS``, ``--scheduler-file F`` and ``--dashboard`` to ``parser``."""
-    from bubsub.clients.cli.args import positive_int
-
-    g = parser.add_argument_group("cluster (default: in this process; needs the 'cluster' extra otherwise)")
-    g.add_argument("--workers", type=positive_int, metavar="N",
-                   help="run on an embedded Dask LocalCluster of N worker processes on 127.0.0.1")
-    g.add_argument("--scheduler", metavar="ADDRESS",
-                   help="run on an existing Dask cluster, tcp://HOST:PORT (also: $DASK_SCHEDULER_ADDRESS)")
-    g.add_argument("--scheduler-file", metavar="FILE", help="run on the Dask cluster whose scheduler wrote FILE")
-    g.add_argument("--dashboard", action="store_true", help="serve the embedded cluster's dashboard on 127.0.0.1")
-    return g
-
-
-def spec_from_args(args):
-    """:func:`spec_from_options` of parsed :func:`add_cluster_arguments` options."""
-    return spec_from_options(args.workers, args.scheduler, args.scheduler_file, args.dashboard)
-
-
 def distributed():
     """The ``dask.distributed`` module; an ImportError naming the ``cluster`` extra when it is missing."""
     try:
@@ -159,7 +139,7 @@ def open_client(spec):
         yield None
         return
     dd = distributed()
-    from .worker import PinThreads
+    from bubsub.clients.cluster.worker import PinThreads
 
     cluster = None
     if spec.workers is not None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from bubsub.core.validate import check_int
 
-from .environment import pinned_environment
+from bubsub.clients.cluster.environment import pinned_environment
 
 __all__ = ["slurm_cluster"]
 

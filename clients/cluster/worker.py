@@ -6,7 +6,7 @@ import os
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from .environment import pinned_environment
+from bubsub.clients.cluster.environment import pinned_environment
 
 __all__ = ["PinThreads"]
 

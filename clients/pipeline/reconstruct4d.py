@@ -114,8 +114,9 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
     else:
         source = (ScanFileSubscans(str(scan.path), scan.bubble_contrast, layout.per_subscan) if scan.path
                   and client is not None else lambda k: subscan(scan, layout, k))
-        results, interrupted, links = run_chunks(client, source, order[len(done):], settings, chunks=chunks,
-                                                 start=start, times=times, on_result=write)
+        results, interrupted, links = run_chunks(client, source, order[len(done):], settings,
+                                                 step=reconstruct_subscan, chunks=chunks, start=start, times=times,
+                                                 on_result=write)
         engine = {"engine": "dask" if client is not None else "local", "workers": max(1, workers_of(client)),
                   "chunks": chunks, "chunk_links": links}
     return outputs.write_summary(out, prior + results, layout=layout, time_unit=unit, settings=settings,

@@ -1,6 +1,6 @@
 """HTTP routes, one module per resource."""
 
-from . import compute, data, health, jobs, metrics
+from bubsub.service.routes import compute, data, health, jobs, metrics
 
 __all__ = ["compute", "data", "health", "jobs", "metrics", "ROUTERS"]
 

@@ -13,14 +13,14 @@ import time
 
 from fastapi import APIRouter, Request, Response
 
-from ...core.projection.backends.base import check_deadline
-from ...core.projection.projector import DeadlineExceeded
-from ..budget import check_job, estimate
-from ..codec import NPY, NPZ, content_type, encode_npy, encode_npz
-from ..decoding import decode_compute_body
-from ..deps import BodyDep, JobDep, StateDep
-from ..errors import APIError
-from ..openapi import binary_body, binary_response, errors
+from bubsub.core.projection.backends.base import check_deadline
+from bubsub.core.projection.projector import DeadlineExceeded
+from bubsub.service.budget import check_job, estimate
+from bubsub.service.codec import NPY, NPZ, content_type, encode_npy, encode_npz
+from bubsub.service.decoding import decode_compute_body
+from bubsub.service.deps import BodyDep, JobDep, StateDep
+from bubsub.service.errors import APIError
+from bubsub.service.openapi import binary_body, binary_response, errors
 
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["compute"])
 

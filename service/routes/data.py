@@ -6,13 +6,13 @@ from pathlib import Path
 
 from fastapi import APIRouter, Request
 
-from ..codec import JSON, NPY, content_type, decode_npy, decode_npz
-from ..decoding import decode_upload_body
-from ..deps import BodyDep, JobDep, StateDep
-from ..errors import APIError
-from ..openapi import errors
-from ..schemas import DataFile, JobInfo
-from .jobs import job_info
+from bubsub.service.codec import JSON, NPY, content_type, decode_npy, decode_npz
+from bubsub.service.decoding import decode_upload_body
+from bubsub.service.deps import BodyDep, JobDep, StateDep
+from bubsub.service.errors import APIError
+from bubsub.service.openapi import errors
+from bubsub.service.schemas import DataFile, JobInfo
+from bubsub.service.routes.jobs import job_info
 
 router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["data"])
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
-from ..deps import StateDep
-from ..schemas import Status
+from bubsub.service.deps import StateDep
+from bubsub.service.schemas import Status
 
 router = APIRouter(tags=["health"])
 

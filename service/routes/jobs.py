@@ -6,13 +6,13 @@ import time
 
 from fastapi import APIRouter, Request, Response
 
-from ..budget import check_job, estimate
-from ..codec import JSON, content_type
-from ..decoding import check_json_size, decode_job_body
-from ..deps import BodyDep, JobDep, OwnerDep, StateDep
-from ..jobs import Job, build_job, topology_bytes
-from ..openapi import errors, job_create_body
-from ..schemas import JobCreate, JobInfo, JobList, SurfaceGroupInfo
+from bubsub.service.budget import check_job, estimate
+from bubsub.service.codec import JSON, content_type
+from bubsub.service.decoding import check_json_size, decode_job_body
+from bubsub.service.deps import BodyDep, JobDep, OwnerDep, StateDep
+from bubsub.service.jobs import Job, build_job, topology_bytes
+from bubsub.service.openapi import errors, job_create_body
+from bubsub.service.schemas import JobCreate, JobInfo, JobList, SurfaceGroupInfo
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.responses import PlainTextResponse
 
-from ..deps import StateDep
-from ..metrics import CONTENT_TYPE, render
+from bubsub.service.deps import StateDep
+from bubsub.service.metrics import CONTENT_TYPE, render
 
 router = APIRouter(tags=["metrics"])
 

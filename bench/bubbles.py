@@ -103,7 +103,7 @@ def main(argv=None):
         name, _, text = item.partition("=")
         if name not in fields:
             p.error(f"--set {item}: ReconstructionSettings has no field {name!r}")
-        setattr(s, name, setting_value(text, getattr(s, name)))
+        s = dataclasses.replace(s, **{name: setting_value(text, getattr(s, name))})
     cpu, wall = time.process_time(), time.perf_counter()
     rec = reconstruct(scan, s)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall

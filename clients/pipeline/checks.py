@@ -17,7 +17,7 @@ from bubsub.clients.pipeline.sides import check_lateral_truncation
 from bubsub.core.contrast import signal_masses
 from bubsub.core.validate import check_int
 
-__all__ = ["check_settings", "check_bubble_signal", "CONTROL_POINTS_3D", "MAX_LEVELS"]
+__all__ = ["check_setting_values", "check_settings", "check_bubble_signal", "CONTROL_POINTS_3D", "MAX_LEVELS"]
 
 #: Control vertices of the icosphere control meshes (3D bubbles).
 CONTROL_POINTS_3D = (12, 42, 162)
@@ -25,13 +25,12 @@ CONTROL_POINTS_3D = (12, 42, 162)
 MAX_LEVELS = 4
 
 
-def check_settings(settings, ndim):
-    """Refuse reconstruction settings that cannot work for a ``ndim``-D scan.
+def check_setting_values(settings):
+    """Refuse reconstruction settings that no scan accepts (``ReconstructionSettings.__post_init__`` runs it).
 
     Parameters
     ----------
     settings : ReconstructionSettings
-    ndim : {2, 3}
 
     Raises
     ------
@@ -50,9 +49,6 @@ def check_settings(settings, ndim):
                          f"got {s.facet_pixels!r}")
     check_int(s.supersampling, "--supersampling", 1)
     if s.control_points is not None:
-        if ndim == 3 and s.control_points not in CONTROL_POINTS_3D:
-            raise ValueError(f"--control-points must be one of {list(CONTROL_POINTS_3D)} for a 3D scan "
-                             f"(icosphere control meshes), got {s.control_points}")
         check_int(s.control_points, "--control-points", 3)
     for name in ("radius", "voxel_size", "min_distance"):
         v = getattr(s, name)
@@ -68,6 +64,26 @@ def check_settings(settings, ndim):
         check_int(s.data_levels, "--data-levels", 1)
     if s.fit_rtol is not None and not (np.isfinite(s.fit_rtol) and 0 <= s.fit_rtol < 1):
         raise ValueError(f"--fit-rtol must be a number in [0, 1), got {s.fit_rtol!r}")
+
+
+def check_settings(settings, ndim):
+    """Refuse reconstruction settings that cannot work for a ``ndim``-D scan: the checks that need the scan's
+    dimension (the others ran when the settings were made, :func:`check_setting_values`).
+
+    Parameters
+    ----------
+    settings : ReconstructionSettings
+    ndim : {2, 3}
+
+    Raises
+    ------
+    ValueError
+        Naming the setting (as its command-line option) and the allowed values.
+    """
+    cp = settings.control_points
+    if ndim == 3 and cp is not None and cp not in CONTROL_POINTS_3D:
+        raise ValueError(f"--control-points must be one of {list(CONTROL_POINTS_3D)} for a 3D scan "
+                         f"(icosphere control meshes), got {cp}")
 
 
 def check_bubble_signal(scan, *, background_subtracted=False, sides=True):

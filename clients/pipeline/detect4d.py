@@ -342,7 +342,11 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
     # caps at the detector's top and bottom first: the rounds' remove step then judges them by the static rule
     seeded = edge_seeds(MeshProjector(geometry, supersampling=settings.supersampling), data, surfaces, settings,
                         voxel)
-    after, summary = adapt_bubbles(seeded, geometry, data, contrast, None, None, voxel, settings,
+    after, summary = adapt_bubbles(MeshProjector(geometry, supersampling=settings.supersampling), seeded, data,
+                                   contrast=contrast, voxel=voxel, rounds=settings.topology_rounds,
+                                   iterations=settings.iterations, levels=settings.levels,
+                                   facet_pixels=settings.facet_pixels, voxel_size=settings.voxel_size,
+                                   method=settings.preview, fov_model=settings.fov_model, progress=settings.progress,
                                    steps=WARM_STEPS, unexplained_only=True)
     new_ids, lineage, next_id = assign_tracks(ids, surfaces, after, successor_sizes, geometry, next_id)
     born = [k for k, i in enumerate(new_ids) if i not in set(ids)]

@@ -125,28 +125,29 @@ class DynamicSettings:
 
     def __init__(self, static=None, *, shrink=SHRINK, min_radius=None, voxel_baseline=False, warm_rtol=1e-3,
                  warm_window=5, slabs=None, slab_halo=None, detect=True, **static_fields):
+        # the one thing a generated __init__ cannot do: take the static settings' fields as keywords too
         unknown = sorted(set(static_fields) - STATIC_FIELDS)
         if unknown:
             raise TypeError(f"DynamicSettings got unknown settings {unknown}")
         static = ReconstructionSettings() if static is None else static
-        if static_fields:
+        if static_fields:  # validated by ReconstructionSettings itself
             static = dataclasses.replace(static, **static_fields)
-        for name, value in (("static", static), ("shrink", shrink), ("min_radius", min_radius),
-                            ("voxel_baseline", voxel_baseline), ("warm_rtol", warm_rtol),
-                            ("warm_window", warm_window), ("slabs", slabs), ("slab_halo", slab_halo),
-                            ("detect", bool(detect))):
-            object.__setattr__(self, name, value)
-        check_int(static.iterations, "iterations", 0)
-        if static.holdout not in (None, "odd", "even"):
-            raise ValueError(f"holdout must be None, 'odd' or 'even', got {static.holdout!r}")
-        if slabs is not None and check_int(slabs, "slabs", 1) > 1 and static.holdout is not None:
+        values = {"static": static, "shrink": shrink, "min_radius": min_radius, "voxel_baseline": voxel_baseline,
+                  "warm_rtol": warm_rtol, "warm_window": warm_window, "slabs": slabs, "slab_halo": slab_halo,
+                  "detect": bool(detect)}
+        for f in dataclasses.fields(self):
+            object.__setattr__(self, f.name, values[f.name])
+        self.__post_init__()
+
+    def __post_init__(self):
+        if self.slabs is not None and check_int(self.slabs, "slabs", 1) > 1 and self.static.holdout is not None:
             raise ValueError("holdout needs every subscan reconstructed whole (--slabs 1)")
-        if slab_halo is not None:
-            check_int(slab_halo, "slab_halo", 0)
-        if not warm_rtol >= 0:
-            raise ValueError(f"warm_rtol must be >= 0, got {warm_rtol!r}")
-        if not 0 < shrink <= 1.5:
-            raise ValueError(f"shrink must be in (0, 1.5], got {shrink!r}")
+        if self.slab_halo is not None:
+            check_int(self.slab_halo, "slab_halo", 0)
+        if not self.warm_rtol >= 0:
+            raise ValueError(f"warm_rtol must be >= 0, got {self.warm_rtol!r}")
+        if not 0 < self.shrink <= 1.5:
+            raise ValueError(f"shrink must be in (0, 1.5], got {self.shrink!r}")
 
     def __getattr__(self, name):
         # only reached for names that are not attributes of their own (unpickling looks up __setstate__ first)

@@ -25,39 +25,43 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from bubsub.core import MeshProjector, ScanGeometry
+from bubsub.core import MeshProjector
 from bubsub.core.io.meshio import read_ply, read_polygons_json
 from bubsub.core.malloc import release_free_memory
 from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.mesh import equivalent_radius
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
-from bubsub.clients.optimise.fit import estimate_radii
-from bubsub.clients.optimise.levels import bin_factors, coarse_surfaces, fit_levels
-from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
-from bubsub.clients.pipeline.fov import (field_of_view, fov_report, inside_fov, preview_extension, size_inside_fov,
-                                         unobserved_control)
-from bubsub.clients.pipeline.initial import choose_initial, default_detector
+from bubsub.clients.optimise.levels import bin_factors, fit_levels
+from bubsub.clients.optimise.separation import separation_penalty, separation_weight
+from bubsub.clients.pipeline.checks import check_bubble_signal, check_setting_values, check_settings
+from bubsub.clients.pipeline.fov import field_of_view, fov_report, inside_fov, size_inside_fov, unobserved_control
+from bubsub.clients.pipeline.initial import default_detector
 from bubsub.clients.pipeline.local import scene_objective
-from bubsub.clients.pipeline.preview import preview_voxel_size, voxel_for_bubbles, voxel_preview
 from bubsub.clients.pipeline.refine import can_refine, coarse_rate, control_counts, refine_and_check
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
 from bubsub.clients.pipeline.resolution import level_counts, levels_by_size
+from bubsub.clients.pipeline.seeding import (coarse_radii, coarse_radii_with, finer_voxel, initial_bubbles,
+                                             settings_initial, settings_preview)
 from bubsub.clients.pipeline.topology import adapt_bubbles
 
-__all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "load_initial", "split_holdout", "prune",
-           "seen_slab", "settings_preview", "settings_initial", "coarse_radii", "initial_bubbles", "projector_report",
-           "merged_projector_report", "REMOTE_PHASES"]
+__all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "PhaseContext", "PhaseClock", "Preview",
+           "seed_phase", "radius_phase", "fit_phase", "topology_phase", "repair_phase", "refine_phase", "edge_phase",
+           "holdout_phase", "load_initial", "split_holdout", "prune", "seen_slab", "settings_preview",
+           "settings_initial", "coarse_radii", "initial_bubbles", "projector_report", "merged_projector_report",
+           "REMOTE_PHASES"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class ReconstructionSettings:
-    """What ``bubsub reconstruct`` can be told (defaults follow the paper)."""
-
+    """What ``bubsub reconstruct`` can be told (defaults follow the paper); refused when made with a value no
+    scan accepts (:func:`~bubsub.clients.pipeline.checks.check_setting_values`, ``ValueError`` naming the
+    option), the rest when a scan's dimension is known (:func:`~bubsub.clients.pipeline.checks.check_settings`)."""
     iterations: int = 80  # the full detector's cap, 3x on binned levels (.optimise.levels); a level ends earlier on convergence
     data_levels: int | None = None  # fit on 2^(k-1)-binned, ..., full pixels; default 2 for 3D detectors >= 96 px
     fit_rtol: float | None = 2e-4  # converged: objective down by < fit_rtol x itself over 5 iterations
@@ -86,6 +90,9 @@ class ReconstructionSettings:
     # again); kept when the Akaike score improves (.refine; bubbles from the preview only, not from --init)
     refine: bool = True
     refine_iterations: int = 80  # of the refined fit (it stops after 10 unless the refinement pays for itself)
+
+    def __post_init__(self):
+        check_setting_values(self)
 
 
 @dataclass
@@ -139,7 +146,12 @@ def split_holdout(geometry, data, holdout):
 
 
 def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
-    """Reconstruct the bubbles of a scan.
+    """Reconstruct the bubbles of a scan: its phases, one after another.
+
+    The scan's signal and the settings against its dimension are checked here, once per scan
+    (:func:`~bubsub.clients.pipeline.checks.check_bubble_signal`,
+    :func:`~bubsub.clients.pipeline.checks.check_settings`); the settings' values were checked when they
+    were made.
 
     Parameters
     ----------
@@ -151,7 +163,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     projector_factory : callable(geometry, data, surfaces) -> projector, optional
         Makes the object :func:`fit` calls, holding ``data``; by default a
         local :class:`MeshProjector`. ``bubsub reconstruct --server`` passes
-        one that creates a remote job with the surfaces' topology.
+        one that creates a remote job with the surfaces' topology
+        (:func:`bubsub.clients.remote.jobs.remote_projectors`).
 
     Returns
     -------
@@ -160,115 +173,277 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     s = settings or ReconstructionSettings()
     check_settings(s, scan.ndim)
     check_bubble_signal(scan, background_subtracted=s.background_subtracted)
-    t0 = time.perf_counter()
-    clock = _PhaseClock()
+    clock = PhaseClock()
     contrast = scan.bubble_contrast
-    data = scan.bubble_data
-    geometry = scan.geometry
-    g_fit, d_fit, g_val, d_val = split_holdout(geometry, data, s.holdout)
+    g_fit, d_fit, g_val, d_val = split_holdout(scan.geometry, scan.bubble_data, s.holdout)
+    run = PhaseContext(MeshProjector(g_fit, supersampling=s.supersampling), d_fit, clock)
 
-    local = MeshProjector(g_fit, supersampling=s.supersampling)
-    detector, initialisation = default_detector(s.detector, g_fit.ndim), None
-    if init is None:
-        surfaces, initialisation, image, extent, finer = initial_bubbles(d_fit, g_fit, contrast, local, s, clock=clock)
-    else:
-        surfaces = [x.with_attenuation(contrast) for x in init]
-        finer = _finer_voxel(s, surfaces, g_fit, d_fit, contrast)
-        image, extent = settings_preview(d_fit, g_fit, contrast, replace(s, voxel_size=finer or s.voxel_size))
-        clock.mark("preview")
-    t_init = time.perf_counter() - t0
-    clock.mark("initial_bubbles")
-    factors = bin_factors(g_fit, s.data_levels)
-    if s.estimate_radii and init is None and detector != "auto":
-        surfaces = coarse_radii(surfaces, g_fit, d_fit, factors[0], s)
-    surfaces = levels_by_size(surfaces, g_fit, s.levels, s.facet_pixels)  # as finely as its size needs (3D)
-    clock.mark("radius_estimation")
-    if projector_factory is None:
-        projector, fit_data = local, d_fit
-    else:  # a remote job holds its surfaces' topology and levels: made once they are known
-        projector = projector_factory(g_fit, d_fit, surfaces)
-        fit_data = None
-    voxel = (extent[1] - extent[0]) / image.shape[-1]
-    penalty = _separation(s, d_fit, len(surfaces), voxel) if fit_data is not None else None
-    # the objective of the initial bubbles on the full detector (the levels' own objectives are on their pixels)
-    f_start = float((projector.objective(surfaces, fit_data) if fit_data is not None
-                     else projector.objective(surfaces))[0])
-    result, fit_levels_report = fit_levels(projector, surfaces, d_fit, factors=factors, iterations=s.iterations,
-                                           rtol=s.fit_rtol, penalty=penalty, progress=s.progress,
-                                           factory=projector_factory)
-    clock.mark("fit")
-    kept, dropped = prune(result.surfaces, min_radius=voxel)
-    topology = refinement = None
-    interrupted = result.interrupted  # Ctrl-C: no further changes, write what we have
-    checker = local
+    surfaces, preview = seed_phase(run, contrast, s, init=init)
+    seeded_auto = default_detector(s.detector, g_fit.ndim) == "auto"  # its seeds come with their radii fitted
+    surfaces = radius_phase(run, surfaces, estimate=s.estimate_radii and init is None and not seeded_auto,
+                            data_levels=s.data_levels, levels=s.levels, facet_pixels=s.facet_pixels,
+                            progress=s.progress)
+    voxel = preview.voxel
+    penalty = _separation(s.separation, d_fit, len(surfaces), voxel) if projector_factory is None else None
+    fit = fit_phase(run, surfaces, factory=projector_factory, data_levels=s.data_levels, iterations=s.iterations,
+                    rtol=s.fit_rtol, penalty=penalty, progress=s.progress)
+    kept, dropped = prune(fit.surfaces, min_radius=voxel)
+    interrupted = fit.interrupted  # Ctrl-C: no further changes, write what we have
     try:
-        if s.topology and s.topology_rounds > 0 and kept and not interrupted:
-            kept, topology = adapt_bubbles(kept, g_fit, d_fit, contrast, image, extent, voxel, s, penalty=penalty)
-        clock.mark("topology")
-
-        def checked(items):
-            return check_and_repair(items, checker, d_fit, repair=s.repair and not interrupted,
-                                    iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
-
+        kept = topology_phase(run, kept, contrast, preview, rounds=s.topology_rounds if s.topology else 0,
+                              enabled=not interrupted, iterations=s.iterations, levels=s.levels,
+                              facet_pixels=s.facet_pixels, voxel_size=s.voxel_size, method=s.preview,
+                              fov_model=s.fov_model, penalty=penalty, progress=s.progress)
+        repair = partial(check_and_repair, projector=run.projector, data=run.data, repair=s.repair and not interrupted,
+                         iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
         will_refine = s.refine and init is None and not interrupted
         # the coarse bubbles' data term before the repair: the refinement's trial discounts the repair's rise in it
-        reached = None
-        if will_refine and kept:
-            reached = topology["objective"] if topology else scene_objective(local, kept, d_fit)
-        kept, validity = checked(kept)
-        clock.mark("validity")
-        if will_refine and can_refine(kept):
-            # after the repair, so the refined fit also fills the gas of dropped bubbles; checked again
-            kept, refinement, again = refine_and_check(local, kept, d_fit, checked, iterations=s.refine_iterations,
-                                                       penalty=penalty, progress=s.progress, rtol=s.fit_rtol,
-                                                       coarse_rate=coarse_rate(result.history), reached=reached)
-            if again is not None:
-                validity = merged_validity(validity, again)
-        clock.mark("refine")
-        edge = seen_slab(g_fit)
-        if edge is not None:  # slivers at the detector's edge, once every change is made
-            kept, late = prune(kept, min_radius=voxel, fov=edge)
-            dropped += late
-            clock.mark("edge_slivers")
+        reached = _data_term(run, kept) if will_refine and kept else None
+        kept = repair_phase(run, kept, repair)
+        kept = refine_phase(run, kept, repair, enabled=will_refine, iterations=s.refine_iterations, penalty=penalty,
+                            progress=s.progress, rtol=s.fit_rtol, coarse_rate=coarse_rate(fit.history),
+                            reached=reached)
+        kept = edge_phase(run, kept, min_radius=voxel)
     except KeyboardInterrupt:  # in the topology rounds, the repair or the refinement: report the bubbles as they were
         interrupted = True
-        kept, validity = check_and_repair(kept, checker, d_fit, repair=False)
-        clock.mark("validity")
+        kept = repair_phase(run, kept, partial(check_and_repair, projector=run.projector, data=run.data, repair=False))
 
+    report = _report(run, kept, fit, preview, s, scan.geometry, dropped=dropped, interrupted=interrupted)
+    if g_val is not None:
+        report.update(holdout_phase(run, kept, g_val, d_val, supersampling=s.supersampling))
+    # wall and CPU seconds of each phase (CPU: this process, all threads)
+    report["seconds_parts"], report["cpu_seconds_parts"] = clock.parts()
+    report["projector"] = projector_report(fit.remote, report["seconds_parts"], run.projector.backend)
+    return Reconstruction(kept, report, preview.image, preview.extent)
+
+
+@dataclass
+class PhaseContext:
+    """What the phases of :func:`reconstruct` share.
+
+    Attributes
+    ----------
+    projector : MeshProjector
+        Local, of the fitted projections (the projections not held out).
+    data : ndarray, ``projector.geometry.shape``
+        The fitted projections (bubbles' signal, ``scan.bubble_data``).
+    clock : PhaseClock
+        Each phase marks its end on it (``report.json``'s ``seconds_parts``).
+    report : dict
+        The phases' entries of ``report.json`` so far (``initialisation``, ``fit``, ``topology``,
+        ``validity``, ``refinement``, ...).
+    """
+
+    projector: MeshProjector
+    data: np.ndarray
+    clock: PhaseClock
+    report: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Preview:
+    """The voxel preview the bubbles were seeded in: ``image`` (float32, ``(slices, rows, cols)`` or
+    ``(rows, cols)``), its ``extent`` (mm) and ``finer`` (the finer preview's voxel, mm, when the bubbles
+    were a few voxels across; None otherwise)."""
+
+    image: np.ndarray
+    extent: tuple
+    finer: float | None = None
+
+    @property
+    def voxel(self):
+        """Voxel size, mm."""
+        return (self.extent[1] - self.extent[0]) / self.image.shape[-1]
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """What :func:`fit_phase` hands on: the fitted ``surfaces``, ``history`` (the objective per iteration),
+    ``interrupted``, and ``remote`` (the projector ``projector_factory`` made, or None)."""
+
+    surfaces: list
+    history: list
+    interrupted: bool
+    remote: object = None
+
+
+def seed_phase(run, contrast, settings, *, init=None):
+    """Phases ``preview`` and ``initial_bubbles``: the voxel preview and the bubbles seeded in it
+    (:func:`initial_bubbles`), or ``init`` given contrast ``contrast`` with their preview.
+
+    The preview's and seeds' options are ``settings``' (``voxel_size``, ``preview``, ``fov_model``,
+    ``detector``, ``control_points``, ``levels``, ``radius``, ``min_distance``, ``estimate_radii``), as
+    :func:`settings_preview` and :func:`settings_initial` read them for the benchmarks that start where the
+    pipeline starts. Records ``initialisation``, ``bubbles_initial`` and ``seconds_initialisation``.
+
+    Returns
+    -------
+    surfaces : list of SubdivisionSurface
+    preview : Preview
+    """
+    g, d = run.projector.geometry, run.data
+    initialisation = None
+    if init is None:
+        surfaces, initialisation, image, extent, finer = initial_bubbles(d, g, contrast, run.projector, settings,
+                                                                         clock=run.clock)
+    else:
+        surfaces = [x.with_attenuation(contrast) for x in init]
+        finer = finer_voxel(settings, surfaces, g, d, contrast)
+        image, extent = settings_preview(d, g, contrast, replace(settings, voxel_size=finer or settings.voxel_size))
+        run.clock.mark("preview")
+    run.report.update(initialisation=initialisation, bubbles_initial=len(surfaces),
+                      seconds_initialisation=run.clock.elapsed())
+    run.clock.mark("initial_bubbles")
+    return surfaces, Preview(image, extent, finer)
+
+
+def radius_phase(run, surfaces, *, estimate, data_levels, levels, facet_pixels, progress=False):
+    """Phase ``radius_estimation``: the radius-only pre-fit on the fit's coarsest data level when
+    ``estimate`` (:func:`coarse_radii`), then each bubble subdivided as finely as its size needs, at most
+    ``levels`` (3D; :func:`~bubsub.clients.pipeline.resolution.levels_by_size`)."""
+    g = run.projector.geometry
+    if estimate:
+        surfaces = coarse_radii_with(surfaces, g, run.data, bin_factors(g, data_levels)[0],
+                                 supersampling=run.projector.supersampling, progress=progress)
+    surfaces = levels_by_size(surfaces, g, levels, facet_pixels)
+    run.clock.mark("radius_estimation")
+    return surfaces
+
+
+def fit_phase(run, surfaces, *, factory=None, data_levels=None, iterations=80, rtol=None, penalty=None,
+              progress=False):
+    """Phase ``fit``: BFGS on all control vertices, coarse to fine in the data
+    (:func:`~bubsub.clients.optimise.levels.fit_levels`).
+
+    The projections run on ``factory(geometry, data, surfaces)``'s projector (a remote job) when given,
+    else on ``run.projector``. Records ``initial_objective`` (the starting bubbles' on the full detector),
+    ``fit``, ``fit_levels`` and ``method``.
+
+    Returns
+    -------
+    _Fit
+    """
+    g, d = run.projector.geometry, run.data
+    if factory is None:
+        projector, remote = run.projector, None
+        f_start = projector.objective(surfaces, d)
+    else:  # a remote job holds its surfaces' topology and levels: made once they are known
+        projector = remote = factory(g, d, surfaces)
+        f_start = projector.objective(surfaces)
+    result, levels_report = fit_levels(projector, surfaces, d, factors=bin_factors(g, data_levels),
+                                       iterations=iterations, rtol=rtol, penalty=penalty, progress=progress,
+                                       factory=factory)
+    run.clock.mark("fit")
+    run.report.update(initial_objective=float(f_start[0]), method=result.method, fit_levels=levels_report,
+                      fit={"objective": result.objective, "iterations": result.iterations,
+                           "evaluations": result.evaluations, "stop_reason": result.stop_reason,
+                           "seconds": result.seconds, "penalty": result.penalty})
+    return _Fit(result.surfaces, result.history, result.interrupted, remote)
+
+
+def topology_phase(run, surfaces, contrast, preview, *, rounds, enabled=True, **options):
+    """Phase ``topology``: ``rounds`` rounds of adding, removing, merging and splitting bubbles
+    (:func:`~bubsub.clients.pipeline.topology.adapt_bubbles` with ``options``, on ``preview``'s grid); none when
+    ``rounds`` is 0, not ``enabled`` or there are no bubbles. Records ``topology`` (None when none ran)."""
+    summary = None
+    if enabled and rounds > 0 and surfaces:
+        surfaces, summary = adapt_bubbles(run.projector, surfaces, run.data, contrast=contrast, voxel=preview.voxel,
+                                          rounds=rounds, image=preview.image, extent=preview.extent, **options)
+    run.report["topology"] = summary
+    run.clock.mark("topology")
+    return surfaces
+
+
+def repair_phase(run, surfaces, repair):
+    """Phase ``validity``: ``repair(surfaces)`` (:func:`~bubsub.clients.pipeline.repair.check_and_repair` with
+    the pipeline's options) checks the bubbles and repairs them. Records ``validity``."""
+    surfaces, run.report["validity"] = repair(surfaces)
+    run.clock.mark("validity")
+    return surfaces
+
+
+def refine_phase(run, surfaces, repair, *, enabled=True, **options):
+    """Phase ``refine``: one coarse-to-fine step in the control meshes, refitted, checked and repaired again
+    by ``repair``, kept when the Akaike score improves
+    (:func:`~bubsub.clients.pipeline.refine.refine_and_check` with ``options``); none unless ``enabled``
+    and the bubbles can be refined. Records ``refinement`` and merges the second check into ``validity``."""
+    refinement = None
+    if enabled and can_refine(surfaces):
+        # after the repair, so the refined fit also fills the gas of dropped bubbles; checked again
+        surfaces, refinement, again = refine_and_check(run.projector, surfaces, run.data, repair, **options)
+        if again is not None:
+            run.report["validity"] = merged_validity(run.report["validity"], again)
+    run.report["refinement"] = refinement
+    run.clock.mark("refine")
+    return surfaces
+
+
+def edge_phase(run, surfaces, *, min_radius):
+    """Phase ``edge_slivers`` (3D): slivers at the detector's top and bottom rows dropped once every change
+    is made (:func:`prune` with :func:`seen_slab`). Records their number, ``edge_slivers_dropped``."""
+    edge = seen_slab(run.projector.geometry)
+    if edge is None:
+        return surfaces
+    surfaces, run.report["edge_slivers_dropped"] = prune(surfaces, min_radius=min_radius, fov=edge)
+    run.clock.mark("edge_slivers")
+    return surfaces
+
+
+def holdout_phase(run, surfaces, geometry, data, *, supersampling=1):
+    """Phase ``holdout``: the delivered bubbles' mean squared error on the held-out projections ``data`` of
+    ``geometry``; their ``report.json`` entries."""
+    pred = MeshProjector(geometry, supersampling=supersampling).forward(surfaces)
+    entries = {"holdout_projections": geometry.n_angles, "holdout_mse": projection_mse(pred, data)}
+    run.clock.mark("holdout")
+    return entries
+
+
+def _data_term(run, surfaces):
+    """The data term the bubbles reached: the topology rounds' final objective when they ran, else computed."""
+    topology = run.report.get("topology")
+    return topology["objective"] if topology else scene_objective(run.projector, surfaces, run.data)
+
+
+def _report(run, kept, fit, preview, s, geometry, *, dropped, interrupted):
+    """``report.json`` of :func:`reconstruct`: the phases' entries and what was delivered."""
+    r = run.report
+    g_fit = run.projector.geometry
+    refinement, validity = r.get("refinement"), r["validity"]
     refined = bool(refinement and refinement["kept"])
     # what was delivered: the bubbles written, after the topology rounds, the repair and a kept refined fit
     try:
-        f_final = scene_objective(local, kept, d_fit)
+        f_final = scene_objective(run.projector, kept, run.data)
     except KeyboardInterrupt:  # a second Ctrl-C: the outputs matter more than this figure
         f_final, interrupted = None, True
-    report = {
+    fit_r = r["fit"]
+    return {
         "bubbles": len(kept),
-        "bubbles_initial": len(surfaces),
-        "initialisation": initialisation,
+        "bubbles_initial": r["bubbles_initial"],
+        "initialisation": r["initialisation"],
         # the voxel preview's grid; made finer for bubbles a few voxels across (.preview.voxel_for_bubbles)
-        "preview": {"voxel_mm": voxel, "shape": list(image.shape), "finer_for_bubbles": finer is not None},
-        "bubbles_dropped": dropped + validity["dropped"],
+        "preview": {"voxel_mm": preview.voxel, "shape": list(preview.image.shape),
+                    "finer_for_bubbles": preview.finer is not None},
+        "bubbles_dropped": dropped + r.get("edge_slivers_dropped", 0) + validity["dropped"],
         "validity": validity,
-        "topology": topology,
+        "topology": r.get("topology"),
         "refinement": refinement,
         "dimension": geometry.ndim,
         # the fits that made the delivered bubbles: the fit, then the refined fit when it was kept
-        "iterations": result.iterations + (refinement["iterations"] if refined else 0),
-        "evaluations": result.evaluations + (refinement["evaluations"] if refined else 0),
+        "iterations": fit_r["iterations"] + (refinement["iterations"] if refined else 0),
+        "evaluations": fit_r["evaluations"] + (refinement["evaluations"] if refined else 0),
         "delivered_fit": "refined fit" if refined else "fit",
-        "fit": {"objective": result.objective, "iterations": result.iterations, "evaluations": result.evaluations,
-                "stop_reason": result.stop_reason, "seconds": result.seconds, "penalty": result.penalty},
-        "fit_levels": fit_levels_report,
+        "fit": fit_r,
+        "fit_levels": r["fit_levels"],
         # 0.5 ||Proj(S x) - d||^2 of the delivered bubbles on the fitted projections, as initial_objective
         "final_objective": f_final,
-        "initial_objective": f_start,
-        "method": result.method,
+        "initial_objective": r["initial_objective"],
+        "method": r["method"],
         "interrupted": interrupted,
         "stop_reason": "interrupted" if interrupted else (refinement["stop_reason"] if refined
-                                                          else result.stop_reason),
-        "seconds_total": time.perf_counter() - t0,
-        "seconds_fit": result.seconds,
-        "seconds_initialisation": t_init,
+                                                          else fit_r["stop_reason"]),
+        "seconds_total": run.clock.elapsed(),
+        "seconds_fit": fit_r["seconds"],
+        "seconds_initialisation": r["seconds_initialisation"],
         "projections_used": g_fit.n_angles,
         "holdout": s.holdout,
         "field_of_view_mm": fov_report(geometry),
@@ -280,16 +455,6 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         "control_points": control_counts(kept),
         "settings": {k: v for k, v in s.__dict__.items() if k != "progress"},
     }
-    if g_val is not None:
-        pred = MeshProjector(g_val, supersampling=s.supersampling).forward(kept)
-        report["holdout_projections"] = g_val.n_angles
-        report["holdout_mse"] = projection_mse(pred, d_val)
-        clock.mark("holdout")
-    # wall and CPU seconds of each phase (CPU: this process, all threads)
-    report["seconds_parts"], report["cpu_seconds_parts"] = clock.parts()
-    report["projector"] = projector_report(projector if projector_factory is not None else None,
-                                           report["seconds_parts"], local.backend)
-    return Reconstruction(kept, report, image, extent)
 
 
 #: the phases of :func:`reconstruct` that project through ``projector_factory``'s projectors (the initial
@@ -339,103 +504,20 @@ def merged_projector_report(reports):
             "local_phases": local, "local_backend": reports[0]["local_backend"]}
 
 
-def initial_bubbles(data, geometry, contrast, projector, settings, *, clock=None):
-    """The pipeline's initial bubbles from its voxel preview of ``data`` (bubbles positive).
-
-    :func:`settings_preview` and :func:`settings_initial`, then, when the
-    seeds are a few voxels across (:func:`voxel_for_bubbles`), both again on
-    a finer preview.
-
-    Parameters
-    ----------
-    data : ndarray, ``(angles, rows, cols)`` or ``(angles, cols)``
-    geometry : ScanGeometry
-        Of ``data``.
-    contrast : float
-    projector : MeshProjector
-        Of ``data`` (local).
-    settings : ReconstructionSettings
-    clock : optional
-        The pipeline's phase clock (``preview`` and ``initial_bubbles`` marked).
-
-    Returns
-    -------
-    surfaces : list of SubdivisionSurface
-    initialisation : dict
-        :func:`choose_initial`'s summary.
-    image : ndarray float32
-        The preview the seeds come from; ``extent`` its grid (mm).
-    extent : tuple
-    finer : float or None
-        The finer preview's voxel (mm) when one was made.
-    """
-    mark = clock.mark if clock is not None else (lambda name: None)
-    image, extent = settings_preview(data, geometry, contrast, settings)
-    mark("preview")
-    surfaces, initialisation = settings_initial(image, extent, contrast, projector, data, settings)
-    finer = _finer_voxel(settings, surfaces, geometry, data, contrast)
-    if finer is not None:  # bubbles a few voxels across: seeded again in a preview fine enough for them
-        mark("initial_bubbles")
-        image, extent = settings_preview(data, geometry, contrast, replace(settings, voxel_size=finer))
-        mark("preview")
-        surfaces, initialisation = settings_initial(image, extent, contrast, projector, data, settings)
-    return surfaces, initialisation, image, extent, finer
-
-
-def settings_preview(data, geometry, contrast, settings):
-    """The pipeline's voxel preview of ``data`` (bubbles positive): ``(image, extent)``."""
-    return voxel_preview(data, geometry, contrast, settings.voxel_size, progress=settings.progress,
-                         method=settings.preview, extend=preview_extension(settings.fov_model, data, contrast))
-
-
-def settings_initial(image, extent, contrast, projector, data, settings):
-    """The pipeline's initial bubbles in the preview (:func:`choose_initial` with ``settings``'s options):
-    ``(surfaces, summary)``. ``auto`` compares the candidate sets after their radius-only fits, here."""
-    detector = default_detector(settings.detector, projector.geometry.ndim)
-    return choose_initial(image, extent, contrast, projector, data, detector=detector,
-                          estimate=settings.estimate_radii and detector == "auto", progress=settings.progress,
-                          control_points=settings.control_points, levels=settings.levels, radius=settings.radius,
-                          min_distance=settings.min_distance, border_is_background=not settings.fov_model)
-
-
-def coarse_radii(surfaces, geometry, data, factor, settings):
-    """The radius-only pre-fit (:func:`estimate_radii`) on the detector binned by ``factor`` (the fit's
-    coarsest level: the radii need not see every pixel), at that level's subdivision
-    (:func:`coarse_surfaces`, as the fit's binned level); the surfaces come back at their own."""
-    coarse = MeshProjector(geometry.binned(factor), supersampling=settings.supersampling)
-    levels = [x.levels for x in surfaces]
-    return coarse_surfaces(estimate_radii(coarse, coarse_surfaces(surfaces, factor, levels),
-                                          ScanGeometry.bin_projections(data, factor), progress=settings.progress),
-                           1, levels)
-
-
-def _finer_voxel(settings, surfaces, geometry, data, contrast):
-    """:func:`voxel_for_bubbles` of ``surfaces`` (their equivalent radii) against the default preview
-    voxel; None when the voxel size is asked for (``settings.voxel_size``) or the bubbles are wide enough
-    in voxels."""
-    if settings.voxel_size is not None or not surfaces:
+def _separation(strength, data, n_bubbles, voxel):
+    """The fit's separation penalty of ``strength`` (:mod:`bubsub.clients.optimise.separation`), or None when
+    it is 0 (off)."""
+    if not strength:
         return None
-    return voxel_for_bubbles([x.fine().equivalent_radius for x in surfaces], geometry, preview_voxel_size(geometry),
-                             preview_extension(settings.fov_model, data, contrast))
+    return partial(separation_penalty, weight=separation_weight(data, n_bubbles, voxel, strength), gap=0.25 * voxel)
 
 
-def _separation(settings, data, n_bubbles, voxel):
-    """The fit's separation penalty (:mod:`bubsub.clients.optimise.separation`), or None when switched off."""
-    if not settings.separation:
-        return None
-    from functools import partial
-
-    from bubsub.clients.optimise.separation import separation_penalty, separation_weight
-
-    return partial(separation_penalty, weight=separation_weight(data, n_bubbles, voxel, settings.separation),
-                   gap=0.25 * voxel)
-
-
-class _PhaseClock:
+class PhaseClock:
     """Wall and CPU seconds (this process, all threads) of consecutive phases, for ``report.json``."""
 
     def __init__(self):
-        self._wall, self._cpu = time.perf_counter(), time.process_time()
+        self._start = self._wall = time.perf_counter()
+        self._cpu = time.process_time()
         self._parts = {}
 
     def mark(self, name):
@@ -446,6 +528,10 @@ class _PhaseClock:
         w0, c0 = self._parts.get(name, (0.0, 0.0))
         self._parts[name] = (w0 + wall - self._wall, c0 + cpu - self._cpu)
         self._wall, self._cpu = wall, cpu
+
+    def elapsed(self):
+        """Wall seconds since the clock was made."""
+        return time.perf_counter() - self._start
 
     def parts(self):
         """``({phase: wall seconds}, {phase: CPU seconds})``."""

@@ -38,12 +38,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from bubsub.core.projection.mesh import bounding_box, equivalent_radius
+from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.core.voxel.raster import bubble_mask
 from bubsub.core.voxel.grid import world_to_index
 
 from bubsub.clients.pipeline.blobs import log_blobs
+from bubsub.clients.pipeline.fov import preview_extension
 from bubsub.clients.pipeline.local import (Footprints, footprint, local_fits, local_refit, others_removed,
                                            scene_objective, scene_residual)
+from bubsub.clients.pipeline.preview import preview_grid, resample_image, voxel_preview
+from bubsub.clients.pipeline.resolution import levels_by_size
 
 __all__ = ["adapt_topology", "adapt_bubbles"]
 
@@ -438,23 +442,49 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     return surfaces, {"changes": changes, "objective": objective, "rounds": done, "refits": refits}
 
 
-def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, settings, penalty=None,
-                  steps=("remove", "add", "merge", "split"), unexplained_only=False):
-    """:func:`adapt_topology` as the reconstruction pipeline runs it (local projector, the preview's grid).
+def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterations, levels, facet_pixels,
+                  voxel_size=None, method="box", fov_model=True, image=None, extent=None, penalty=None,
+                  progress=False, steps=("remove", "add", "merge", "split"), unexplained_only=False):
+    """:func:`adapt_topology` as the reconstruction pipeline runs it (its preview's grid and new bubbles).
 
     Parameters
     ----------
+    projector : MeshProjector
+        Local, of the fitted projections ``data`` (``projector.geometry.shape``).
     surfaces : list of SubdivisionSurface
         After the first fit.
-    geometry, data
+    data : ndarray
         The fitted projections.
     contrast : float
-    image : ndarray or None
+        1/mm, the new bubbles'.
+    voxel : float
+        The voxel preview's voxel size, mm: added bubbles are at least 3 voxels in radius, bubbles within 2
+        voxels are merge candidates, and a 3D residual is reconstructed on voxels twice as large.
+    rounds : int
+        Topology rounds (``topology_rounds``).
+    iterations : int
+        The fit's iteration cap; each refit of a round runs ``max(10, iterations // 2)``.
+    levels : int
+        The most subdivision levels of a new bubble; in 3D it takes as few as keep its faces within
+        ``facet_pixels`` (:func:`~bubsub.clients.pipeline.resolution.levels_by_size`); in 2D the fitted bubbles'.
+    facet_pixels : float
+        See ``levels``.
+    voxel_size : float, optional
+        The asked-for preview voxel (mm), the 2D residual preview's; None: the preview's default.
+    method : {"box", "sirt"}
+        The residual preview's method (:func:`~bubsub.clients.pipeline.preview.voxel_preview`).
+    fov_model : bool
+        The residual preview extends beyond the field of view as the data preview does, and
+        :func:`adapt_topology` respects its edge (``fov_edge``).
+    image : ndarray, optional
         The voxel preview (:func:`~bubsub.clients.pipeline.preview.voxel_preview`); None where there is none
         (a warm-started subscan of ``reconstruct4d``): no split candidates from its blobs.
-    extent : tuple or None
-        Of the voxel preview; ``voxel`` its voxel size, mm (the residual preview's, without a preview).
-    settings : ReconstructionSettings
+    extent : tuple, optional
+        Of ``image``, mm.
+    penalty : callable, optional
+        Added to the objective of the rounds' joint refits.
+    progress : bool
+        A progress line per round.
     steps : tuple of str
         The changes tried (:func:`adapt_topology`).
     unexplained_only : bool
@@ -466,32 +496,28 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     Returns
     -------
     surfaces, summary
+        As :func:`adapt_topology`'s.
     """
-    from bubsub.core import MeshProjector
-    from bubsub.core.projection.subdivision import circle_surface, sphere_surface
-    from bubsub.clients.pipeline.fov import preview_extension
-    from bubsub.clients.pipeline.preview import preview_grid, resample_image, voxel_preview
-    from bubsub.clients.pipeline.resolution import levels_by_size
-
+    geometry = projector.geometry
     ndim = surfaces[0].ndim
     k = len(surfaces[0].vertices)
     if ndim == 2:
-        levels = surfaces[0].levels
+        curve_levels = surfaces[0].levels
 
         def new_bubble(c, r):
-            return circle_surface(c, r, contrast, control=k, levels=levels)
+            return circle_surface(c, r, contrast, control=k, levels=curve_levels)
     else:
         k = k if k in (12, 42, 162) else 42
 
         def new_bubble(c, r):  # subdivided by its size, as the fitted bubbles (.resolution)
-            return levels_by_size([sphere_surface(c, r, contrast, control=k, levels=settings.levels)], geometry,
-                                  settings.levels, settings.facet_pixels)[0]
+            return levels_by_size([sphere_surface(c, r, contrast, control=k, levels=levels)], geometry, levels,
+                                  facet_pixels)[0]
 
     # In 3D the residual is reconstructed, and blobs are searched, on voxels twice as large:
     # an added bubble is at least 3 preview voxels in radius, and a full-size residual
     # preview with its blob search cost as much as the first fit and 400 MB of scale space
-    coarse = 2 * voxel if ndim == 3 else settings.voxel_size
-    extend = preview_extension(settings.fov_model, data, contrast)  # as the data preview's
+    coarse = 2 * voxel if ndim == 3 else voxel_size
+    extend = preview_extension(fov_model, data, contrast)  # as the data preview's
     if ndim == 3 or image is None:
         shape_c, extent_c = preview_grid(geometry, coarse, extend)
         if image is not None:
@@ -501,12 +527,11 @@ def adapt_bubbles(surfaces, geometry, data, contrast, image, extent, voxel, sett
     def preview(projections):
         if unexplained_only:
             projections = np.where(np.sign(contrast) * projections > 0, projections, np.float32(0))
-        return voxel_preview(projections, geometry, contrast, coarse, method=settings.preview, coarse_3d=False,
+        return voxel_preview(projections, geometry, contrast, coarse, method=method, coarse_3d=False,
                              extend=extend, iterations=RESIDUAL_PREVIEW_ITERATIONS_3D if ndim == 3 else None)
 
     size = extent[1] - extent[0]
-    return adapt_topology(MeshProjector(geometry, supersampling=settings.supersampling), surfaces, data,
-                          preview=preview, new_bubble=new_bubble, min_radius=3 * voxel, max_radius=size / 8,
-                          rounds=settings.topology_rounds, iterations=max(10, settings.iterations // 2),
-                          touch=2 * voxel, image=None if image is None else (image, extent),
-                          progress=settings.progress, penalty=penalty, fov_edge=settings.fov_model, steps=steps)
+    return adapt_topology(projector, surfaces, data, preview=preview, new_bubble=new_bubble, min_radius=3 * voxel,
+                          max_radius=size / 8, rounds=rounds, iterations=max(10, iterations // 2), touch=2 * voxel,
+                          image=None if image is None else (image, extent), progress=progress, penalty=penalty,
+                          fov_edge=fov_model, steps=steps)

@@ -48,10 +48,10 @@ def cmd_experiment(args):
             raise ValueError(f"{args.name} runs in this process; --workers/--scheduler apply to the other experiments "
                              f"(and to reconstruct4d)")
         return _fig6(args)
-    with open_client(spec) as client:
+    with open_client(spec) as dask_client:
         summary = run_experiment(args.name, args.out, quick=args.quick, seeds=args.seeds, values=args.values,
                                  methods=args.methods, resume=args.resume, overwrite=args.overwrite,
-                                 progress=not args.quiet, client=client)
+                                 progress=not args.quiet, client=dask_client)
     return 130 if summary["interrupted"] else 0  # Ctrl-C: the finished runs are written; --resume continues
 
 

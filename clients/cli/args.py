@@ -13,7 +13,8 @@ from bubsub.clients.cluster.engine import spec_from_options
 from bubsub.clients.pipeline.outputs import folder_problem
 
 __all__ = ["positive_int", "non_negative_int", "int_at_least", "positive_float", "non_negative_float",
-           "existing_file", "output_folder", "add_output_arguments", "add_cluster_arguments", "spec_from_args"]
+           "existing_file", "output_folder", "add_output_arguments", "add_fit_arguments", "slabs_argument",
+           "add_slab_arguments", "add_cluster_arguments", "spec_from_args"]
 
 
 def _number(text, kind):
@@ -112,3 +113,62 @@ def add_cluster_arguments(parser):
 def spec_from_args(args):
     """:func:`~bubsub.clients.cluster.engine.spec_from_options` of parsed :func:`add_cluster_arguments` options."""
     return spec_from_options(args.workers, args.scheduler, args.scheduler_file, args.dashboard)
+
+
+def add_fit_arguments(parser, what):
+    """Add the options ``bubsub reconstruct`` and ``bubsub reconstruct4d`` share about the fit, with the same
+    types and checks: ``--iterations``, ``--control-points``, ``--levels``, ``--facet-pixels``, ``--holdout``
+    and ``--quiet``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+    what : str
+        What is fitted, as the help names it (``"the scan"``, ``"each subscan"``).
+    """
+    parser.add_argument("--iterations", type=non_negative_int, default=80, metavar="N",
+                        help=f"most BFGS iterations of the fit of {what} (default 80, the paper's; a fit stops "
+                             f"earlier when converged)")
+    parser.add_argument("--control-points", type=positive_int, metavar="N",
+                        help="control points per bubble of the fit (3D: 12, 42 or 162, default 42; 2D: >= 3, "
+                             "default 9); a kept refinement delivers twice as many in 2D, the next icosphere in 3D "
+                             "(42 -> 162)")
+    parser.add_argument("--levels", type=non_negative_int, default=2, metavar="N",
+                        help="Loop/curve subdivision levels of the fitted surface (0-4, default 2); in 3D the most: "
+                             "each bubble takes as few as keep its faces within --facet-pixels")
+    parser.add_argument("--facet-pixels", type=float, default=0.2, metavar="PX",
+                        help="3D: subdivide each bubble only until its flat faces stand at most PX detector pixels "
+                             "from a sphere of its size, at least once and at most --levels times (default 0.2; 0: "
+                             "every bubble at --levels; docs/scale.md)")
+    parser.add_argument("--holdout", choices=("odd", "even"),
+                        help=f"keep these projections of {what} aside and report their MSE (a check against "
+                             f"over-fitting)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars or phase lines")
+
+
+def slabs_argument(text):
+    """``--slabs``: a positive integer or ``auto``."""
+    if text == "auto":
+        return None
+    return positive_int(text)
+
+
+def add_slab_arguments(parser, what, halo_default="a preview of the central rows"):
+    """Add the group of ``--slabs N|auto`` and ``--slab-halo ROWS`` to ``parser`` and return it.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+    what : str
+        What the slabs cut, as the help names it (``"the scan"``, ``"each subscan"``).
+    halo_default : str
+        Where the default halo's bubble radius comes from.
+    """
+    g = parser.add_argument_group("slabs (parallel-beam 3D scans; docs/large-scans.md)")
+    g.add_argument("--slabs", type=slabs_argument, default="auto", metavar="N|auto",
+                   help=f"reconstruct {what} in N slabs of detector rows, each read and fitted on its own "
+                        f"(default auto: one slab per about 8 million detector pixels read; 1: {what} whole)")
+    g.add_argument("--slab-halo", type=positive_int, metavar="ROWS",
+                   help=f"rows read above and below each slab's own rows (default: 1.5 x the largest bubble "
+                        f"radius in {halo_default})")
+    return g

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from bubsub.clients.cli.args import (add_cluster_arguments, add_output_arguments, existing_file, non_negative_int,
-                                     positive_float, positive_int, spec_from_args)
+from bubsub.clients.cli.args import (add_cluster_arguments, add_fit_arguments, add_output_arguments,
+                                     add_slab_arguments, existing_file, positive_float, positive_int, spec_from_args)
 from bubsub.clients.pipeline.outputs import check_output_folder, write_outputs
 from bubsub.clients.remote.jobs import remote_projectors
 
@@ -151,24 +151,13 @@ def register(sub):
                        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scan", type=existing_file, help="HDF5 scan file (Data Exchange layout, see docs/architecture.md)")
     add_output_arguments(p, "meshes, table, report and pictures")
-    p.add_argument("--iterations", type=non_negative_int, default=80,
-                   help="maximum BFGS iterations (default 80, the paper's; the fit stops earlier when converged)")
-    p.add_argument("--control-points", type=positive_int,
-                   help="control points per bubble of the fit (3D: 12, 42 or 162, default 42; 2D: >= 3, default 9); "
-                        "a kept refinement delivers twice as many in 2D, the next icosphere in 3D (42 -> 162)")
+    add_fit_arguments(p, "the scan")
     p.add_argument("--data-levels", type=positive_int, metavar="K",
                    help="fit on pixels binned 2^(K-1) x 2^(K-1), ..., 2 x 2, then on the full detector, each level "
                         "warm-started (default: 2 for 3D detectors of at least 96 x 96 pixels, else 1)")
     p.add_argument("--fit-rtol", type=float, default=2e-4, metavar="R",
                    help="a fit level has converged when its objective fell by less than R times itself over 5 "
                         "iterations (default 2e-4; 0: run to --iterations)")
-    p.add_argument("--levels", type=non_negative_int, default=2,
-                   help="Loop/curve subdivision levels of the fitted surface (0-4, default 2); in 3D the most: "
-                        "each bubble takes as few as keep its faces within --facet-pixels")
-    p.add_argument("--facet-pixels", type=float, default=0.2, metavar="PX",
-                   help="3D: subdivide each bubble only until its flat faces stand at most PX detector pixels from "
-                        "a sphere of its size, at least once and at most --levels times (default 0.2; 0: every "
-                        "bubble at --levels; docs/scale.md)")
     p.add_argument("--radius", type=positive_float,
                    help="initial radius of every bubble in mm (default: from the voxel preview)")
     p.add_argument("--no-radius-estimation", action="store_true",
@@ -200,8 +189,6 @@ def register(sub):
     p.set_defaults(fov_model=True)
     p.add_argument("--init", type=existing_file,
                    help="initial control mesh: a previous reconstruction's control.ply / control.json")
-    p.add_argument("--holdout", choices=("odd", "even"),
-                   help="keep these projections aside and report their MSE (a check against over-fitting)")
     p.add_argument("--supersampling", type=positive_int, default=1, help="rays per pixel and axis (default 1)")
     p.add_argument("--background-subtracted", action="store_true",
                    help="the projections hold only the bubbles' signal: accept a scan without "
@@ -209,37 +196,9 @@ def register(sub):
     p.add_argument("--server", metavar="URL",
                    help="URL of a bubsub projector server to fit against (default: local); checked at start")
     p.add_argument("--token", help="bearer token for --server")
-    p.add_argument("--quiet", action="store_true", help="no progress bars or phase lines")
     g = add_slab_arguments(p, "the scan")
     g.add_argument("--resume", action="store_true",
                    help="reuse the finished slabs in --out/slabs of an earlier run with the same scan and settings")
     add_cluster_arguments(p)
     p.set_defaults(func=cmd_reconstruct)
 
-
-def slabs_argument(text):
-    """``--slabs``: a positive integer or ``auto``."""
-    if text == "auto":
-        return None
-    return positive_int(text)
-
-
-def add_slab_arguments(parser, what, halo_default="a preview of the central rows"):
-    """Add the group of ``--slabs N|auto`` and ``--slab-halo ROWS`` to ``parser`` and return it.
-
-    Parameters
-    ----------
-    parser : argparse.ArgumentParser
-    what : str
-        What the slabs cut, as the help names it (``"the scan"``, ``"each subscan"``).
-    halo_default : str
-        Where the default halo's bubble radius comes from.
-    """
-    g = parser.add_argument_group("slabs (parallel-beam 3D scans; docs/large-scans.md)")
-    g.add_argument("--slabs", type=slabs_argument, default="auto", metavar="N|auto",
-                   help=f"reconstruct {what} in N slabs of detector rows, each read and fitted on its own "
-                        f"(default auto: one slab per about 8 million detector pixels read; 1: {what} whole)")
-    g.add_argument("--slab-halo", type=positive_int, metavar="ROWS",
-                   help=f"rows read above and below each slab's own rows (default: 1.5 x the largest bubble "
-                        f"radius in {halo_default})")
-    return g

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bubsub.clients.cli.args import (add_cluster_arguments, add_output_arguments, non_negative_float,
-                                     non_negative_int, positive_int, spec_from_args)
-from bubsub.clients.cli.reconstruct import add_slab_arguments
+from bubsub.clients.cli.args import (add_cluster_arguments, add_fit_arguments, add_output_arguments,
+                                     add_slab_arguments, non_negative_float, positive_int, spec_from_args)
 
 
 def cmd_reconstruct4d(args):
@@ -60,17 +59,7 @@ def register(sub):
     p.add_argument("--projections-per-subscan", type=positive_int, metavar="K",
                    help="projections per subscan (default: the file's root attribute projections_per_subscan)")
     p.add_argument("--subscans", metavar="A:B", help="A:B reconstructs subscans A..B-1 (default all)")
-    p.add_argument("--holdout", choices=("odd", "even"), help="keep these projections of every subscan aside "
-                   "and report their MSE")
-    p.add_argument("--iterations", type=non_negative_int, default=80, metavar="N",
-                   help="BFGS iterations per subscan (default 80)")
-    p.add_argument("--control-points", type=positive_int, metavar="N", help="control points per bubble (3D default 42, 2D 9)")
-    p.add_argument("--levels", type=non_negative_int, default=2, metavar="N",
-                   help="subdivision levels (default 2); in 3D the most, each bubble taking as few as keep its faces "
-                        "within --facet-pixels")
-    p.add_argument("--facet-pixels", type=float, default=0.2, metavar="PX",
-                   help="3D: subdivide each bubble only until its flat faces stand at most PX detector pixels from a "
-                        "sphere of its size (default 0.2; 0: every bubble at --levels)")
+    add_fit_arguments(p, "each subscan")
     p.add_argument("--warm-rtol", type=non_negative_float, default=1e-3, metavar="R",
                    help="a warm-started fit stops once 5 iterations lowered the objective by less than this "
                         "fraction (default 1e-3; 0 runs all --iterations)")
@@ -81,7 +70,6 @@ def register(sub):
                    help="warm subscans only refit their successor's bubbles: no search for bubbles the successor "
                         "lacks or for coalescences (lineage.csv then holds only the tracks that end)")
     p.add_argument("--resume", action="store_true", help="continue from the complete subscan folders in --out")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--chunks", type=positive_int, default=1, metavar="K",
                    help="cut the subscan chain into K chunks run in parallel, each cold-started at its last "
                         "subscan, bubble ids linked where neighbouring chunks overlap (default 1: one chain)")

@@ -4,7 +4,7 @@ Kept apart from :mod:`.embree_native` so that numba is imported only when the
 backend is used. Nothing process-specific may enter a compiled function's
 type or numba's cache key (a closure's captured values do, and a ctypes
 function of ``rtcIntersect1`` differs from process to process): it would be
-compiled again in every process (5 s) with a new cache file each time. So
+compiled again in every process (seconds) with a new cache file each time. So
 the functions live at module level and ``rtcIntersect1`` is called through
 its address, an integer argument (:func:`call3`).
 See :mod:`bubsub.core.projection.backends.embree_native` for the method.

@@ -4,7 +4,7 @@ Kept apart from :mod:`.raster` so that numba is imported only when the
 backend is used. Defined at module level rather than in a factory: numba's
 cache key hashes a closure's captured variables, and captured dispatchers
 serialise differently in every process, so closures would be compiled again
-in each one (about 2.5 s per process).
+in each one (seconds per process).
 
 One module on purpose: numba's cache checks only the source file of the
 function it compiled, not of the compiled functions it calls, so a kernel

@@ -1,18 +1,27 @@
 """The BubSub reconstruction pipeline: scan file in, one mesh per bubble out.
 
-1. Low-resolution voxel reconstruction of the bubble data, the preview
-   (:mod:`.preview`; box-constrained projected gradient by default).
-2. Bubble centres: Laplacian-of-Gaussian blobs or distance-transform maxima of the
-   Otsu mask, in 2D whichever explains the data better (:mod:`.initial`).
-3. One spherical control mesh per bubble with a constant radius, optionally
-   improved by a radius-only fit (paper eq. 4-5), or a user-given initial mesh.
-4. BFGS on all control vertices, coarse to fine in the data: binned pixels
-   first, the full detector last, each level ended on convergence
-   (:mod:`bubsub.clients.optimise.levels`); topology rounds (:mod:`.topology`)
-   and the validity check and repair (:mod:`.repair`), each refitting only the
-   bubbles it changed on detector windows (:mod:`.local`); one coarse-to-fine
-   step in the control meshes, kept when it explains the data better
-   (:mod:`.refine`), and its check and repair. A tall parallel-beam scan is
+:func:`reconstruct` runs its phases in order, each a function of this module
+over a :class:`PhaseContext` (the local projector, the fitted data, the phase
+clock, the report so far) with its options as keywords:
+
+1. :func:`seed_phase`: low-resolution voxel reconstruction of the bubble data,
+   the preview (:mod:`.preview`; box-constrained projected gradient by
+   default), and the bubble centres in it: Laplacian-of-Gaussian blobs or
+   distance-transform maxima of the Otsu mask, in 2D whichever explains the
+   data better (:mod:`.initial`, :mod:`.seeding`), one spherical control mesh
+   per bubble, or a user-given initial mesh.
+2. :func:`radius_phase`: a radius-only fit (paper eq. 4-5), each bubble then
+   subdivided as finely as its size needs (:mod:`.resolution`).
+3. :func:`fit_phase`: BFGS on all control vertices, coarse to fine in the
+   data: binned pixels first, the full detector last, each level ended on
+   convergence (:mod:`bubsub.clients.optimise.levels`); then :func:`prune`.
+4. :func:`topology_phase` (:mod:`.topology`), :func:`repair_phase` (the
+   validity check and repair, :mod:`.repair`), each refitting only the
+   bubbles it changed on detector windows (:mod:`.local`);
+   :func:`refine_phase`: one coarse-to-fine step in the control meshes, kept
+   when it explains the data better (:mod:`.refine`), and its check and
+   repair; :func:`edge_phase`: slivers at the detector's edge;
+   :func:`holdout_phase` with ``--holdout``. A tall parallel-beam scan is
    reconstructed slab by slab of detector rows (:mod:`.slabs`).
 5. Outputs, each written atomically: ``bubbles.ply`` (3D) or ``bubbles.json``
    (2D), ``bubbles.csv`` (+ ``bubbles.csv-metadata.json``), ``report.json``,
@@ -23,7 +32,6 @@
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -32,7 +40,6 @@ import numpy as np
 
 from bubsub.core import MeshProjector
 from bubsub.core.io.meshio import read_ply, read_polygons_json
-from bubsub.core.malloc import release_free_memory
 from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.mesh import equivalent_radius
 from bubsub.core.projection.subdivision import SubdivisionSurface
@@ -43,6 +50,7 @@ from bubsub.clients.pipeline.checks import check_bubble_signal, check_setting_va
 from bubsub.clients.pipeline.fov import field_of_view, fov_report, inside_fov, size_inside_fov, unobserved_control
 from bubsub.clients.pipeline.initial import default_detector
 from bubsub.clients.pipeline.local import scene_objective
+from bubsub.clients.pipeline.phase_report import PhaseClock, REMOTE_PHASES, merged_projector_report, projector_report
 from bubsub.clients.pipeline.refine import can_refine, coarse_rate, control_counts, refine_and_check
 from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
 from bubsub.clients.pipeline.resolution import level_counts, levels_by_size
@@ -198,7 +206,9 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
                          iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
         will_refine = s.refine and init is None and not interrupted
         # the coarse bubbles' data term before the repair: the refinement's trial discounts the repair's rise in it
-        reached = _data_term(run, kept) if will_refine and kept else None
+        topology = run.report["topology"]  # its final objective is the scene's when the rounds ran
+        reached = (topology["objective"] if topology else scene_objective(run.projector, kept, run.data)) \
+            if will_refine and kept else None
         kept = repair_phase(run, kept, repair)
         kept = refine_phase(run, kept, repair, enabled=will_refine, iterations=s.refine_iterations, penalty=penalty,
                             progress=s.progress, rtol=s.fit_rtol, coarse_rate=coarse_rate(fit.history),
@@ -269,12 +279,9 @@ class _Fit:
 
 def seed_phase(run, contrast, settings, *, init=None):
     """Phases ``preview`` and ``initial_bubbles``: the voxel preview and the bubbles seeded in it
-    (:func:`initial_bubbles`), or ``init`` given contrast ``contrast`` with their preview.
-
-    The preview's and seeds' options are ``settings``' (``voxel_size``, ``preview``, ``fov_model``,
-    ``detector``, ``control_points``, ``levels``, ``radius``, ``min_distance``, ``estimate_radii``), as
-    :func:`settings_preview` and :func:`settings_initial` read them for the benchmarks that start where the
-    pipeline starts. Records ``initialisation``, ``bubbles_initial`` and ``seconds_initialisation``.
+    (:func:`initial_bubbles`), or ``init`` given contrast ``contrast`` with their preview. Its options are
+    ``settings``' preview and seed options, read by :mod:`.seeding` as the benchmarks that start where the
+    pipeline starts read them. Records ``initialisation``, ``bubbles_initial``, ``seconds_initialisation``.
 
     Returns
     -------
@@ -398,12 +405,6 @@ def holdout_phase(run, surfaces, geometry, data, *, supersampling=1):
     return entries
 
 
-def _data_term(run, surfaces):
-    """The data term the bubbles reached: the topology rounds' final objective when they ran, else computed."""
-    topology = run.report.get("topology")
-    return topology["objective"] if topology else scene_objective(run.projector, surfaces, run.data)
-
-
 def _report(run, kept, fit, preview, s, geometry, *, dropped, interrupted):
     """``report.json`` of :func:`reconstruct`: the phases' entries and what was delivered."""
     r = run.report
@@ -457,85 +458,12 @@ def _report(run, kept, fit, preview, s, geometry, *, dropped, interrupted):
     }
 
 
-#: the phases of :func:`reconstruct` that project through ``projector_factory``'s projectors (the initial
-#: objective and every level of the fit); the others project with local ones
-REMOTE_PHASES = ("fit",)
-
-
-def projector_report(remote, phases, backend):
-    """``report.json``'s ``projector``: where the projections of each phase ran.
-
-    Parameters
-    ----------
-    remote : object or None
-        The projector ``projector_factory`` made (a
-        :class:`~bubsub.clients.remote.client.RemoteJob` says its ``server``); None when every
-        phase projected locally.
-    phases : iterable of str
-        The phases that ran, in order (``seconds_parts``' keys).
-    backend : str
-        The local projectors' backend.
-
-    Returns
-    -------
-    dict
-        ``server`` (URL or None), ``remote_phases``, ``local_phases`` (lists of phase names) and
-        ``local_backend``.
-    """
-    phases = list(phases)
-    remote_phases = [p for p in phases if p in REMOTE_PHASES] if remote is not None else []
-    return {"server": getattr(remote, "server", None) if remote is not None else None,
-            "remote_phases": remote_phases, "local_phases": [p for p in phases if p not in remote_phases],
-            "local_backend": backend}
-
-
-def merged_projector_report(reports):
-    """One :func:`projector_report` for several runs' (the slabs of a scan): the first server named, and
-    the phases that ran remotely in any run, or locally in any, in the order they first appear; None
-    when no run has one."""
-    reports = [r for r in reports if r]
-    if not reports:
-        return None
-    remote, local = [], []
-    for r in reports:
-        remote += [p for p in r["remote_phases"] if p not in remote]
-        local += [p for p in r["local_phases"] if p not in local]
-    return {"server": next((r["server"] for r in reports if r["server"]), None), "remote_phases": remote,
-            "local_phases": local, "local_backend": reports[0]["local_backend"]}
-
-
 def _separation(strength, data, n_bubbles, voxel):
     """The fit's separation penalty of ``strength`` (:mod:`bubsub.clients.optimise.separation`), or None when
     it is 0 (off)."""
     if not strength:
         return None
     return partial(separation_penalty, weight=separation_weight(data, n_bubbles, voxel, strength), gap=0.25 * voxel)
-
-
-class PhaseClock:
-    """Wall and CPU seconds (this process, all threads) of consecutive phases, for ``report.json``."""
-
-    def __init__(self):
-        self._start = self._wall = time.perf_counter()
-        self._cpu = time.process_time()
-        self._parts = {}
-
-    def mark(self, name):
-        """End the phase ``name`` now (added to its earlier time when it ran before); the next one starts
-        (with the phase's freed memory given back: :func:`bubsub.core.malloc.release_free_memory`)."""
-        release_free_memory()
-        wall, cpu = time.perf_counter(), time.process_time()
-        w0, c0 = self._parts.get(name, (0.0, 0.0))
-        self._parts[name] = (w0 + wall - self._wall, c0 + cpu - self._cpu)
-        self._wall, self._cpu = wall, cpu
-
-    def elapsed(self):
-        """Wall seconds since the clock was made."""
-        return time.perf_counter() - self._start
-
-    def parts(self):
-        """``({phase: wall seconds}, {phase: CPU seconds})``."""
-        return {k: w for k, (w, _) in self._parts.items()}, {k: c for k, (_, c) in self._parts.items()}
 
 
 def prune(surfaces, min_radius, fov=None):

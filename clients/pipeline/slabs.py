@@ -68,15 +68,16 @@ from bubsub.core.projection.subdivision import SubdivisionSurface
 from bubsub.clients.cluster.engine import run_tasks
 from bubsub.clients.pipeline.checks import check_settings
 from bubsub.clients.pipeline.fov import fov_report
-from bubsub.clients.pipeline.reconstruct import (Reconstruction, ReconstructionSettings, merged_projector_report,
-                                                 reconstruct)
+from bubsub.clients.pipeline.phase_report import merged_projector_report
+from bubsub.clients.pipeline.reconstruct import Reconstruction, ReconstructionSettings, reconstruct
 from bubsub.clients.pipeline.resolution import level_counts
 # the slabs' layout and stitching, named here too: this module is where the other modules find the slabs
 from bubsub.clients.pipeline.slab_layout import (SLAB_PIXELS, WHOLE_SCAN_SLABS, Slab, SlabResult, auto_slabs,
                                                  check_slab_geometry, default_slab_rows, estimate_halo, halo_rows,
                                                  is_scan, known_halo, moved, plan_slabs, scan_geometry, slab_bounds,
                                                  slab_count, slab_origin, slab_scan)
-from bubsub.clients.pipeline.slab_stitch import core_preview, fit_known, rows_entry, slab_totals, stitch, stitch_previews
+from bubsub.clients.pipeline.slab_stitch import (core_preview, fit_known, rows_entry, slab_totals, stitch,
+                                                 stitch_previews)
 from bubsub.clients.progress import phase
 from bubsub.clients.remote.jobs import remote_projectors
 

@@ -450,43 +450,25 @@ def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterati
     Parameters
     ----------
     projector : MeshProjector
-        Local, of the fitted projections ``data`` (``projector.geometry.shape``).
-    surfaces : list of SubdivisionSurface
-        After the first fit.
-    data : ndarray
-        The fitted projections.
+        Local, of the fitted projections ``data``; ``surfaces`` are the bubbles after the first fit.
     contrast : float
         1/mm, the new bubbles'.
     voxel : float
         The voxel preview's voxel size, mm: added bubbles are at least 3 voxels in radius, bubbles within 2
-        voxels are merge candidates, and a 3D residual is reconstructed on voxels twice as large.
-    rounds : int
-        Topology rounds (``topology_rounds``).
-    iterations : int
-        The fit's iteration cap; each refit of a round runs ``max(10, iterations // 2)``.
-    levels : int
-        The most subdivision levels of a new bubble; in 3D it takes as few as keep its faces within
-        ``facet_pixels`` (:func:`~bubsub.clients.pipeline.resolution.levels_by_size`); in 2D the fitted bubbles'.
-    facet_pixels : float
-        See ``levels``.
-    voxel_size : float, optional
-        The asked-for preview voxel (mm), the 2D residual preview's; None: the preview's default.
-    method : {"box", "sirt"}
-        The residual preview's method (:func:`~bubsub.clients.pipeline.preview.voxel_preview`).
-    fov_model : bool
-        The residual preview extends beyond the field of view as the data preview does, and
-        :func:`adapt_topology` respects its edge (``fov_edge``).
-    image : ndarray, optional
-        The voxel preview (:func:`~bubsub.clients.pipeline.preview.voxel_preview`); None where there is none
-        (a warm-started subscan of ``reconstruct4d``): no split candidates from its blobs.
-    extent : tuple, optional
-        Of ``image``, mm.
-    penalty : callable, optional
-        Added to the objective of the rounds' joint refits.
-    progress : bool
-        A progress line per round.
-    steps : tuple of str
-        The changes tried (:func:`adapt_topology`).
+        voxels are merge candidates, a 3D residual is reconstructed on voxels twice as large.
+    rounds, iterations : int
+        Topology rounds; the fit's iteration cap (each refit of a round runs ``max(10, iterations // 2)``).
+    levels, facet_pixels
+        The most subdivision levels of a new bubble, in 3D as few as keep its faces within ``facet_pixels``
+        (:func:`~bubsub.clients.pipeline.resolution.levels_by_size`); in 2D the fitted bubbles' levels.
+    voxel_size, method, fov_model
+        The preview's options (``--voxel-size``, its 2D residual preview's voxel; ``--preview``; the field of
+        view model, which :func:`adapt_topology` then respects, ``fov_edge``).
+    image, extent : optional
+        The voxel preview and its extent (mm); None where there is none (a warm-started subscan of
+        ``reconstruct4d``): no split candidates from its blobs.
+    penalty, progress, steps
+        As :func:`adapt_topology`'s.
     unexplained_only : bool
         Reconstruct only the residual's part of the bubbles' sign (gas the bubbles leave unexplained), the
         rest set to 0: where fitted bubbles stand a little too large, the residual's other sign, which the

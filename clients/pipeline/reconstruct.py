@@ -70,6 +70,7 @@ class ReconstructionSettings:
     """What ``bubsub reconstruct`` can be told (defaults follow the paper); refused when made with a value no
     scan accepts (:func:`~bubsub.clients.pipeline.checks.check_setting_values`, ``ValueError`` naming the
     option), the rest when a scan's dimension is known (:func:`~bubsub.clients.pipeline.checks.check_settings`)."""
+
     iterations: int = 80  # the full detector's cap, 3x on binned levels (.optimise.levels); a level ends earlier on convergence
     data_levels: int | None = None  # fit on 2^(k-1)-binned, ..., full pixels; default 2 for 3D detectors >= 96 px
     fit_rtol: float | None = 2e-4  # converged: objective down by < fit_rtol x itself over 5 iterations
@@ -311,7 +312,7 @@ def radius_phase(run, surfaces, *, estimate, data_levels, levels, facet_pixels, 
     g = run.projector.geometry
     if estimate:
         surfaces = coarse_radii_with(surfaces, g, run.data, bin_factors(g, data_levels)[0],
-                                 supersampling=run.projector.supersampling, progress=progress)
+                                     supersampling=run.projector.supersampling, progress=progress)
     surfaces = levels_by_size(surfaces, g, levels, facet_pixels)
     run.clock.mark("radius_estimation")
     return surfaces

@@ -91,7 +91,7 @@ def coarse_radii(surfaces, geometry, data, factor, settings):
 
 
 def coarse_radii_with(surfaces, geometry, data, factor, *, supersampling=1, progress=False):
-    """:func:`coarse_radii` with its options."""
+    """:func:`coarse_radii` with its options as keywords: rays per pixel and axis, progress line."""
     coarse = MeshProjector(geometry.binned(factor), supersampling=supersampling)
     levels = [x.levels for x in surfaces]
     return coarse_surfaces(estimate_radii(coarse, coarse_surfaces(surfaces, factor, levels),

@@ -284,7 +284,7 @@ def test_bubble_diagnosis_counts_centres_and_finds_merged_bubbles():
 def test_inside_matches_the_winding_number_of_every_point(ndim):
     """The split step's point test: points outside the bounding box are skipped, and the answer is
     still the one-point coverage of every point (near the surface, inside, far away)."""
-    from bubsub.clients.pipeline.topology import _inside
+    from bubsub.clients.pipeline.topology import points_inside
     from bubsub.core import sphere_surface
     from bubsub.core.voxel.raster import coverage
 
@@ -297,7 +297,7 @@ def test_inside_matches_the_winding_number_of_every_point(ndim):
     points = centre + d * radii[:, None]
     tiny = 1e-6
     truth = [coverage(s, (1,) * ndim, tuple(np.stack([p - tiny, p + tiny], 1).ravel())).item() > 0 for p in points]
-    got = _inside(s, points)
+    got = points_inside(s, points)
     assert got.dtype == bool and got.tolist() == truth
     assert 0 < got.sum() < len(points)
 

@@ -3,11 +3,23 @@
 ``reconstruct4d`` goes backwards in time and starts each subscan from its
 successor's bubbles, so a bubble that exists now but not in the successor
 (it leaves through the detector's edge later, shrinks to nothing later, or
-coalesces later with a neighbour) has no warm start. After the warm fit,
-:func:`detect_warm` runs the static pipeline's topology rounds
-(:func:`bubsub.clients.pipeline.topology.adapt_bubbles`) on the fitted
-bubbles, without a voxel preview of the data and with the steps
-:data:`WARM_STEPS`:
+coalesces later with a neighbour) has no warm start, and a neighbour's warm
+fit swells into its space. After the warm fit, :func:`detect_warm` makes
+the data's voxel preview as the cold start does (:func:`data_preview`: the
+same grid, its distance-transform centres) and lets its centres decide
+(:func:`preview_changes`):
+
+* **split**: a fitted bubble that holds two or more centres is replaced by
+  two round bubbles at them when that lowers the objective by more than the
+  second bubble's unknowns cost (a swollen neighbour, or one bubble in the
+  successor that is two here);
+* **add**: a round bubble at each centre no fitted bubble holds, kept by the
+  same rule, then refitted with its neighbours free.
+
+Then caps at the detector's top and bottom rows are seeded
+(:func:`edge_seeds`), and the static pipeline's topology rounds
+(:func:`bubsub.clients.pipeline.topology.adapt_bubbles`) run on the
+bubbles, with the preview and the steps :data:`WARM_STEPS`:
 
 * **add**: the residual ``data - Proj(fit)`` is reconstructed on a coarse
   voxel grid (the field-of-view model's grid, so caps at the detector's top
@@ -16,9 +28,9 @@ bubbles, without a voxel preview of the data and with the steps
   (the Akaike rule of the static pipeline), then refitted on a detector window
   with its neighbours free (a neighbour whose warm fit grew into its gas
   shrinks back) and the rest of the scene held fixed;
-* **split**: an elongated bubble (the warm fit of one bubble over two) is
-  replaced by two when that lowers the objective by more than the unknowns
-  the second bubble adds;
+* **split**: a bubble holding two LoG blobs of the preview, or an elongated
+  one (the warm fit of one bubble over two), is replaced by two when that
+  lowers the objective by more than the unknowns the second bubble adds;
 * **remove**: a bubble whose removal costs the objective less than its seen
   unknowns are worth goes (a bubble that left the field of view, going
   backwards, keeps only a sliver in view).
@@ -35,14 +47,21 @@ never reused in a run.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from bubsub.core.projection.mesh import equivalent_radius
 from bubsub.core.voxel.raster import coverage
 
-from bubsub.clients.pipeline.fov import field_of_view, fov_report, truncated_flags
+from bubsub.clients.pipeline.fov import field_of_view, fov_report, preview_extension, truncated_flags
+from bubsub.clients.pipeline.initial import distance_centres, initial_centres, small_centres
+from bubsub.clients.pipeline.local import Footprints, local_refit, scene_residual
+from bubsub.clients.pipeline.preview import preview_voxel_size, voxel_for_bubbles, voxel_preview
+from bubsub.clients.pipeline.resolution import pixels_per_mm
+from bubsub.clients.pipeline.topology import add_at, points_inside, split_step
 
-__all__ = ["WARM_STEPS", "detect_warm", "assign_tracks", "overlap_fraction", "edge_side"]
+__all__ = ["WARM_STEPS", "detect_warm", "data_preview", "preview_changes", "assign_tracks", "overlap_fraction", "edge_side"]
 
 #: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
 #: forward in time, keeps the successor's two warm starts).
@@ -288,6 +307,119 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
     return out
 
 
+def data_preview(geometry, data, contrast, settings, surfaces):
+    """The voxel preview of a warm subscan's data, as the cold start makes it, and the bubble centres in it.
+
+    The grid is the cold start's (:func:`~bubsub.clients.pipeline.preview.preview_grid` at ``settings.voxel_size``,
+    the default voxel, made finer by :func:`~bubsub.clients.pipeline.preview.voxel_for_bubbles` when the fitted
+    bubbles are few voxels across, never finer than a detector pixel at the axis; widened by the field-of-view model, so that caps at the detector's edge
+    show); the centres are the cold start's ``"dt"`` detector (the distance transform's maxima of the Otsu mask)
+    and, in 3D, the small bubbles its opening erased (:func:`~bubsub.clients.pipeline.initial.small_centres`).
+
+    Parameters
+    ----------
+    geometry : ScanGeometry
+    data : ndarray, ``geometry.shape``
+    contrast : float
+    settings : DynamicSettings
+    surfaces : list of SubdivisionSurface
+        The warm fit (their sizes choose a finer voxel).
+
+    Returns
+    -------
+    image : ndarray float32, ``(slices, rows, cols)`` or ``(rows, cols)``
+    extent : tuple
+        mm.
+    centres : (k, ndim) float
+        mm, largest distance first.
+    radii : (k,) float
+        mm: the distance transform at each centre (a small bubble's blob radius).
+    """
+    extend = preview_extension(settings.fov_model, data, contrast)
+    voxel = settings.voxel_size
+    if voxel is None:
+        default = preview_voxel_size(geometry)
+        voxel = voxel_for_bubbles([equivalent_radius(_size(s), s.ndim) for s in surfaces], geometry, default,
+                                  extend) or default
+        # no finer than a detector pixel at the axis (a small detector's default voxel is a fraction of one)
+        voxel = max(voxel, 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0]))
+    image, extent = voxel_preview(data, geometry, contrast, voxel, method=settings.preview, extend=extend)
+    edge = not settings.fov_model
+    if image.ndim == 3:
+        centres, radii, mask = distance_centres(image, extent, min_distance=settings.min_distance,
+                                                border_is_background=edge)
+        small = small_centres(image, extent, contrast, mask)
+        centres, radii = np.concatenate([centres, small[0]]), np.concatenate([radii, small[1]])
+    else:
+        centres, radii = initial_centres(image, extent, detector="dt", min_distance=settings.min_distance,
+                                         border_is_background=edge)
+    order = np.argsort(-np.asarray(radii), kind="stable")
+    return image, extent, np.asarray(centres, float).reshape(-1, image.ndim)[order], np.asarray(radii, float)[order]
+
+
+def preview_changes(projector, surfaces, data, centres, radii, settings, *, min_radius):
+    """Splits and additions that the data preview's bubble centres call for, each kept by the static rule.
+
+    * **split**: a fitted bubble that holds two or more centres (a neighbour whose warm fit grew over a bubble
+      the successor lacks, or one bubble in the successor that is two here) is replaced by two round bubbles at
+      its two largest centres, fitted locally, kept when the objective drops by more than the unknowns the
+      second bubble adds (:func:`~bubsub.clients.pipeline.topology.split_step`);
+    * **add**: a round bubble at each centre that no bubble holds, its radius cut to the gap to its neighbours,
+      kept when the objective drops by more than its unknowns cost
+      (:func:`~bubsub.clients.pipeline.topology.add_at`).
+
+    The bubbles changed are then refitted on detector windows with their neighbours (within their own size)
+    free and the rest of the scene fixed: a neighbour whose warm fit took a new bubble's space gives it back.
+
+    Parameters
+    ----------
+    projector : MeshProjector
+    surfaces : list of SubdivisionSurface
+        The warm fit.
+    data : ndarray
+    centres : (k, ndim) float
+    radii : (k,) float
+        :func:`data_preview`'s, mm.
+    settings : DynamicSettings
+    min_radius : float
+        Smallest bubble added, mm.
+
+    Returns
+    -------
+    surfaces : list of SubdivisionSurface
+    changes : list of dict
+        As :func:`~bubsub.clients.pipeline.topology.adapt_topology`'s, kinds ``preview_split`` and ``preview_add``.
+    """
+    surfaces = list(surfaces)
+    if not surfaces or not len(centres):
+        return surfaces, []
+    new_bubble = _new_bubble(surfaces, projector.geometry, settings)
+    own = Footprints(projector, surfaces)
+    residual = scene_residual(projector, surfaces, data)
+    cost = new_bubble(np.zeros(surfaces[0].ndim), 1.0).vertices.size * 2 * 0.5 * float(np.vdot(residual, residual)) \
+        / residual.size
+    changes = []
+    held = np.array([points_inside(s.fine(), centres) for s in surfaces])
+    twice = {k for k in range(len(surfaces)) if held[k].sum() >= 2}
+    start = {id(s) for s in surfaces}
+    iterations = max(10, settings.iterations // 2)
+    if twice:
+        surfaces, own = split_step(projector, surfaces, residual, own, data, new_bubble, changes, 0,
+                                   ratio=np.inf, iterations=15, max_tries=len(twice), cost=cost,
+                                   blobs=(centres, radii), only=twice)
+    free = ~held.any(axis=0)
+    if np.any(free):
+        surfaces, own = add_at(projector, surfaces, residual, own, centres[free], radii[free], new_bubble, changes, 0,
+                               min_radius=min_radius, max_add=int(free.sum()), cost=cost)
+    for c in changes:
+        c["change"] = "preview_" + c["change"]
+    changed = [k for k, s in enumerate(surfaces) if id(s) not in start]
+    if changed:
+        surfaces, _, _ = local_refit(projector, surfaces, data, changed, iterations=iterations,
+                                     touch=max(_radius(surfaces[k]) for k in changed), residual=residual)
+    return surfaces, changes
+
+
 def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, next_id):
     """The warm fit's bubbles after the topology rounds of :data:`WARM_STEPS`, with their track ids.
 
@@ -315,7 +447,10 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
     lineage : dict
         See :func:`assign_tracks`.
     summary : dict
-        The rounds' ``changes`` counted by kind, ``rounds``, ``objective``, ``voxel_mm`` (of the residual preview).
+        The rounds' ``changes`` counted by kind, ``rounds``, ``objective``, ``voxel_mm`` (of the residual preview),
+        ``preview`` (the data preview's ``voxel_mm``, ``shape`` and ``centres``), ``seconds`` (wall seconds of
+        the data preview, its splits and additions, the edge caps, the rounds, the tracks with the new bubbles'
+        refit).
     next_id : int
     """
     from bubsub.core import MeshProjector
@@ -339,27 +474,43 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
         # (:func:`~bubsub.clients.pipeline.topology.adapt_bubbles`), and a bubble added is at least 3 voxels in
         # radius; a finer grid costs a warm subscan more than its fit
         voxel = max(voxel, 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0]))
-    # caps at the detector's top and bottom first: the rounds' remove step then judges them by the static rule
-    seeded = edge_seeds(MeshProjector(geometry, supersampling=settings.supersampling), data, surfaces, settings,
-                        voxel)
-    after, summary = adapt_bubbles(MeshProjector(geometry, supersampling=settings.supersampling), seeded, data,
+    projector = MeshProjector(geometry, supersampling=settings.supersampling)
+    t0 = time.perf_counter()
+    image, extent, centres, radii = data_preview(geometry, data, contrast, settings, surfaces)
+    seconds_preview = time.perf_counter() - t0
+    preview_voxel = (extent[1] - extent[0]) / image.shape[-1]
+    previewed, preview_log = preview_changes(projector, surfaces, data, centres, radii, settings,
+                                             min_radius=1.5 * preview_voxel)
+    seconds = {"preview": seconds_preview, "preview_changes": time.perf_counter() - t0 - seconds_preview}
+    t0 = time.perf_counter()
+    # caps at the detector's top and bottom: the rounds' remove step then judges them by the static rule
+    seeded = edge_seeds(projector, data, previewed, settings, voxel)
+    seconds["edge_seeds"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    after, summary = adapt_bubbles(projector, seeded, data,
                                    contrast=contrast, voxel=voxel, rounds=settings.topology_rounds,
                                    iterations=settings.iterations, levels=settings.levels,
                                    facet_pixels=settings.facet_pixels, voxel_size=settings.voxel_size,
-                                   method=settings.preview, fov_model=settings.fov_model, progress=settings.progress,
-                                   steps=WARM_STEPS, unexplained_only=True)
+                                   method=settings.preview, fov_model=settings.fov_model, image=image, extent=extent,
+                                   progress=settings.progress, steps=WARM_STEPS, unexplained_only=True)
+    seconds["rounds"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    summary["changes"] = preview_log + summary["changes"]
     new_ids, lineage, next_id = assign_tracks(ids, surfaces, after, successor_sizes, geometry, next_id)
     born = [k for k, i in enumerate(new_ids) if i not in set(ids)]
     if born:
         # the new bubbles with every neighbour within their size free: a neighbour whose warm fit grew into a
         # new bubble's gas (the rounds refit only bubbles within a few voxels) gives it back
-        after, residual, _ = local_refit(MeshProjector(geometry, supersampling=settings.supersampling), after, data,
-                                      born, iterations=max(10, settings.iterations // 2),
-                                      touch=2 * max(_radius(after[k]) for k in born))
+        after, residual, _ = local_refit(projector, after, data, born, iterations=max(10, settings.iterations // 2),
+                                         touch=2 * max(_radius(after[k]) for k in born))
         summary["objective"] = 0.5 * float(np.vdot(residual, residual))
+    seconds["tracks_and_refit"] = time.perf_counter() - t0
     counts = {}
     for c in summary["changes"]:
         counts[c["change"]] = counts.get(c["change"], 0) + 1
-    counts["edge_seed"] = len(seeded) - len(surfaces)
+    counts["edge_seed"] = len(seeded) - len(previewed)
     return new_ids, after, lineage, {"rounds": summary["rounds"], "changes": counts,
-                                     "objective": summary["objective"], "voxel_mm": voxel}, next_id
+                                     "objective": summary["objective"], "voxel_mm": voxel,
+                                     "preview": {"voxel_mm": preview_voxel, "shape": list(image.shape),
+                                                 "centres": len(centres)},
+                                     "seconds": seconds}, next_id

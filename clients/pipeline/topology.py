@@ -49,7 +49,7 @@ from bubsub.clients.pipeline.local import (Footprints, footprint, local_fits, lo
 from bubsub.clients.pipeline.preview import preview_grid, resample_image, voxel_preview
 from bubsub.clients.pipeline.resolution import levels_by_size
 
-__all__ = ["adapt_topology", "adapt_bubbles"]
+__all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "points_inside"]
 
 #: BB iterations of the 3D residual preview (half the data preview's 30): with a bubble left out
 #: of a 60-bubble fit (25 x 256 x 512 cone scan), 15 and 30 iterations add the same bubble at the
@@ -110,14 +110,26 @@ def add_step(projector, surfaces, residual, own, preview, new_bubble, changes, r
     contrast = new_bubble(np.zeros(ndim), 1.0).attenuation
     centres, radii = log_blobs(image, extent, contrast, min_radius=min_radius, max_radius=max_radius,
                                threshold=threshold)
+    idx = np.clip(np.round(world_to_index(centres, image.shape, extent)).astype(int), 0, np.array(image.shape) - 1)
+    free = ~occupied[tuple(idx.T)] if len(centres) else np.zeros(0, bool)
+    return add_at(projector, surfaces, residual, own, centres[free], radii[free], new_bubble, changes, round_no,
+                  min_radius=min_radius, max_add=max_add, cost=cost)
+
+
+def add_at(projector, surfaces, residual, own, centres, radii, new_bubble, changes, round_no, *, min_radius,
+           max_add, cost=0.0):
+    """Round bubbles at ``centres`` (k, ndim) with about ``radii`` (k,) (mm), each kept when the objective drops.
+
+    Each radius is cut to 0.9 of the gap to the nearest bubble's surface (a centre closer than ``min_radius``
+    to one is skipped), tried at 0.7, 1 and 1.3 times, and the best kept when it lowers ``0.5 ||r||^2`` by more
+    than ``cost``; ``residual`` and ``own`` follow each bubble kept (in place), ``changes`` records it.
+    """
     surfaces = list(surfaces)
+    ndim = np.asarray(centres).shape[-1] if len(centres) else 0
     added = 0
     for c, r in zip(centres, radii):
         if added >= max_add:
             break
-        idx = np.clip(np.round(world_to_index(c, image.shape, extent)).astype(int), 0, np.array(image.shape) - 1)
-        if occupied[tuple(idx)]:
-            continue
         if surfaces:  # keep clear of the existing bubbles
             gap = min(np.min(np.linalg.norm(s.fine().vertices - c, axis=1)) for s in surfaces)
             r = min(r, 0.9 * gap)
@@ -221,7 +233,7 @@ def _axes(s):
     return c, w, u
 
 
-def _inside(surface, points):
+def points_inside(surface, points):
     """Which of ``points`` (k, ndim) lie inside the fine surface (winding numbers on a one-point grid each).
 
     Points outside the surface's bounding box are outside without a winding
@@ -258,7 +270,7 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         if only is not None and k not in only:
             continue
         if blobs is not None and len(blobs[0]) > 1:
-            inside = np.nonzero(_inside(s.fine(), blobs[0]))[0]
+            inside = np.nonzero(points_inside(s.fine(), blobs[0]))[0]
             if len(inside) >= 2:
                 (a, b), (ra, rb) = blobs[0][inside[:2]], blobs[1][inside[:2]]
                 gap = float(np.linalg.norm(a - b))

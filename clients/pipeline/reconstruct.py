@@ -477,10 +477,9 @@ def prune(surfaces, min_radius, fov=None):
     The pipeline passes, after its last change, the slab between the planes
     of the detector's top and bottom rows (:func:`seen_slab`): no ray passes
     beyond them, so the rest of a cut bubble is continued from what the data
-    see (:func:`.repair.continued`), not measured. On the ~600-bubble column
-    of ``bubsub bench scale`` a 0.00037 mm^3 sliver at the detector's top row
-    (a ball of one preview voxel: 0.0008 mm^3) sat on a cut bubble found
-    whole: the one spurious bubble of the benchmark.
+    see (:func:`.repair.continued`), not measured: a sliver there is no
+    evidence of a bubble (docs/prepare.md, "Slivers at the edge are dropped",
+    measures it on ``bubsub bench scale``'s column).
 
     Parameters
     ----------

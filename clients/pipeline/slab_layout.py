@@ -28,8 +28,8 @@ __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_orig
 #: Detector pixels (projections x rows x columns) read by one slab when the number of slabs is chosen
 #: automatically. A slab of this size with ~600 bubbles reconstructs in under a gigabyte (the ~600-bubble
 #: column of ``bubsub bench scale``, 7.9 million pixels, whole: docs/scale.md); smaller slabs cost more
-#: than they save: each reads its halos again and fits the bubbles there a second time (that column in
-#: three slabs of 3 million pixels read 440 of its 256 rows and took twice as long as whole).
+#: than they save: each reads its halos again and fits the bubbles there a second time (docs/large-scans.md
+#: measures it on that column).
 SLAB_PIXELS = 8_000_000
 
 #: A scan of up to this many times :data:`SLAB_PIXELS` pixels is one slab by default.

@@ -196,7 +196,7 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
             iterations)
         if f_one < f_pair + cost:
             # the new bubble's own projection on its window, not the whole detector's (three arrays of
-            # the scan's size, the pipeline's peak memory on a ~600-bubble column)
+            # the scan's size would set the pipeline's peak memory on a large scan)
             p = footprint(projector, one[0])
             p.add_to(residual)
             own[i].add_to(residual, -1.0)

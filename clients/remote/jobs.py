@@ -49,11 +49,11 @@ def remote_projectors(server, token=None, *, supersampling=1, on_cleanup_error=N
         return
     from bubsub.clients.remote.client import connect  # the 'client' extra (httpx): only with a server
 
-    client = connect(server, token)
+    http = connect(server, token)  # the projector server's HTTP client
     jobs = []
 
     def factory(geometry, data, surfaces):
-        job = client.create_job(geometry, data=data, surfaces=surfaces, supersampling=supersampling)
+        job = http.create_job(geometry, data=data, surfaces=surfaces, supersampling=supersampling)
         jobs.append(job)
         return job
 
@@ -66,4 +66,4 @@ def remote_projectors(server, token=None, *, supersampling=1, on_cleanup_error=N
             except Exception as exc:  # noqa: BLE001 - the result matters more than the clean-up
                 if on_cleanup_error is not None:
                     on_cleanup_error(exc)
-        client.close()
+        http.close()

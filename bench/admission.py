@@ -26,6 +26,10 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from bubsub.core import Polygon, ScanGeometry, SubdivisionSurface, sphere_surface
+from bubsub.service.budget import estimate
+from bubsub.service.jobs import build_job
+
 __all__ = ["SHAPES", "ENV", "measure", "measure_on", "estimate_bytes", "main"]
 
 MiB = 1 << 20
@@ -43,23 +47,17 @@ ENV = {
 
 
 def _cone(n_angles, rows, cols, pixel_size):
-    from bubsub.core import ScanGeometry
-
     return ScanGeometry.cone(np.linspace(0, 2 * np.pi, n_angles, endpoint=False), source_origin=150.0,
                              origin_detector=50.0, pixel_size=pixel_size, cols=cols, rows=rows)
 
 
 def _spheres(n, radius, levels, seed=0, spread=6.0):
-    from bubsub.core import sphere_surface
-
     rng = np.random.default_rng(seed)
     centres = rng.uniform(-spread, spread, (n, 3)) if n > 1 else np.zeros((1, 3))
     return [sphere_surface(tuple(c), radius, 1.0, levels=levels) for c in centres]
 
 
 def _triangles(n, scale=0.05):
-    from bubsub.core import Polygon, SubdivisionSurface
-
     tri = np.array([[1.0, 0.0], [-0.5, 0.8], [-0.5, -0.8]]) * scale
     return [SubdivisionSurface(Polygon(tri + [(i % 100) * 0.2 - 10, (i // 100) * 0.2 - 8], 1.0), 6)
             for i in range(n)]
@@ -67,8 +65,6 @@ def _triangles(n, scale=0.05):
 
 def _detector_1400():
     """tests/test_service_budget.py: one parallel view of 1400 x 1400 pixels nearly filled by a sphere."""
-    from bubsub.core import ScanGeometry
-
     g = ScanGeometry.from_astra("parallel3d_vec", [[0, 1, 0, 0, 0, 0, 1.4 / 1400, 0, 0, 0, 0, 1.4 / 1400]],
                                 det_rows=1400, det_cols=1400)
     return g, _spheres(1, 0.7, 2), 1
@@ -162,9 +158,7 @@ def estimate_bytes(spec, x, op, env, shape):
     for the request :func:`_call` sends."""
     import os
 
-    from bubsub.service.budget import estimate
     from bubsub.service.config import Settings
-    from bubsub.service.jobs import build_job
     from bubsub.service.schemas import JobCreate
 
     keys = {k[len("BUBSUB_"):].lower(): v for k, v in {**os.environ, **env}.items() if k.startswith("BUBSUB_")}

@@ -65,6 +65,16 @@ import numpy as np
 
 from bubsub.bench.analysis_truth import column_truth, load_column, shape_table
 from bubsub.core.projection.mesh import equivalent_radius
+from bubsub.clients.analysis import analyse, default_contact_gap, read_reconstruction
+from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
+from bubsub.core.analysis.regions import Domain
+from bubsub.core.analysis.snapshot import analyse_meshes
+from bubsub.core.foam.column import column_phantom, simulate_column, write_column
+from bubsub.core.foam.ellipsoids import ellipsoid_labels, ellipsoid_mesh
+from bubsub.core.io.scanfile import read_scan
+from bubsub.core.voxel.raster import pixel_centres
+from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 
 __all__ = ["score", "foamquant_route", "label_contacts", "compare", "cost_table", "main"]
 
@@ -225,8 +235,6 @@ def foamquant_route(binary, extent, voxel, min_distance, gap, mask):
 
 
 def _cylinder_mask(shape, extent, radius):
-    from bubsub.core.voxel.raster import pixel_centres
-
     _, y, x = pixel_centres(shape, extent)
     inside = np.hypot(x[None, :], y[:, None]) <= radius
     return np.broadcast_to(inside, shape)
@@ -263,10 +271,6 @@ def _folders(a):
     """The column's simulation folder and a reconstruct folder of its scan (made when not given)."""
     import tempfile
 
-    from bubsub.clients.pipeline.outputs import write_outputs
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
-    from bubsub.core.foam.column import column_phantom, simulate_column, write_column
-    from bubsub.core.io.scanfile import read_scan
 
     if a.simulation and a.reconstruction:
         return Path(a.simulation), Path(a.reconstruction), None
@@ -285,9 +289,6 @@ def _folders(a):
 
 def cost_table(sizes, repeats, seed):
     """Seconds of :func:`analyse_meshes` on the 642-vertex truth meshes of columns of ``sizes`` bubbles."""
-    from bubsub.core.analysis.snapshot import analyse_meshes
-    from bubsub.core.foam.column import column_phantom
-
     print("\n| bubbles | vertices | contacts | shape s | contacts s | regions s | total s (median of "
           f"{repeats}) |\n|---|---|---|---|---|---|---|", flush=True)
     for n in sizes:
@@ -337,11 +338,6 @@ def main(argv=None):
 
 
 def compare(a):
-    from bubsub.clients.analysis import analyse, default_contact_gap, read_reconstruction
-    from bubsub.core.analysis.regions import Domain
-    from bubsub.core.analysis.snapshot import analyse_meshes
-    from bubsub.core.foam.ellipsoids import ellipsoid_mesh
-
     sim, folder, rec_seconds = _folders(a)
     col = load_column(sim)
     report = read_reconstruction(folder).report if folder else {"field_of_view_mm": {"radius": col["fov_radius"]}}
@@ -383,9 +379,6 @@ def compare(a):
 def _foamquant_columns(a, sim, col, truth, gap):
     from foamquant.Process import PhaseSegmentation
 
-    from bubsub.core.foam.ellipsoids import ellipsoid_labels
-    from bubsub.core.io.scanfile import read_scan
-    from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 
     shape, extent = col["grid_shape"], col["grid_extent"]
     voxel = (extent[1] - extent[0]) / shape[2]

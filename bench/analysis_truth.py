@@ -15,6 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
+from bubsub.core.analysis.contacts import find_contacts
+from bubsub.core.analysis.shape import bubble_shape, strain_from_axes
+from bubsub.core.foam.ellipsoids import shape_matrices
+from bubsub.core.projection.mesh import Mesh
+from bubsub.core.projection.subdivision import icosphere, loop_subdivision
+
 __all__ = ["ellipsoid_area", "ellipsoid_gap", "subdivided_ellipsoid", "shape_table", "load_column", "column_truth"]
 
 def ellipsoid_area(axes):
@@ -74,9 +80,6 @@ def subdivided_ellipsoid(axes, rotation, centre, control=1, levels=2):
     Mesh
         The fine (subdivided) mesh.
     """
-    from bubsub.core.projection.mesh import Mesh
-    from bubsub.core.projection.subdivision import icosphere, loop_subdivision
-
     v, f = icosphere(control)
     S, fine_faces = loop_subdivision(f, len(v), levels)
     u = S @ v
@@ -97,9 +100,6 @@ def shape_table(pairs=20, seed=1):
     """
     from scipy.spatial.transform import Rotation
 
-    from bubsub.core.analysis.contacts import find_contacts
-    from bubsub.core.analysis.shape import bubble_shape, strain_from_axes
-    from bubsub.core.foam.ellipsoids import shape_matrices
 
     axes = np.array([0.6, 0.45, 0.3])
     rot = Rotation.from_euler("zyx", [30, 50, -20], degrees=True).as_matrix()
@@ -187,8 +187,6 @@ def column_truth(col, gap):
     """
     from scipy.spatial import cKDTree
 
-    from bubsub.core.analysis.shape import strain_from_axes
-    from bubsub.core.foam.ellipsoids import shape_matrices
 
     centre, axes = col["centres"], col["axes"]
     shapes = shape_matrices(axes, col["rotations"])

@@ -34,6 +34,7 @@ import numpy as np
 
 from bubsub.bench.service_harness import (NPY, HealthProbe, MiB, ServerProcess, SlowClients, keepalive_after, npy,
                                           probe_health, raw_npy, small_2d_job, sphere_job)
+from bubsub.core import ScanGeometry, sphere_surface
 
 __all__ = ["ATTACKS", "run_attack", "format_table", "selected", "main"]
 
@@ -59,8 +60,6 @@ def big_detector(srv, h):
 
 def many_surfaces(srv, h):
     """8000 2D triangles at subdivision level 6, vertices included (scaled down from 20,000)."""
-    from bubsub.core import ScanGeometry
-
     n = 8000
     g = ScanGeometry.parallel(np.linspace(0, np.pi, 16, endpoint=False), pixel_size=1.0, cols=256)
     tri = np.array([[1.0, 0.0], [-0.5, 0.8], [-0.5, -0.8]]) * 0.05
@@ -199,8 +198,6 @@ def token_quota(srv, h):
 
 def shutdown_timeout(srv, h):
     """SIGTERM during a long computation, with a 1 s shutdown timeout."""
-    from bubsub.core import ScanGeometry, sphere_surface
-
     g = ScanGeometry.cone(np.linspace(0, 2 * np.pi, 96, endpoint=False), source_origin=150.0, origin_detector=50.0,
                           pixel_size=0.3, cols=96, rows=96)
     s = sphere_surface((0.0, 0.0, 0.0), 4.0, 1.0)

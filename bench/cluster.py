@@ -25,6 +25,10 @@ import time
 from pathlib import Path
 
 from bubsub.bench.reconstruct import cli_command
+from bubsub.clients.cluster.engine import local, open_client, run_tasks
+from bubsub.clients.pipeline.dynamic import DynamicSettings
+from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
+from bubsub.core.io.scanfile import read_scan
 
 
 def _simulate(ndim, folder):
@@ -38,10 +42,6 @@ def _simulate(ndim, folder):
 
 
 def _run(scan_path, out, client=None, chunks=1, threads=None):
-    from bubsub.core.io.scanfile import read_scan
-    from bubsub.clients.pipeline.dynamic import DynamicSettings
-    from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
-
     before = os.environ.get("BUBSUB_THREADS")
     if threads is not None:
         os.environ["BUBSUB_THREADS"] = str(threads)
@@ -57,8 +57,6 @@ def _run(scan_path, out, client=None, chunks=1, threads=None):
 
 
 def _overhead(client, n=200):
-    from bubsub.clients.cluster.engine import run_tasks
-
     rt = []
     for _ in range(30):
         t = time.perf_counter()
@@ -76,7 +74,6 @@ def main(argv=None):
     ap.add_argument("--subscans", type=int, default=130, help="subscans of the estimated run")
     ap.add_argument("--json", help="also write the measurements here")
     args = ap.parse_args(argv)
-    from bubsub.clients.cluster.engine import local, open_client
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

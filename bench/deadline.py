@@ -29,6 +29,7 @@ import httpx
 import numpy as np
 
 from bubsub.bench.service_harness import NPY, ServerProcess, npy
+from bubsub.core import ScanGeometry, sphere_surface
 
 __all__ = ["issue_case", "main"]
 
@@ -37,8 +38,6 @@ GiB = 1 << 30
 
 def issue_case(n_bubbles=40, levels=3, n_angles=120, det=512, seed=0):
     """``(geometry, surfaces)``: the heavy scan and bubbles described in the module docstring."""
-    from bubsub.core import ScanGeometry, sphere_surface
-
     g = ScanGeometry.cone(np.linspace(0, 2 * np.pi, n_angles, endpoint=False), source_origin=150.0,
                           origin_detector=50.0, pixel_size=0.1, cols=det, rows=det)
     rng = np.random.default_rng(seed)

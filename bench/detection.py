@@ -46,6 +46,19 @@ from pathlib import Path
 
 import numpy as np
 
+from bubsub.bench.bubbles import setting_value
+from bubsub.bench.fov import voxel_route
+from bubsub.bench.matching import column_truth, match, mesh_labels, truth_labels
+from bubsub.bench.scale import table
+from bubsub.clients.pipeline.fov import fov_mask
+from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, initial_bubbles, reconstruct
+from bubsub.core import MeshProjector
+from bubsub.core.foam.column import TRUTH_COLUMN_INFO, column_phantom, simulate_column, truth_grid, write_column
+from bubsub.core.foam.ellipsoids import shape_matrices
+from bubsub.core.foam.flowing import FLOWING_DEFAULTS, flowing_foam, simulate_flowing, truth_rows
+from bubsub.core.io.scanfile import Scan, read_scan, write_scan
+from bubsub.core.io.tables import write_csv
+
 __all__ = ["small_column", "flowing_subscan", "size_classes", "seeded", "CLASSES", "main"]
 
 #: The classes of truth bubbles, in the tables' order.
@@ -76,8 +89,6 @@ def small_column(n_bubbles=150, *, seed=0, rows=128, cols=384, small_share=0.3, 
     ColumnPhantom
         Its bubbles keep their centres and orientations; shrinking keeps them disjoint.
     """
-    from bubsub.core.foam.column import column_phantom
-
     if not 0 <= small_share <= 1:
         raise ValueError(f"small_share must be in [0, 1], got {small_share}")
     lo, hi = map(float, small_range)
@@ -107,8 +118,6 @@ def size_classes(table, meta):
 
 def seeded(table, points):
     """(n,) bool: which truth ellipsoids hold at least one of ``points`` (k, 3), mm."""
-    from bubsub.core.foam.ellipsoids import shape_matrices
-
     centres = np.stack([table[f"centre_{a}_mm"] for a in "xyz"], axis=1)
     axes = np.stack([table[f"semi_axis_{k}_mm"] for k in (1, 2, 3)], axis=1)
     rot = np.stack([table[f"rotation_{i}{j}"] for i in (1, 2, 3) for j in (1, 2, 3)], axis=1).reshape(-1, 3, 3)
@@ -123,8 +132,6 @@ def seeded(table, points):
 
 def _simulate(folder, args):
     """The case's folder (``scan.h5``, ``truth.csv``, ``phantom.json``), made unless it holds the same case."""
-    from bubsub.core.foam.column import simulate_column, write_column
-
     meta_path = folder / "phantom.json"
     key = {"phantom": args.phantom, "bubbles": args.bubbles, "seed": args.seed, "rows": args.rows,
            "cols": args.cols}
@@ -156,11 +163,6 @@ def flowing_subscan(folder, n_bubbles, subscan, *, seed=0, rows=128, cols=384):
     dict
         ``phantom.json``'s contents (a column's keys, which :mod:`bubsub.bench.matching` reads).
     """
-    from bubsub.core.foam.column import TRUTH_COLUMN_INFO, truth_grid
-    from bubsub.core.foam.flowing import FLOWING_DEFAULTS, flowing_foam, simulate_flowing, truth_rows
-    from bubsub.core.io.scanfile import Scan, write_scan
-    from bubsub.core.io.tables import write_csv
-
     foam = flowing_foam(n_bubbles, seed=seed, rows=rows, cols=cols, subscans=FLOWING_DEFAULTS["subscans"])
     if not 0 <= subscan < FLOWING_DEFAULTS["subscans"]:
         raise ValueError(f"subscan must be in [0, {FLOWING_DEFAULTS['subscans']}), got {subscan}")
@@ -195,15 +197,6 @@ def _status(scores, n):
 
 
 def main(argv=None):
-    from bubsub.bench.bubbles import setting_value
-    from bubsub.bench.fov import voxel_route
-    from bubsub.bench.matching import column_truth, match, mesh_labels, truth_labels
-    from bubsub.bench.scale import table
-    from bubsub.clients.pipeline.fov import fov_mask
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, initial_bubbles, reconstruct
-    from bubsub.core import MeshProjector
-    from bubsub.core.io.scanfile import read_scan
-
     ap = argparse.ArgumentParser(prog="bubsub bench detection", description=__doc__.split("\n\n")[0])
     ap.add_argument("--phantom", choices=("small", "flowing"), default="small",
                     help="small: a column with a share of small bubbles; flowing: one subscan of the flowing foam")

@@ -47,7 +47,15 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.bench.dynamic_scores import SMALL_BALL, chain_burden, flowing_truth, score_run
-from bubsub.bench.matching import overlaps
+from bubsub.bench.matching import mesh_labels, overlaps
+from bubsub.bench.fov import voxel_route
+from bubsub.bench.reconstruct import cli_command
+from bubsub.bench.scale import run_tree, table
+from bubsub.clients.pipeline.fov import fov_mask
+from bubsub.core.foam.flowing import FLOWING_DEFAULTS as D
+from bubsub.core.io.meshio import read_ply
+from bubsub.core.io.scanfile import read_scan, write_scan
+from bubsub.core.io.subscans import subscan, subscan_layout
 
 __all__ = ["LINK_SHARE", "link_by_overlap", "bubsub_labels", "voxel_labels", "run_voxel_route", "reversed_scan",
            "simulate_flowing_case", "format_table", "main"]
@@ -96,9 +104,6 @@ def link_by_overlap(previous, previous_ids, labels, next_id, share=LINK_SHARE):
 
 def bubsub_labels(rec_dir, meta):
     """``k -> (labels, track ids)`` of a ``bubsub reconstruct4d`` folder (None for a subscan it lacks)."""
-    from bubsub.bench.matching import mesh_labels
-    from bubsub.core.io.meshio import read_ply
-
     rec_dir = Path(rec_dir)
 
     def labels_of(k):
@@ -138,11 +143,6 @@ def run_voxel_route(sim_dir, out, *, iterations=100, voxel_bin=1):
     voxel_bin : int
         The SIRT grid's voxel is this many evaluation-grid voxels.
     """
-    from bubsub.bench.fov import voxel_route
-    from bubsub.clients.pipeline.fov import fov_mask
-    from bubsub.core.io.scanfile import read_scan
-    from bubsub.core.io.subscans import subscan, subscan_layout
-
     sim_dir, out = Path(sim_dir), Path(out)
     out.mkdir(parents=True, exist_ok=True)
     meta = json.loads((sim_dir / "phantom.json").read_text())
@@ -196,9 +196,6 @@ def reversed_scan(sim_dir, path):
     -------
     Path
     """
-    from bubsub.core.io.scanfile import read_scan, write_scan
-    from bubsub.core.io.subscans import subscan_layout
-
     scan = read_scan(Path(sim_dir) / "scan.h5")
     layout = subscan_layout(scan)
     order = np.concatenate([np.arange(scan.n_angles)[layout.projections(k)] for k in reversed(layout.selected)])
@@ -221,9 +218,6 @@ def simulate_flowing_case(folder, *, seed=0, bubbles=None, det_count=None, subsc
     (Path, float or None)
         The folder and the seconds the simulation took (None when reused).
     """
-    from bubsub.bench.reconstruct import cli_command
-    from bubsub.core.foam.flowing import FLOWING_DEFAULTS as D
-
     folder = Path(folder)
     want = {"seed": seed, "cols": det_count or D["cols"], "subscans": subscans or D["subscans"],
             "projections_per_subscan": per_subscan or D["projections_per_subscan"],
@@ -251,8 +245,6 @@ def format_table(name, scores, seconds=None):
 
     ``seconds``: per subscan ``(start, seconds)`` (e.g. from ``report.json``), or None.
     """
-    from bubsub.bench.scale import table
-
     header = ["subscan", "start", "s", "true", "found", "missed", "merged", "spurious", "DDI", "anew found/all",
               "anew >= 6 px found/all", "small found/all"]
     body = []
@@ -282,9 +274,6 @@ def _bubsub_seconds(rec_dir):
 
 
 def main(argv=None):
-    from bubsub.bench.reconstruct import cli_command
-    from bubsub.bench.scale import run_tree
-
     ap = argparse.ArgumentParser(prog="python -m bubsub.bench dynamic", description=__doc__.splitlines()[0])
     ap.add_argument("--data", default="bench-dynamic/flowing3d", help="simulation folder (made when missing)")
     ap.add_argument("--out", default="bench-dynamic", help="folder of the routes' outputs (default bench-dynamic)")
@@ -394,8 +383,6 @@ def main(argv=None):
 
 
 def _print_summary(results):
-    from bubsub.bench.scale import table
-
     if not results:
         return
     cols = list(results)

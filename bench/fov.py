@@ -64,6 +64,26 @@ import time
 
 import numpy as np
 
+from bubsub.bench.matching import column_truth, mesh_labels, truth_labels
+from bubsub.bench.reconstruct import cli_command as _cli
+from bubsub.bench.scale import run_tree, simulate_case, table
+from bubsub.clients.pipeline import fov as fovmod
+from bubsub.clients.pipeline.fov import field_of_view, fov_mask, truncated_flags
+from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
+from bubsub.core import MeshProjector
+from bubsub.core.foam.containers import sphere_mesh
+from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
+from bubsub.core.io.meshio import read_ply, read_polygons_json
+from bubsub.core.io.scanfile import Scan, read_scan
+from bubsub.core.matching import match
+from bubsub.core.metrics import bubble_mask, dice_dissimilarity
+from bubsub.core.prep import prepare, prepare_options
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.voxel.raster import label_image, pixel_centres
+from bubsub.core.voxel.reconstruct3d import reconstruct_3d
+from bubsub.core.voxel.segment import binarise
+
 __all__ = ["fov_phantom", "fov_scan", "fov_ddi", "watershed_bubbles", "voxel_route", "column_case", "local_case",
            "local_ideal_case", "interior_scores", "main"]
 
@@ -94,9 +114,6 @@ CONTRAST = -0.1
 def fov_phantom(seed=0, wide=False):
     """Truth meshes: ellipsoids (axes 1.1 : 1 : 0.92, random orientation) of :data:`LAYOUT` (and
     :data:`WIDE`), and their classes."""
-    from bubsub.core.foam.containers import sphere_mesh
-    from bubsub.core.projection.mesh import Mesh
-
     rng = np.random.default_rng(seed)
     meshes, classes = [], []
     for centre, r, cls in LAYOUT + (WIDE if wide else ()):
@@ -110,8 +127,6 @@ def fov_phantom(seed=0, wide=False):
 
 def fov_geometry(kind):
     """The scans' geometries: 96 x 48 detector, field of view radius 2.4 mm, half height 1.2 mm."""
-    from bubsub.core.projection.geometry import ScanGeometry
-
     if kind == "parallel":
         return ScanGeometry.parallel(np.linspace(0, np.pi, 60, endpoint=False), pixel_size=0.05, cols=96, rows=48)
     return ScanGeometry.cone(np.linspace(0, 2 * np.pi, 60, endpoint=False), source_origin=20.0,
@@ -120,9 +135,6 @@ def fov_geometry(kind):
 
 def fov_scan(kind, truth, *, noise=0.003, seed=1):
     """Background-subtracted :class:`Scan` of the truth meshes with Gaussian noise (line-integral units)."""
-    from bubsub.core import MeshProjector
-    from bubsub.core.io.scanfile import Scan
-
     g = fov_geometry(kind)
     clean = MeshProjector(g).forward(truth)
     data = clean + np.random.default_rng(seed).normal(0, noise, clean.shape)
@@ -134,9 +146,6 @@ def fov_ddi(rec_meshes, truth_mesh, fov, voxel=0.025):
 
     Returns NaN when the truth bubble has no part inside the field of view.
     """
-    from bubsub.core.metrics import bubble_mask, dice_dissimilarity
-    from bubsub.clients.pipeline.fov import fov_mask
-
     v = np.asarray(truth_mesh.vertices)
     lo, hi = v.min(0), v.max(0)
     pad = 0.25 * (hi - lo)
@@ -155,9 +164,6 @@ def fov_ddi(rec_meshes, truth_mesh, fov, voxel=0.025):
 
 def run(kind, fov_model, iterations, seed=0, wide=False):
     """One reconstruction; returns ``{class: (ddi list, found, flagged, n)}`` and seconds."""
-    from bubsub.clients.pipeline.fov import field_of_view, truncated_flags
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
-
     truth, classes = fov_phantom(seed, wide)
     scan = fov_scan(kind, truth)
     fov = field_of_view(scan.geometry)
@@ -219,10 +225,6 @@ def watershed_bubbles(mask, sig_seeds=1.0, sig_watershed=1.0, min_distance=1):
 
 def voxel_route(scan, meta, iterations=100):
     """SIRT + Otsu + watershed labels of a column scan on its evaluation grid (see the module docstring)."""
-    from bubsub.core.voxel.reconstruct3d import reconstruct_3d
-    from bubsub.core.voxel.raster import pixel_centres
-    from bubsub.core.voxel.segment import binarise
-
     shape, extent = tuple(meta["grid_shape"]), tuple(meta["grid_extent"])
     gas = scan.bubble_data / scan.bubble_contrast  # chord lengths through gas, mm
     image = reconstruct_3d("sirt", gas, scan.geometry, shape, extent, iterations=iterations)
@@ -236,12 +238,6 @@ def column_case(args, extra):
     """The column case's rows: (route, scores, seconds, peak RSS MiB or None)."""
     from pathlib import Path
 
-    from bubsub.bench.matching import column_truth, match, mesh_labels, truth_labels
-    from bubsub.bench.reconstruct import cli_command as _cli
-    from bubsub.bench.scale import run_tree, simulate_case
-    from bubsub.clients.pipeline.fov import fov_mask
-    from bubsub.core.io.meshio import read_ply
-    from bubsub.core.io.scanfile import read_scan
 
     out = Path(args.out)
     sim, _ = simulate_case(Path(args.column_data) if args.column_data else out / f"column{args.column}", args.column)
@@ -266,8 +262,6 @@ def column_case(args, extra):
 
 
 def _print_column(args, extra):
-    from bubsub.bench.scale import table
-
     sim, meta, rows = column_case(args, extra)
     c = meta["column"]
     print(f"column {sim}: {meta['bubbles']} bubbles in the field of view, {c['bubbles_cut_top']} cut by the top and "
@@ -298,11 +292,6 @@ def local_case(out, seed, *, center="auto"):
     """
     from pathlib import Path
 
-    from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
-    from bubsub.core.io.meshio import read_polygons_json
-    from bubsub.core.io.scanfile import read_scan
-    from bubsub.core.prep import prepare, prepare_options
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 
     out = Path(out)
     c = LOCAL_SCAN
@@ -345,14 +334,6 @@ def local_ideal_case(seed, extend):
     dict
         :func:`interior_scores` and ``reconstruct_s``.
     """
-    from bubsub.core import MeshProjector
-    from bubsub.core.foam.raw import disc_foam
-    from bubsub.core.io.scanfile import Scan
-    from bubsub.core.projection.geometry import ScanGeometry
-    from bubsub.core.projection.mesh import Polygon
-    from bubsub.clients.pipeline import fov as fovmod
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
-
     g = ScanGeometry.parallel(np.linspace(0, np.pi, 90, endpoint=False), pixel_size=0.04, cols=128)
     r_fov = fovmod.field_of_view(g)[0]
     radius = 1.5 * r_fov
@@ -399,11 +380,6 @@ def interior_scores(rec, truth, geometry, *, pixels=600):
     dict
         ``interior_radius_mm``, ``truth``, ``found``, ``found_percent``, ``spurious``, ``ddi``, ``reconstructed``.
     """
-    from bubsub.core.matching import match
-    from bubsub.core.metrics import dice_dissimilarity
-    from bubsub.core.voxel.raster import label_image
-    from bubsub.clients.pipeline.fov import field_of_view
-
     r_fov = field_of_view(geometry)[0]
     r_int = r_fov - 2 * max(np.sqrt(abs(p.area) / np.pi) for p in truth)
     extent = (-r_fov, r_fov, -r_fov, r_fov)

@@ -31,19 +31,20 @@ from pathlib import Path
 
 import numpy as np
 
+from bubsub.clients.optimise import levels
+from bubsub.clients.optimise.levels import bin_factors
+from bubsub.clients.pipeline.initial import default_detector
+from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, coarse_radii, settings_initial, settings_preview
+from bubsub.clients.pipeline.resolution import levels_by_size
+from bubsub.core import MeshProjector
+from bubsub.core.io.scanfile import read_scan
+
 __all__ = ["main", "start", "run"]
 
 
 def start(scan):
     """The pipeline's initial bubbles of ``scan`` (:class:`bubsub.core.io.scanfile.Scan`), radius-fitted, with
     the default settings (:mod:`bubsub.clients.pipeline.reconstruct`'s own steps)."""
-    from bubsub.core import MeshProjector
-    from bubsub.clients.optimise.levels import bin_factors
-    from bubsub.clients.pipeline.initial import default_detector
-    from bubsub.clients.pipeline.reconstruct import (ReconstructionSettings, coarse_radii, settings_initial,
-                                                     settings_preview)
-    from bubsub.clients.pipeline.resolution import levels_by_size
-
     s = ReconstructionSettings(progress=False)
     g, d, c = scan.geometry, scan.bubble_data, scan.bubble_contrast
     image, extent = settings_preview(d, g, c, s)
@@ -55,9 +56,6 @@ def start(scan):
 
 def run(scan, surfaces, *, factors, iterations, coarse, rtol):
     """One fit from ``surfaces``; returns its row of the table (a dict)."""
-    from bubsub.core import MeshProjector
-    from bubsub.clients.optimise import levels
-
     projector = MeshProjector(scan.geometry)
     old = levels.COARSE_ITERATIONS
     levels.COARSE_ITERATIONS = coarse
@@ -76,8 +74,6 @@ def run(scan, surfaces, *, factors, iterations, coarse, rtol):
 def main(argv=None):
     from threadpoolctl import threadpool_limits
 
-    from bubsub.core.io.scanfile import read_scan
-    from bubsub.clients.optimise.levels import bin_factors
 
     p = argparse.ArgumentParser(prog="python -m bubsub.bench levels", description=__doc__.split("\n\n")[0])
     p.add_argument("scan", help="a scan file (e.g. bubsub simulate --phantom column)")

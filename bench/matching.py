@@ -18,6 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.core.matching import MIN_IOU, match, overlaps
+from bubsub.clients.pipeline.fov import fov_mask
+from bubsub.core.foam.ellipsoids import ellipsoid_labels
+from bubsub.core.metrics import label_image
 
 __all__ = ["column_truth", "truth_labels", "mesh_labels", "overlaps", "match", "MIN_IOU"]
 
@@ -35,16 +38,12 @@ def column_truth(sim_dir):
 
 
 def _fov_mask(meta):
-    from bubsub.clients.pipeline.fov import fov_mask
-
     c = meta["column"]
     return fov_mask(tuple(meta["grid_shape"]), tuple(meta["grid_extent"]), (c["fov_radius_mm"], c["fov_half_height_mm"]))
 
 
 def truth_labels(meta, table):
     """Label image of the truth (``truth.csv`` id + 1) on the evaluation grid, 0 outside the field of view."""
-    from bubsub.core.foam.ellipsoids import ellipsoid_labels
-
     centres = np.stack([table[f"centre_{a}_mm"] for a in "xyz"], axis=1)
     axes = np.stack([table[f"semi_axis_{k}_mm"] for k in (1, 2, 3)], axis=1)
     rot = np.stack([table[f"rotation_{i}{j}"] for i in (1, 2, 3) for j in (1, 2, 3)], axis=1).reshape(-1, 3, 3)
@@ -55,8 +54,6 @@ def truth_labels(meta, table):
 
 def mesh_labels(meshes, meta):
     """Label image of meshes (index + 1) on the evaluation grid, 0 outside the field of view."""
-    from bubsub.core.metrics import label_image
-
     labels = label_image(meshes, tuple(meta["grid_shape"]), tuple(meta["grid_extent"]))
     labels[~_fov_mask(meta)] = 0
     return labels

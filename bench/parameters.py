@@ -29,6 +29,8 @@ import tempfile
 from pathlib import Path
 
 from bubsub.bench.reconstruct import cli_command
+from bubsub.clients import version
+from bubsub.clients.pipeline.evaluate import evaluate_dir
 
 #: (simulate arguments, the cases: reconstruct arguments) per dimension; every case adds --quiet.
 CASES = {
@@ -50,8 +52,6 @@ def _quiet_main(argv):
 
 def run(ndim, out, only=None):
     """Rows of the table for ``ndim`` (dicts), reconstructions kept in ``out``."""
-    from bubsub.clients.pipeline.evaluate import evaluate_dir
-
     sim_args, cases = CASES[ndim]
     sim = Path(out) / f"sim{ndim}d"
     if not (sim / "scan.h5").is_file():
@@ -89,7 +89,6 @@ def main(argv=None):
     ap.add_argument("--out", help="keep the simulations and reconstructions here")
     ap.add_argument("--only", nargs="+", metavar="ARGS", help="only these cases")
     args = ap.parse_args(argv)
-    from bubsub.clients import version
 
     with contextlib.ExitStack() as stack:
         out = args.out or stack.enter_context(tempfile.TemporaryDirectory())

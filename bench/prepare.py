@@ -29,6 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bubsub.clients.pipeline.evaluate import evaluate_dir
+from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
+from bubsub.clients.pipeline.simulation import simulate_raw_to_dir
+from bubsub.core.io.scanfile import read_scan
+from bubsub.core.prep import background as prep_background, pipeline, prepare, prepare_options
+
 VARIANTS = {
     "all steps": {},
     "flat: mean": {"flat": "mean"},
@@ -57,13 +64,6 @@ def _background_error(scan, meta):
 
 
 def run_table(out, *, cols=1200, angles=120, bubbles=8, iterations=40, seed=5, only=None):
-    from bubsub.clients.pipeline.evaluate import evaluate_dir
-    from bubsub.clients.pipeline.outputs import write_outputs
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
-    from bubsub.clients.pipeline.simulation import simulate_raw_to_dir
-    from bubsub.core.io.scanfile import read_scan
-    from bubsub.core.prep import prepare, prepare_options
-
     out = Path(out)
     raw, _, meta = simulate_raw_to_dir(out, seed=seed, n_bubbles=bubbles, n_angles=angles, cols=cols,
                                        pixel_size=9.6 / cols, rows=4, axis_offset=13.3, photons=2e4)
@@ -117,7 +117,6 @@ FULL_RADIAL = {"grid": 512, "max_angles": 10 ** 9}
 def _memory_child(raw, out, slab_mb, background="auto"):
     import functools
 
-    from bubsub.core.prep import pipeline, prepare, prepare_options
 
     if background == "auto-full":
         pipeline.radial_background = functools.partial(pipeline.radial_background, **FULL_RADIAL)
@@ -179,10 +178,6 @@ def run_background(out, *, angles=360, cols=1024, seed=5):
     One ``bubsub simulate --raw`` scan prepared with one ROI row and no
     background, so every variant sees the same sinogram.
     """
-    from bubsub.clients.pipeline.simulation import simulate_raw_to_dir
-    from bubsub.core.io.scanfile import read_scan
-    from bubsub.core.prep import background, prepare, prepare_options
-
     out = Path(out)
     raw, _, meta = simulate_raw_to_dir(out, seed=seed, n_bubbles=8, n_angles=angles, cols=cols,
                                        pixel_size=9.6 / cols, rows=4, axis_offset=13.3, photons=2e4)
@@ -192,7 +187,7 @@ def run_background(out, *, angles=360, cols=1024, seed=5):
     print(f"| scan | FBP | background error | CPU s per row |\n|---|---|---|---|")
     for name, kw in (("auto-full", FULL_RADIAL), ("auto", {})):
         c0 = time.process_time()
-        bg = background.radial_background(scan.data, scan.geometry, **kw)
+        bg = prep_background.radial_background(scan.data, scan.geometry, **kw)
         cpu = time.process_time() - c0
         scan.background = np.broadcast_to(bg[None], scan.data.shape).copy()
         print(f"| seed {seed}: {angles} angles x {scan.geometry.det_count} cols | {name} | "

@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bubsub.clients.pipeline.evaluate import evaluate_dir
+
 PHASES = ("preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity", "refine", "edge_slivers")
 
 
@@ -67,7 +69,6 @@ def main(argv=None):
             out = Path(tmp) / f"rec{k}"
             extra = ["--no-topology"] if args.no_topology else []
             wall, cpu, rss = _child_run(cli_command("reconstruct", sim / "scan.h5", "--out", out, "--quiet", *extra))
-            from bubsub.clients.pipeline.evaluate import evaluate_dir
 
             report = json.loads((out / "report.json").read_text())
             ddi = evaluate_dir(out, sim)["ddi"]

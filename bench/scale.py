@@ -46,6 +46,10 @@ import numpy as np
 from bubsub.bench.reconstruct import PHASES
 from bubsub.bench.reconstruct import cli_command as _cli
 from bubsub.core.foam.column import COLUMN_PRESETS
+from bubsub.bench.matching import column_truth, match, mesh_labels, truth_labels
+from bubsub.clients.pipeline.evaluate import evaluate_dir
+from bubsub.clients.pipeline.slabs import halo_rows
+from bubsub.core.io.meshio import read_ply
 
 __all__ = ["main", "run_tree", "simulate_case", "score_case", "project", "table", "TOMO_00080"]
 
@@ -141,10 +145,6 @@ def simulate_case(folder, n, *, seed=0, det_count=None, angles=None):
 
 def score_case(rec_dir, sim_dir):
     """DDI (``bubsub evaluate``) and the matching scores of :func:`bubsub.bench.matching.match`."""
-    from bubsub.bench.matching import column_truth, match, mesh_labels, truth_labels
-    from bubsub.clients.pipeline.evaluate import evaluate_dir
-    from bubsub.core.io.meshio import read_ply
-
     meta, tab = column_truth(sim_dir)
     scores = match(truth_labels(meta, tab), mesh_labels(read_ply(Path(rec_dir) / "bubbles.ply"), meta),
                    cut=(tab["cut_top"] > 0) | (tab["cut_bottom"] > 0))
@@ -212,8 +212,6 @@ def project(report, shape, bubbles, tomo=TOMO_00080, tomo_bubbles=None, workers=
 def truth_halo(sim_dir):
     """Halo rows the slabs of a simulated column would read: the rule of
     :func:`bubsub.clients.pipeline.slabs.estimate_halo` on the 95th percentile of its true bubbles' radii."""
-    from bubsub.clients.pipeline.slabs import halo_rows
-
     meta = json.loads((Path(sim_dir) / "phantom.json").read_text())
     table = np.genfromtxt(Path(sim_dir) / "truth.csv", delimiter=",", names=True)
     radius = 0.5 * float(np.percentile(np.atleast_1d(table["equivalent_diameter_mm"]), 95))

@@ -30,6 +30,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from bubsub.core import ScanGeometry, sphere_surface
+
 __all__ = ["MiB", "BASE_ENV", "ServerProcess", "HealthProbe", "npy", "raw_npy", "NPY", "sphere_job", "small_2d_job",
            "keepalive_after", "raw_request", "read_until_closed", "SlowClients", "probe_health"]
 
@@ -173,8 +175,6 @@ NPY = {"content-type": "application/x-npy"}
 
 def sphere_job(rows, cols, n_angles=1, supersampling=1):
     """JSON of a 3D parallel job with one 42-vertex sphere, and its control vertices."""
-    from bubsub.core import ScanGeometry, sphere_surface
-
     g = ScanGeometry.parallel(np.linspace(0, np.pi, n_angles, endpoint=False), pixel_size=0.01, cols=cols,
                               rows=rows)
     s = sphere_surface((0, 0, 0), 1.0, 0.1)
@@ -185,8 +185,6 @@ def sphere_job(rows, cols, n_angles=1, supersampling=1):
 
 
 def small_2d_job():
-    from bubsub.core import ScanGeometry
-
     g = ScanGeometry.parallel(np.linspace(0, np.pi, 8, endpoint=False), pixel_size=1.0, cols=32)
     return {"geometry": {"kind": g.kind, "vectors": g.vectors.tolist(), "det_rows": None, "det_cols": 32},
             "surfaces": [{"n_control": 6, "levels": 2, "attenuation": 1.0}]}, g

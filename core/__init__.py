@@ -33,7 +33,7 @@ __all__ = [
 # Data side: phantoms, simulation, scan files, mesh files, metrics.
 from bubsub.core.io.atomic import atomic_open, atomic_path, atomic_write_bytes, atomic_write_text
 from bubsub.core.io.meshio import read_ply, read_polygons_json, write_ply, write_polygons_json
-from bubsub.core.io.tables import bubble_table, write_csv
+from bubsub.core.io.tables import write_csv
 from bubsub.core.metrics import dice_dissimilarity, projection_mse, shapes_dice_dissimilarity
 from bubsub.core.foam.containers import liquid_box, liquid_square, sphere_mesh
 from bubsub.core.foam.phantoms import BENCHMARK_SEED, FoamPhantom, foam2d, foam3d, foam3d_benchmark
@@ -44,7 +44,7 @@ from bubsub.core.foam.simulate import (add_poisson_noise, default_geometry_2d, d
 
 __all__ += [
     "atomic_open", "atomic_path", "atomic_write_bytes", "atomic_write_text",
-    "bubble_table", "read_ply", "read_polygons_json", "write_csv", "write_ply", "write_polygons_json",
+    "read_ply", "read_polygons_json", "write_csv", "write_ply", "write_polygons_json",
     "dice_dissimilarity", "projection_mse", "shapes_dice_dissimilarity",
     "BENCHMARK_SEED", "FoamPhantom", "foam2d", "foam3d", "foam3d_benchmark", "liquid_box", "liquid_square", "sphere_mesh",
     "bubble_mask", "check_grid", "coverage", "label_image", "pixel_centres", "rasterize",

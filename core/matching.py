@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bubsub.core.metrics import dice_dissimilarity
+
 __all__ = ["overlaps", "match", "MIN_IOU"]
 
 #: Smallest IoU of a found bubble.
@@ -51,8 +53,6 @@ def match(truth, rec, cut=None, min_iou=MIN_IOU, merge_cover=None):
         ``spurious``, ``reconstructed``, ``ddi``, ``median_iou`` (of the found), the same counts ``cut_*`` for the
         cut bubbles, and ``per_truth``: ``(label, best rec label or 0, IoU, status)`` rows.
     """
-    from bubsub.core.metrics import dice_dissimilarity
-
     table, n_t, n_r = overlaps(truth, rec)
     present = np.flatnonzero(n_t[1:] > 0) + 1
     best = np.zeros(len(n_t), dtype=np.int64)

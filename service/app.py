@@ -27,6 +27,7 @@ from bubsub.service.routes import ROUTERS
 from bubsub.service.schemas import DataFile
 from bubsub.service.server import connection_limits
 from bubsub.service.state import ServiceState
+from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
 
 __all__ = ["create_app", "app"]
 
@@ -59,8 +60,6 @@ async def _sweep(state: ServiceState):
 
 def _ray_casting_backend():
     """Project a tiny sphere once, so the first request does not compile the kernel."""
-    from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
-
     projector = MeshProjector(ScanGeometry.parallel([0.0], pixel_size=1.0, cols=2, rows=2))
     projector.forward([sphere_surface([0.0, 0.0, 0.0], 1.0, 0.1)])
     return projector.backend

@@ -46,6 +46,7 @@ import numpy as np
 
 from bubsub.core.projection.backends.frames import RAY_CHUNK  # rays per work item of the ray casters
 from bubsub.service.errors import APIError
+from bubsub.core.projection.backends.raster import ITEM_MAJOR_FACES, store_bytes
 
 __all__ = ["Estimate", "estimate", "check_job", "ComputeBudget", "OVERHEAD_BYTES", "PIXEL_BYTES", "BackendCosts", "RASTER",
            "RAY_CASTER"]
@@ -248,8 +249,6 @@ def _footprints(job, x):
 
 def _store_cap(job):
     """Bytes the raster backend may keep for a gradient (its store, split evenly among the views)."""
-    from bubsub.core.projection.backends.raster import store_bytes
-
     n = job.geometry.n_angles
     pixels = int(np.prod(job.geometry.shape))
     return (store_bytes() // 32 // n) * n * 32 if job.ndim == 3 and pixels < 2 ** 31 else 0
@@ -310,8 +309,6 @@ def estimate(job, op, crossings_per_ray, vertices=None, arrays=None, body_bytes=
     parts = threads if backend == "raster" else max(1, -(-rays * k2 // RAY_CHUNK))
     face_sums = costs.face_thread[job.ndim] * n_faces * parts
     if backend == "raster":
-        from bubsub.core.projection.backends.raster import ITEM_MAJOR_FACES
-
         cap = _store_cap(job)
         if kept <= cap and job.ndim == 3 and k2 == 1 and n_faces >= ITEM_MAJOR_FACES:
             face_sums //= threads  # kept item by item: one array of face sums for all threads

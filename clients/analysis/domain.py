@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.core.analysis.regions import Domain
+from bubsub.core.io.scanfile import read_geometry
 
 __all__ = ["parse_domain", "simulated_sample", "background_sample", "analysed_domain", "DOMAIN_FORMS"]
 
@@ -221,7 +222,6 @@ def background_sample(scan_path):
     """
     import h5py
 
-    from bubsub.core.io.scanfile import read_geometry
 
     g = read_geometry(scan_path)
     if g.ndim != 3:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from bubsub.core.io.atomic import atomic_path
+from bubsub.clients.pipeline.figures import subplots
 
 __all__ = ["write_figures", "FIGURES"]
 
@@ -56,8 +57,6 @@ def _groups(analysis, table):
 
 
 def _histograms(path, analysis, column, xlabel, title, integer=False, unit=""):
-    from bubsub.clients.pipeline.figures import subplots
-
     fig, ax = subplots(figsize=(7, 4.5), dpi=100)
     groups = [(label, np.array([_number(r[column]) for r in _whole(rows)])) for label, rows in
               _groups(analysis, "bubbles")]
@@ -89,8 +88,6 @@ def _histograms(path, analysis, column, xlabel, title, integer=False, unit=""):
 
 
 def _liquid_fraction(path, analysis):
-    from bubsub.clients.pipeline.figures import subplots
-
     fig, (a, b) = subplots(1, 2, figsize=(11, 4.2), dpi=100)
     for label, rows in _groups(analysis, "shells"):
         r = [0.5 * (x["r_lo_mm"] + x["r_hi_mm"]) for x in rows]
@@ -118,8 +115,6 @@ def _liquid_fraction(path, analysis):
 
 
 def _growth_law(path, analysis):
-    from bubsub.clients.pipeline.figures import subplots
-
     rates = analysis.tables["rates"]
     rate_col = next(c for c in analysis.columns["rates"] if c.startswith("volume_two_thirds_rate"))
     unit = rate_col.split("_per_")[-1]
@@ -144,8 +139,6 @@ def _growth_law(path, analysis):
 
 
 def _t1_map(path, analysis):
-    from bubsub.clients.pipeline.figures import subplots
-
     rows = analysis.tables["t1"]
     t_col = next(c for c in analysis.columns["t1"] if c.endswith("_after"))
     fig, (a, b) = subplots(1, 2, figsize=(11, 4.6), dpi=100)

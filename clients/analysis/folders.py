@@ -33,7 +33,14 @@ import numpy as np
 from bubsub.core.analysis.columns import describe, dynamics_columns, named_rows
 from bubsub.core.analysis.dynamics import fit_growth_law, growth_rates, size_tables, t1_events, track_events
 from bubsub.core.analysis.regions import Domain
-from bubsub.core.analysis.snapshot import SNAPSHOT_TABLES, analyse_meshes
+from bubsub.core.analysis.snapshot import SNAPSHOT_TABLES, analyse_meshes, default_regions
+from bubsub.clients.analysis.domain import analysed_domain
+from bubsub.clients.analysis.figures import write_figures
+from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs, json_default
+from bubsub.core.io.atomic import atomic_write_text
+from bubsub.core.io.meshio import read_ply
+from bubsub.core.io.tables import csv_metadata_path, write_csv
+from bubsub.core.projection.mesh import equivalent_radius
 
 __all__ = ["Analysis", "analyse", "read_reconstruction", "reconstruction_kind", "default_contact_gap",
            "PREVIEW_VOXELS_3D", "TABLE_FILES"]
@@ -99,11 +106,6 @@ class Analysis:
         list of pathlib.Path
             The files written.
         """
-        from bubsub.clients.analysis.figures import write_figures
-        from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs, json_default
-        from bubsub.core.io.atomic import atomic_write_text
-        from bubsub.core.io.tables import csv_metadata_path, write_csv
-
         out = check_output_folder(out, overwrite=overwrite)
         out.mkdir(parents=True, exist_ok=True)
         files = []
@@ -197,8 +199,6 @@ def read_reconstruction(folder):
     ValueError
         If the folder is missing, not a 3D reconstruct output, or its files are malformed.
     """
-    from bubsub.core.io.meshio import read_ply
-
     problem = _problem(folder)
     if problem:
         raise ValueError(problem)
@@ -255,9 +255,6 @@ def _fixed_regions(recs, domain, grid, shells):
     """One grid and one set of shells for every subscan of a 4D folder: over ``domain`` (else the bounding
     box of every subscan's bubbles), cells and shells sized from the median equivalent radius of all
     subscans' whole bubbles (:func:`~bubsub.core.analysis.snapshot.default_regions`)."""
-    from bubsub.core.analysis.snapshot import default_regions
-    from bubsub.core.projection.mesh import equivalent_radius
-
     if domain is None:
         domain = Domain.around([m for rec in recs for m in rec.meshes])
     radii = [equivalent_radius(m.volume, 3) for rec in recs
@@ -304,8 +301,6 @@ def analyse(folder, *, contact_gap=None, domain=None, radius=None, grid=None, sh
     Analysis
         Its summary's ``domain`` gives the domain's ``kind``, bounds, ``radius_mm`` and ``source``.
     """
-    from bubsub.clients.analysis.domain import analysed_domain
-
     gap = _check_gap(contact_gap)
     problem = _problem(folder)
     if problem:
@@ -361,8 +356,6 @@ def _subscans_contact_gap(found):
 
 
 def _analyse_4d(folder, gap, options, spec, progress):
-    from bubsub.clients.analysis.domain import analysed_domain
-
     default_gap = gap is None
     unit = _time_unit(folder)
     spec_columns = dynamics_columns(unit)

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 from bubsub.clients.cli.args import add_output_arguments, int_at_least, non_negative_int, positive_float, positive_int
-from bubsub.clients.pipeline.simulation import DYNAMIC_PHANTOMS, PHANTOMS, simulate_dynamic_to_dir, simulate_to_dir
 from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs
-from bubsub.clients.pipeline.simulation import simulate_flowing_to_dir, simulate_raw_to_dir
-from bubsub.core.foam.column import column_phantom, simulate_column, write_column
+from bubsub.clients.pipeline.simulation import (DYNAMIC_PHANTOMS, PHANTOMS, simulate_dynamic_to_dir,
+                                                simulate_flowing_to_dir, simulate_raw_to_dir, simulate_to_dir)
 
 
 def cmd_simulate(args):
@@ -45,6 +44,8 @@ def _simulate_raw(args, out):
 
 
 def _simulate_column(args, out):
+    from bubsub.core.foam.column import column_phantom, simulate_column, write_column  # scipy.optimize: 0.2 s
+
     if args.beam == "cone":
         raise ValueError("the column phantom is a parallel-beam scan; drop --beam cone")
     cols = args.det_count or 768

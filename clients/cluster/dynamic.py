@@ -32,6 +32,11 @@ from functools import lru_cache
 import numpy as np
 
 from bubsub.core.validate import check_int
+from bubsub.clients.cluster.engine import distributed
+from bubsub.clients.progress import phase
+from bubsub.core.io.scanfile import read_scan
+from bubsub.core.io.subscans import subscan, subscan_layout
+from bubsub.core.voxel.raster import label_image
 
 __all__ = ["chunk_bounds", "link_ids", "relabel", "run_subscan", "run_chunks", "ScanFileSubscans"]
 
@@ -49,16 +54,12 @@ class ScanFileSubscans:
 
     def get(self, index):
         """Subscan ``index`` as a static Scan."""
-        from bubsub.core.io.subscans import subscan, subscan_layout
-
         scan = _read_scan(self.path, self.bubble_contrast)
         return subscan(scan, subscan_layout(scan, self.projections_per_subscan), index)
 
 
 @lru_cache(maxsize=1)
 def _read_scan(path, bubble_contrast):
-    from bubsub.core.io.scanfile import read_scan
-
     return read_scan(path, bubble_contrast=bubble_contrast)
 
 
@@ -133,7 +134,6 @@ def link_ids(earlier, later, min_overlap=MIN_OVERLAP):
     """
     from scipy.optimize import linear_sum_assignment
 
-    from bubsub.core.voxel.raster import label_image
 
     a, b = earlier.surfaces(), later.surfaces()
     if not a or not b:
@@ -283,9 +283,6 @@ def run_chunks(client, source, order, settings, *, step, chunks=1, start=None, t
         Per chunk boundary: the shared subscan, matched count, smallest
         overlap, unmatched ids of either side.
     """
-    from bubsub.clients.cluster.engine import distributed
-    from bubsub.clients.progress import phase
-
     parts = chunk_bounds(order, chunks)
     # a resumed run's ids, ended tracks' included, are all below its start's next_id
     linker = _Linker(parts, range(start.next_id) if start is not None else ())

@@ -10,17 +10,18 @@ from bubsub.clients.experiments.runner import run_case
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.metrics import dice_dissimilarity
 from bubsub.core.voxel.raster import bubble_mask
+from bubsub.clients.pipeline.figures import subplots
+from bubsub.clients.pipeline.outputs import finish_outputs, write_outputs
+from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
+from bubsub.clients.pipeline.simulation import simulate_to_dir
+from bubsub.core.foam.phantoms import foam2d
+from bubsub.core.io.scanfile import read_scan
 
 __all__ = ["demo"]
 
 
 def demo(out="demo-output", progress=True):
     """Simulate a small 2D foam, reconstruct it, evaluate against FBP; print the DDI table."""
-    from bubsub.core.io.scanfile import read_scan
-
-    from bubsub.clients.pipeline.simulation import simulate_to_dir
-    from bubsub.clients.pipeline.outputs import write_outputs
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 
     out = Path(out)
     sim = out / "simulation"
@@ -28,7 +29,6 @@ def demo(out="demo-output", progress=True):
     scan = read_scan(scan_path)
     rec = reconstruct(scan, ReconstructionSettings(progress=progress))
     write_outputs(out / "bubsub", rec, scan_path=scan_path)
-    from bubsub.core.foam.phantoms import foam2d
 
     ph = foam2d(0, n_bubbles=30)
     shape, extent = ph.grid(500)  # every method on one 0.02 mm grid
@@ -42,7 +42,6 @@ def demo(out="demo-output", progress=True):
     table = "\n".join(lines)
     atomic_write_text(out / "ddi.txt", table + "\n")
     _demo_plot(out / "demo.png", ph, rec, shape, extent)
-    from bubsub.clients.pipeline.outputs import finish_outputs
 
     finish_outputs(out, [out / "ddi.txt", out / "demo.png"], command="demo")
     print(table)
@@ -51,8 +50,6 @@ def demo(out="demo-output", progress=True):
 
 
 def _demo_plot(path, phantom, rec, shape, extent):
-    from bubsub.clients.pipeline.figures import subplots
-
     fig, axes = subplots(1, 2, figsize=(11, 5.5), dpi=100)
     axes[0].imshow(rec.preview, extent=rec.preview_extent, cmap="gray")
     axes[0].set_title("voxel preview: non-negative SIRT of 25 projections")

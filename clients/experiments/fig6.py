@@ -26,6 +26,17 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
+from bubsub.clients.experiments.folders import check_experiment_folder, finish_experiment
+from bubsub.clients.experiments.runner import baseline_mask
+from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
+from bubsub.clients.pipeline.figures import subplots
+from bubsub.clients.pipeline.simulation import simulate_dynamic_to_dir
+from bubsub.core.io.meshio import read_ply, read_polygons_json
+from bubsub.core.io.scanfile import read_scan
+from bubsub.core.io.tables import write_table
+from bubsub.core.metrics import dice_dissimilarity
+from bubsub.core.voxel.raster import bubble_mask, check_grid
+from bubsub.core.voxel.segment import binarise
 
 __all__ = ["FIG6_CONFIGS", "FIG6_COLUMN_INFO", "run_fig6"]
 
@@ -53,8 +64,6 @@ FIG6_CONFIGS = {
 
 
 def _grid(meta, cfg):
-    from bubsub.core.voxel.raster import check_grid
-
     size = np.asarray(meta["size"], float)
     if meta["ndim"] == 2:
         n = cfg["grid"]
@@ -67,19 +76,12 @@ def _grid(meta, cfg):
 
 
 def _sirt_mask(scan, shape, extent):
-    from bubsub.clients.experiments.runner import baseline_mask
-
     return baseline_mask("sirt", scan, shape, extent, scan.ndim)
 
 
 def _score_subscan(sim_dir, rec_dir, k, shape, extent, report_k):
     """Rows (BubSub, BB, and in 2D SIRT) of subscan ``k`` and its fig. 7 images; runs in a worker process."""
-    from bubsub.core.io.meshio import read_ply, read_polygons_json
-    from bubsub.core.io.scanfile import read_scan
     from bubsub.core.io.subscans import subscan, subscan_layout
-    from bubsub.core.metrics import dice_dissimilarity
-    from bubsub.core.voxel.raster import bubble_mask
-    from bubsub.core.voxel.segment import binarise
 
     from bubsub.clients.pipeline.voxel4d import BB_ITERATIONS, voxel_baseline
 
@@ -134,14 +136,9 @@ def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, co
     ``out/bubsub`` (``resume`` continues them), nothing is scored, and the
     summary is ``{"interrupted": True, "subscans": [...]}``.
     """
-    from bubsub.core.io.scanfile import read_scan
-
     from bubsub.clients.pipeline.dynamic import DynamicSettings
     from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
-    from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
-    from bubsub.clients.pipeline.simulation import simulate_dynamic_to_dir
 
-    from bubsub.clients.experiments.folders import check_experiment_folder, finish_experiment
 
     name = "fig6" if ndim == 2 else "fig6-3d"
     cfg = dict(FIG6_CONFIGS[(ndim, bool(quick))], **(config or {}))
@@ -217,12 +214,9 @@ def _summarise(rows, score, report, t_sim, t_total, cfg, ndim, quick, seed, phot
 
 def _write(out, rows, summary, panels, extent):
     """Write fig6.csv, fig6.json, fig6.png and fig7.png; returns their paths."""
-    from bubsub.core.io.tables import write_table
-
     write_table(out / "fig6.csv", [{c: r.get(c) for c in FIG6_COLUMN_INFO} for r in rows], FIG6_COLUMN_INFO,
                 title="4D BubSub against voxel baselines per subscan (paper figure 6)")
     atomic_write_text(out / "fig6.json", json.dumps(summary, indent=2))
-    from bubsub.clients.pipeline.figures import subplots
 
     fig, (a, b) = subplots(1, 2, figsize=(11, 4), dpi=100)
     for m, label in (("bubsub", "BubSub"), ("bb", "voxel BB (30 it., x >= 0)"), ("sirt", "SIRT + Otsu")):

@@ -32,6 +32,15 @@ from bubsub.core.metrics import dice_dissimilarity
 from bubsub.core.voxel.raster import bubble_mask
 
 from bubsub.clients.experiments.folders import check_experiment_folder, finish_experiment
+from bubsub.clients.cluster.engine import run_tasks
+from bubsub.clients.pipeline.figures import subplots
+from bubsub.clients.progress import phase
+from bubsub.core import ScanGeometry
+from bubsub.core.foam import dense as dense_foams, phantoms, simulate
+from bubsub.core.io.tables import write_table
+from bubsub.core.voxel.astra2d import reconstruct_2d
+from bubsub.core.voxel.reconstruct3d import reconstruct_3d
+from bubsub.core.voxel.segment import binarise
 
 __all__ = ["EXPERIMENTS", "run_experiment", "run_case", "run_setting", "case_config", "simulate_case",
            "baseline_mask"]
@@ -90,8 +99,6 @@ def case_config(exp, quick):
 
 def simulate_case(ndim, seed, angles, photons, cfg, quick, dense=False):
     """``(phantom, scan, grid shape, grid extent)`` of one run: the seed's foam, its scan and DDI grid."""
-    from bubsub.core.foam import dense as dense_foams, phantoms, simulate
-
     if ndim == 2:
         size = 5.0 if quick else 10.0
         if dense:  # films of 0.08 mm: 4 pixels of the evaluation grid in both modes
@@ -109,7 +116,6 @@ def simulate_case(ndim, seed, angles, photons, cfg, quick, dense=False):
                                           border=2 * cfg["voxel"], margin=0.1)
         else:
             ph = phantoms.foam3d(seed, n_bubbles=cfg["n_bubbles"], size=size)
-        from bubsub.core import ScanGeometry
 
         cols = cfg["det_cols"]
         pixel = (size[0] * 1.5) / cols
@@ -123,17 +129,11 @@ def simulate_case(ndim, seed, angles, photons, cfg, quick, dense=False):
 
 def baseline_mask(method, scan, shape, extent, ndim, tv_weight=None):
     """The binarised voxel reconstruction (``fbp``/``fdk``, ``sirt``, ``cgls``, ``tv``) of a scan's bubble data."""
-    from bubsub.core.voxel.segment import binarise
-
     data = scan.bubble_data
     kw = {"tv_weight": tv_weight} if method == "tv" else {}
     if ndim == 2:
-        from bubsub.core.voxel.astra2d import reconstruct_2d
-
         img = reconstruct_2d(method, data, scan.geometry, shape, extent, **kw)
     else:
-        from bubsub.core.voxel.reconstruct3d import reconstruct_3d
-
         img = reconstruct_3d(method, data, scan.geometry, shape, extent, **kw)
     # bubbles carry the sign of the contrast in the bubble data
     return binarise(np.sign(scan.bubble_contrast) * img, bubbles_are_dark=False)
@@ -231,8 +231,6 @@ def run_experiment(name, out, *, quick=False, seeds=None, values=None, methods=N
     rows = _read_runs(out / f"{name}.csv", exp.variable, quick) if resume else []
     done = {(r[exp.variable], r["seed"], r["method"]) for r in rows}
     todo = [(v, s, m) for v in values for s in range(seeds) for m in methods if (v, s, m) not in done]
-    from bubsub.clients.cluster.engine import run_tasks
-    from bubsub.clients.progress import phase
 
     bar = phase(name, len(todo), unit="run", enabled=progress, each=True)
     t0 = time.perf_counter()
@@ -316,8 +314,6 @@ VARIABLE_INFO = {"angles": ("1", "number of projections"), "photons": ("1", "inc
 
 def _write_csv(path, rows, variable):
     """``NAME.csv`` and its CSVW sidecar (:func:`bubsub.core.io.tables.write_table`)."""
-    from bubsub.core.io.tables import write_table
-
     info = {"experiment": ("", "experiment name"), variable: VARIABLE_INFO[variable],
             "method": ("", "reconstruction method"), "seed": ("", "seed of the simulated phantom and noise"),
             "ddi": ("1", "Dice dissimilarity index against the truth (0 is perfect)"),
@@ -332,8 +328,6 @@ _COLOURS = {"fbp": "C0", "fdk": "C0", "sirt": "C1", "cgls": "C2", "tv": "C3", "b
 
 
 def plot(path, summary, exp):
-    from bubsub.clients.pipeline.figures import subplots
-
     fig, ax = subplots(figsize=(6.5, 4.5), dpi=110)
     for m, vals in summary["methods"].items():
         x = np.array([float(v) for v in vals])

@@ -21,7 +21,8 @@ from scipy import ndimage
 
 from bubsub.core.projection.projector import default_threads
 from bubsub.core.threads import thread_map
-from bubsub.core.voxel.grid import index_to_world
+from bubsub.core.voxel.grid import index_to_world, voxel_sizes, world_to_index
+from bubsub.core.voxel.segment import otsu_threshold
 
 __all__ = ["log_blobs", "small_blobs", "SMALL_BLOB_VOXELS"]
 
@@ -124,9 +125,6 @@ def small_blobs(image, extent, contrast, *, kept, threshold=0.3, voxels=SMALL_BL
     radii : (k,) float
         mm.
     """
-    from bubsub.core.voxel.grid import voxel_sizes, world_to_index
-    from bubsub.core.voxel.segment import otsu_threshold
-
     img = np.asarray(image, dtype=float)
     kept = np.asarray(kept, dtype=bool)
     if kept.shape != img.shape:

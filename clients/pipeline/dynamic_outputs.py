@@ -48,12 +48,16 @@ import numpy as np
 
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.io.meshio import read_ply, read_polygons_json
-from bubsub.core.io.tables import BUBBLE_COLUMN_INFO, bubble_table, unit_column, write_table
+from bubsub.core.io.tables import BUBBLE_COLUMN_INFO, unit_column, write_table
+from bubsub.core.analysis.shape import bubble_table
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
 from bubsub.clients.pipeline.lineage import write_lineage
-from bubsub.clients.pipeline.outputs import json_default
+from bubsub.clients.pipeline.outputs import json_default, write_outputs
+from bubsub.clients.pipeline.figures import subplots
+from bubsub.clients.pipeline.fov import FOV_COLUMN_INFO, fov_columns
+from bubsub.clients.pipeline.reconstruct import Reconstruction
 
 __all__ = ["subscan_dir", "write_subscan", "read_subscan_result", "complete_subscans", "track_rows",
            "tracks_info", "write_tracks", "write_summary"]
@@ -72,9 +76,6 @@ def write_subscan(out, result, ndim, scan_path=None):
     pathlib.Path
         The subscan's folder.
     """
-    from bubsub.clients.pipeline.outputs import write_outputs
-    from bubsub.clients.pipeline.reconstruct import Reconstruction
-
     final = subscan_dir(out, result.index)
     partial = Path(out) / f".{final.name}.partial"
     if partial.exists():
@@ -130,8 +131,6 @@ def time_column(time_unit):
 
 def track_rows(results, time_unit):
     """Rows of ``tracks.csv`` (see the module docstring), in time order."""
-    from bubsub.clients.pipeline.fov import fov_columns
-
     column = time_column(time_unit)
     results = sorted(results, key=lambda r: r.index)
     # the field-of-view columns when every subscan's report has its field of view (one set of columns)
@@ -153,8 +152,6 @@ def tracks_info(time_unit, columns=None):
     """``column: (unit, meaning)`` of ``tracks.csv``: the subscan, its time, the track id and the columns of
     ``bubbles.csv`` (:data:`~bubsub.core.io.tables.BUBBLE_COLUMN_INFO`, and those of the field of view),
     restricted to ``columns`` (the rows' keys) when given."""
-    from bubsub.clients.pipeline.fov import FOV_COLUMN_INFO
-
     when = "mid-time of the subscan" if time_unit == "s" else "subscan index (the scan has no times)"
     info = {"subscan": ("", "subscan index in the scan"), time_column(time_unit): (time_unit, when),
             "bubble_id": ("", "track id (kept through time; the id of the subscan folder's bubbles)"),
@@ -211,7 +208,6 @@ def write_summary(out, results, *, layout, time_unit, settings, engine="local", 
 def plot_growth(path, rows, time_unit):
     """Equivalent diameter against time per bubble, and the size distribution at up to four times."""
     column = time_column(time_unit)
-    from bubsub.clients.pipeline.figures import subplots
 
     fig, (a, b) = subplots(1, 2, figsize=(11, 4.2), dpi=100)
     rows = [r for r in rows if r["equivalent_diameter_mm"] != ""]  # a truncated bubble has no whole size
@@ -239,8 +235,6 @@ def plot_growth(path, rows, time_unit):
 
 def plot_mse(path, per_subscan):
     """Held-out projection MSE per subscan: BubSub and, where run, the voxel baseline (paper fig. 6)."""
-    from bubsub.clients.pipeline.figures import subplots
-
     fig, ax = subplots(figsize=(6.5, 4), dpi=100)
     sub = [p["subscan"] for p in per_subscan]
     for key, label in (("holdout_mse", "BubSub"), ("voxel_holdout_mse", "voxel (BB, 30 it., x >= 0)")):

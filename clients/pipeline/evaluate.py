@@ -37,6 +37,9 @@ import numpy as np
 
 from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
 from bubsub.clients.pipeline.scoring import json_scores, score_folder, simulation_meta
+from bubsub.clients.pipeline.figures import subplots
+from bubsub.clients.pipeline.outputs import add_outputs, folder_problem, json_default
+from bubsub.core.io.atomic import atomic_path, atomic_write_text
 
 __all__ = ["evaluate_dir", "write_evaluation", "write_picture", "EVALUATION", "PICTURE"]
 
@@ -121,9 +124,6 @@ def write_evaluation(folder, result, images):
     -------
     list of pathlib.Path
     """
-    from bubsub.core.io.atomic import atomic_write_text
-
-    from bubsub.clients.pipeline.outputs import add_outputs, folder_problem, json_default
 
     problem = folder_problem(folder)
     if problem:
@@ -180,9 +180,7 @@ def write_picture(path, result, images):
     titled with the DDI and the matching; a 4D folder's adds its DDI per subscan."""
     from matplotlib.patches import Patch
 
-    from bubsub.core.io.atomic import atomic_path
 
-    from bubsub.clients.pipeline.figures import subplots
 
     views = _views(images["_truth_labels"], images["_rec_labels"], images["_extent"])
     per = images.get("_subscans")

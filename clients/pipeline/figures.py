@@ -230,7 +230,7 @@ def write_size_histogram(path, diameters, ndim, title="Bubble size distribution"
     Parameters
     ----------
     diameters : (n,) float, mm
-        ``equivalent_diameter_mm`` of :func:`bubsub.core.io.tables.bubble_table`.
+        ``equivalent_diameter_mm`` of :func:`bubsub.core.analysis.shape.bubble_table`.
     ndim : {2, 3}
         Says whether a diameter is that of a disc of equal area or a ball of equal volume.
     """
@@ -267,7 +267,7 @@ def write_figures(out, rec, fine, rows, *, progress=False):
     fine : list of Mesh or Polygon
         The subdivided surfaces of ``rec.surfaces``.
     rows : list of dict
-        :func:`bubsub.core.io.tables.bubble_table` of ``fine`` (ids and equivalent diameters).
+        :func:`bubsub.core.analysis.shape.bubble_table` of ``fine`` (ids and equivalent diameters).
     progress : bool
         Show the pictures as a phase.
 

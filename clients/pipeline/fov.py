@@ -35,6 +35,7 @@ import numpy as np
 
 from bubsub.clients.pipeline.sides import LOCAL_VIEWS, side_bubble_signal, side_signal
 from bubsub.core.io.tables import FOV_COLUMN_INFO
+from bubsub.core.voxel.raster import coverage, pixel_centres
 
 __all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
            "FOV_EXTEND", "LOCAL_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns",
@@ -236,8 +237,6 @@ def size_inside_fov(item, fov, *, samples=48):
     float
         mm^2 or mm^3.
     """
-    from bubsub.core.voxel.raster import coverage
-
     v = np.asarray(item.vertices, dtype=float)
     ndim = v.shape[1]
     lo, hi = v.min(axis=0), v.max(axis=0)
@@ -266,8 +265,6 @@ def fov_mask(shape, extent, fov):
     -------
     bool ndarray, ``shape``
     """
-    from bubsub.core.voxel.raster import pixel_centres
-
     axes = np.meshgrid(*pixel_centres(shape, extent), indexing="ij")  # (y, x) or (z, y, x)
     points = np.stack([a.ravel() for a in reversed(axes)], axis=1)
     return inside_fov(points, fov).reshape(shape)
@@ -291,7 +288,7 @@ def fov_columns(rows, items, report):
     Parameters
     ----------
     rows : list of dict
-        :func:`bubsub.core.io.tables.bubble_table` of ``items``.
+        :func:`bubsub.core.analysis.shape.bubble_table` of ``items``.
     items : list of Polygon or Mesh
         Refined bubbles.
     report : dict

@@ -23,6 +23,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from bubsub.core import circle_surface, sphere_surface
+from bubsub.clients.optimise.criteria import akaike_score
+from bubsub.clients.optimise.fit import estimate_radii
+from bubsub.clients.pipeline.blobs import log_blobs, small_blobs
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.voxel.astra2d import reconstruct_2d
+from bubsub.core.voxel.segment import binarise, bubble_centres, mask_distance
 
 __all__ = ["LOG_THRESHOLD", "initial_centres", "distance_centres", "small_centres", "initial_surfaces", "choose_initial", "default_detector", "edge_slices",
            "edge_centres", "EDGE_ITERATIONS", "HALF_HEIGHT_OVER_RADIUS", "MIN_DISC_PIXELS"]
@@ -61,8 +67,6 @@ def initial_centres(image, extent, *, detector="dt", min_distance=None, contrast
     """
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     if detector == "log":
-        from bubsub.clients.pipeline.blobs import log_blobs
-
         return log_blobs(image, extent, contrast, min_radius=2 * voxel, max_radius=(extent[1] - extent[0]) / 8,
                          threshold=LOG_THRESHOLD)
     if detector != "dt":
@@ -87,8 +91,6 @@ def distance_centres(image, extent, *, min_distance=None, border_is_background=T
     mask : bool ndarray of the image's shape
         The opened mask (:func:`small_centres` looks outside it).
     """
-    from bubsub.core.voxel.segment import binarise, bubble_centres, mask_distance
-
     voxel = (extent[1] - extent[0]) / image.shape[-1]
     # where the grid's edge is the edge of the data, the opening must not eat the bubbles it cuts: extend
     # the image beyond its edge by its edge values first
@@ -120,8 +122,6 @@ def small_centres(image, extent, contrast, mask):
     out: the caps that the detector's top and bottom rows cut are seeded
     from those rows (:func:`edge_slices`), beyond the edge plane.
     """
-    from bubsub.clients.pipeline.blobs import small_blobs
-
     centres, radii = small_blobs(image, extent, contrast, kept=mask, threshold=LOG_THRESHOLD)
     if image.ndim == 3 and len(centres):
         inside = (centres[:, 2] - radii >= extent[4]) & (centres[:, 2] + radii <= extent[5])
@@ -241,9 +241,6 @@ def choose_initial(image, extent, contrast, projector, data, *, detector="auto",
         ``objective`` and ``score`` (``"auto"`` only), or ``None`` (no error)
         for a candidate that found no bubbles.
     """
-    from bubsub.clients.optimise.criteria import akaike_score
-    from bubsub.clients.optimise.fit import estimate_radii
-
     if detector not in ("auto", "log", "dt"):
         raise ValueError(f"detector must be 'auto', 'log' or 'dt', got {detector!r}")
     names = ("log", "dt") if detector == "auto" else (detector,)
@@ -314,9 +311,6 @@ def edge_slices(data, geometry, contrast, extent, voxel):
         ``(k, 2)`` and radii ``(k,)`` (mm). Empty for a cone-beam or 2D scan (rows
         are not slices there) and for fewer than 8 rows.
     """
-    from bubsub.core.projection.geometry import ScanGeometry
-    from bubsub.core.voxel.astra2d import reconstruct_2d
-
     g = geometry
     if g.ndim != 3 or g.is_cone or g.det_rows < 8:
         return []

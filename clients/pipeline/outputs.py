@@ -35,11 +35,12 @@ import numpy as np
 
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.io.meshio import write_ply, write_polygons_json
-from bubsub.core.io.tables import (BUBBLE_COLUMN_INFO, BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D, bubble_table,
-                                   csv_metadata_path, write_csv)
+from bubsub.core.io.tables import BUBBLE_COLUMN_INFO, BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D, csv_metadata_path, write_csv
+from bubsub.core.analysis.shape import bubble_table
 
 from bubsub.clients.pipeline.figures import write_figures
 from bubsub.clients.pipeline.fov import FOV_COLUMN_INFO, fov_columns
+from bubsub.clients import version
 
 __all__ = ["write_outputs", "json_default", "MANIFEST", "RESULT_NAMES", "OutputFolderError", "folder_problem",
            "earlier_outputs", "check_output_folder", "finish_outputs", "add_outputs"]
@@ -180,7 +181,6 @@ def finish_outputs(path, files, command, **info):
         if old.name != MANIFEST and old.resolve() not in written:
             old.unlink(missing_ok=True)
             removed.append(old)
-    from bubsub.clients import version
 
     names = sorted(os.path.relpath(f, folder.resolve()) for f in written)
     doc = {"bubsub": version(), "command": command, "files": names, **info}
@@ -280,8 +280,6 @@ def add_outputs(path, files, command):
     folder = Path(path)
     doc = _manifest(folder)
     if doc is None:
-        from bubsub.clients import version
-
         doc = {"bubsub": version(), "command": command, "files": []}
     names = set(doc["files"]) | {os.path.relpath(Path(f).resolve(), folder.resolve()) for f in files}
     doc["files"] = sorted(names)

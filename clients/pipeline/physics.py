@@ -7,6 +7,7 @@ import numpy as np
 
 from bubsub.clients.pipeline.fov import FOV_EXTEND
 from bubsub.clients.pipeline.sides import LOCAL_VIEWS, side_hits
+from bubsub.core.prep.background import noise_level
 
 __all__ = ["check_physical_signal", "longest_path", "liquid_attenuation", "away_from", "IMPOSSIBLE_FRACTION",
            "CONTRAST_MARGIN", "AIR_MARGIN", "AIR_FRACTION"]
@@ -104,8 +105,6 @@ def check_physical_signal(scan):
     ValueError
         One line naming the bound broken, by how many values and how far, and what to correct.
     """
-    from bubsub.core.prep.background import noise_level
-
     name = scan.path.name if scan.path is not None else "the scan"
     data, bg, c = scan.data, scan.background, scan.bubble_contrast
     # the noise and the scale from some views (and rows): the same level, a fraction of a second on any scan

@@ -32,6 +32,8 @@ import numpy as np
 from bubsub.core.projection.subdivision import refine_control
 
 from bubsub.clients.optimise.criteria import akaike_score
+from bubsub.clients.optimise.fit import fit
+from bubsub.clients.pipeline.local import scene_objective
 
 __all__ = ["refine_and_fit", "refine_and_check", "can_refine", "refinable", "coarse_rate", "out_of_reach",
            "penalised_objective", "control_counts"]
@@ -108,8 +110,6 @@ def penalised_objective(projector, surfaces, data, penalty=None, data_term=None)
     data_term : float, optional
         The data term of ``surfaces``, if known (no projection is made then).
     """
-    from bubsub.clients.pipeline.local import scene_objective
-
     f = scene_objective(projector, surfaces, data) if data_term is None else float(data_term)
     if penalty is not None and surfaces:
         f += float(penalty([s.vertices for s in surfaces])[0])
@@ -164,9 +164,6 @@ def refine_and_fit(projector, surfaces, data, *, iterations, trial=10, penalty=N
         ``bubbles_refined``, ``control_vertices_before``/``after`` (the most of a bubble), ``iterations``,
         ``evaluations``, ``stop_reason`` (of the refined fit).
     """
-    from bubsub.clients.optimise.fit import fit
-    from bubsub.clients.pipeline.local import scene_objective
-
     surfaces = list(surfaces)
     if not can_refine(surfaces):
         raise ValueError("refining needs a surface with a subdivision level to spare (two in 3D)")

@@ -44,6 +44,8 @@ import numpy as np
 
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.core.projection.validity import check_bubbles, self_crossing_vertices, self_crossings
+from bubsub.clients.pipeline.fov import unobserved_control
+from bubsub.clients.pipeline.local import local_refit, scene_objective
 
 __all__ = ["check_and_repair", "merged_validity", "repair_bubbles", "rounded", "untangled", "separate", "continued",
            "shrunk", "shrink_overlaps",
@@ -469,8 +471,6 @@ def check_and_repair(surfaces, projector, data, *, repair=True, iterations=20, g
         found = [v.as_dict() for v in check_bubbles(surfaces)]
         return list(surfaces), {"violations_found": found, "actions": [], "violations_remaining": found,
                                 "dropped": 0, "repaired": False}
-    from bubsub.clients.pipeline.fov import unobserved_control
-    from bubsub.clients.pipeline.local import local_refit, scene_objective
 
     # the unseen parts first: they decide overlaps the data cannot
     before = list(surfaces)

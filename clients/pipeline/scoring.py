@@ -18,6 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from bubsub.clients.pipeline.fov import fov_mask
+from bubsub.core.io.meshio import read_ply, read_polygons_json
+from bubsub.core.matching import MIN_IOU, match
+from bubsub.core.metrics import label_image
+
 __all__ = ["score_bubbles", "score_folder", "read_bubbles", "simulation_meta", "scored_field_of_view",
            "json_scores"]
 
@@ -29,8 +34,6 @@ _REPORT_KEYS = ("final_objective", "iterations", "stop_reason", "delivered_fit",
 
 def read_bubbles(path, ndim):
     """``(items, ids)``: the bubbles of a ``.json`` (2D polygons) or ``.ply`` (3D meshes) file and their ids."""
-    from bubsub.core.io.meshio import read_ply, read_polygons_json
-
     items, ids = (read_ply if ndim == 3 else read_polygons_json)(path, with_ids=True)
     return list(items), [int(i) for i in ids]
 
@@ -112,10 +115,6 @@ def score_bubbles(rec, rec_ids, truth, truth_ids, shape, extent, fov=None):
         ``shape``; 0 outside the field of view) and ``_extent`` for the picture (not JSON: dropped by
         :func:`json_scores`).
     """
-    from bubsub.core.matching import MIN_IOU, match
-    from bubsub.core.metrics import label_image
-
-    from bubsub.clients.pipeline.fov import fov_mask
 
     ndim = len(shape)
     t_lab, r_lab = label_image(truth, shape, extent), label_image(rec, shape, extent)

@@ -8,6 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
+from bubsub.clients.pipeline.outputs import finish_outputs
+from bubsub.core import ScanGeometry
+from bubsub.core.foam import phantoms
+from bubsub.core.foam.simulate import simulate_2d, simulate_3d
+from bubsub.core.io.atomic import atomic_write_text
+from bubsub.core.io.meshio import write_ply, write_polygons_json
+from bubsub.core.io.scanfile import write_scan
+
 __all__ = ["PHANTOMS", "DYNAMIC_PHANTOMS", "make_phantom", "make_geometry", "truth_grid", "simulate_to_dir",
            "simulate_dynamic_to_dir", "simulate_flowing_to_dir", "simulate_raw_to_dir"]
 
@@ -18,8 +26,6 @@ DYNAMIC_PHANTOMS = ("expanding2d", "expanding3d", "flowing3d")
 
 
 def make_phantom(name, seed, n_bubbles=None):
-    from bubsub.core.foam import phantoms
-
     if name == "foam2d":
         return phantoms.foam2d(seed, **({"n_bubbles": n_bubbles} if n_bubbles else {}))
     if name == "foam3d":
@@ -34,8 +40,6 @@ def make_geometry(ndim, beam, n_angles, det_count=None, rows=None, repeat=1):
 
     ``repeat`` rotations of ``n_angles`` each, in acquisition order (a dynamic scan's subscans).
     """
-    from bubsub.core import ScanGeometry
-
     def circle(period):
         return np.tile(np.linspace(0, period, n_angles, endpoint=False), int(repeat))
 
@@ -73,12 +77,6 @@ def simulate_to_dir(out, phantom_name="foam2d", *, angles=25, photons=1e4, seed=
     (:func:`bubsub.clients.pipeline.outputs.finish_outputs`); ``bubsub
     simulate`` first refuses a folder with earlier results unless ``--overwrite``.
     """
-    from bubsub.core.io.atomic import atomic_write_text
-    from bubsub.core.io.meshio import write_ply, write_polygons_json
-    from bubsub.core.io.scanfile import write_scan
-    from bubsub.core.foam.simulate import simulate_2d, simulate_3d
-
-    from bubsub.clients.pipeline.outputs import finish_outputs
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -117,11 +115,7 @@ def simulate_dynamic_to_dir(out, phantom_name="expanding2d", *, subscans=8, proj
     :func:`~bubsub.core.foam.phantoms.foam2d` / ``foam3d`` (size, radius_range, ...).
     """
     from bubsub.core.foam.expanding import expanding2d, expanding3d, simulate_expanding
-    from bubsub.core.io.atomic import atomic_write_text
-    from bubsub.core.io.meshio import write_ply, write_polygons_json
-    from bubsub.core.io.scanfile import write_scan
 
-    from bubsub.clients.pipeline.outputs import finish_outputs
 
     if phantom_name not in DYNAMIC_PHANTOMS:
         raise ValueError(f"unknown dynamic phantom {phantom_name!r}; choose one of {DYNAMIC_PHANTOMS}")
@@ -181,7 +175,6 @@ def simulate_flowing_to_dir(out, *, subscans=None, projections_per_subscan=None,
     """
     from bubsub.core.foam.flowing import FLOWING_DEFAULTS, flowing_foam, simulate_flowing, write_flowing
 
-    from bubsub.clients.pipeline.outputs import finish_outputs
 
     d = FLOWING_DEFAULTS
     cols = det_count or d["cols"]
@@ -205,10 +198,7 @@ def simulate_raw_to_dir(out, *, seed=0, n_bubbles=8, foam_size=5.6, **settings):
     cylindrical container of :mod:`bubsub.core.foam.raw`; ``settings`` go to
     :func:`bubsub.core.foam.raw.raw_settings`.
     """
-    from bubsub.core.foam import phantoms
     from bubsub.core.foam.raw import raw_settings, simulate_raw, write_raw
-    from bubsub.core.io.atomic import atomic_write_text
-    from bubsub.core.io.meshio import write_polygons_json
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

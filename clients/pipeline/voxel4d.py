@@ -14,6 +14,11 @@ import time
 import numpy as np
 
 from bubsub.core.metrics import projection_mse
+from bubsub.clients.pipeline.preview import preview_grid
+from bubsub.clients.pipeline.reconstruct import split_holdout
+from bubsub.core.voxel import solvers
+from bubsub.core.voxel.astra2d import AstraProjector2D, have_astra
+from bubsub.core.voxel.projector3d import VoxelProjector
 
 __all__ = ["voxel_baseline", "BB_ITERATIONS"]
 
@@ -23,11 +28,8 @@ BB_ITERATIONS = 30
 
 def _operator(geometry, shape, extent):
     if geometry.ndim == 2:
-        from bubsub.core.voxel.astra2d import AstraProjector2D, have_astra
-
         if have_astra():
             return AstraProjector2D(geometry, shape, extent)
-    from bubsub.core.voxel.projector3d import VoxelProjector
 
     return VoxelProjector(geometry, shape, extent)
 
@@ -51,10 +53,6 @@ def voxel_baseline(scan, holdout, *, iterations=BB_ITERATIONS, shape=None, exten
         ``image`` (bubbles positive, ``|contrast|`` inside), ``extent``,
         ``holdout_mse`` (None without a holdout), ``seconds``.
     """
-    from bubsub.clients.pipeline.preview import preview_grid
-    from bubsub.clients.pipeline.reconstruct import split_holdout
-    from bubsub.core.voxel import solvers
-
     t0 = time.perf_counter()
     g_fit, d_fit, g_val, d_val = split_holdout(scan.geometry, scan.bubble_data, holdout)
     if shape is None:

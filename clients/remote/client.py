@@ -29,6 +29,8 @@ import time
 import httpx
 import numpy as np
 
+from bubsub.core import SubdivisionSurface
+
 __all__ = ["ProjectorClient", "RemoteJob", "RemoteError", "RemoteValueError", "UnknownJobError", "connect"]
 
 log = logging.getLogger("bubsub.client")
@@ -300,8 +302,6 @@ def _retry_after(response):
 
 
 def _as_list(items):
-    from bubsub.core import SubdivisionSurface
-
     items = [items] if isinstance(items, SubdivisionSurface) else list(items)
     for k, item in enumerate(items):
         if not isinstance(item, SubdivisionSurface):

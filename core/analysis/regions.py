@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bubsub.core.analysis.shape import strain_from_axes
+
 __all__ = ["Domain", "region_volumes", "region_tables", "GRID_COLUMN_INFO", "SHELL_COLUMN_INFO", "texture_summary"]
 
 #: Radial slices of each (centre, face) tetrahedron when a bubble's volume is shared among regions.
@@ -255,8 +257,6 @@ def texture_summary(branches):
     t = b.T @ b / len(b)
     lam = np.linalg.eigvalsh(t)[::-1]
     if np.all(lam > 0):
-        from bubsub.core.analysis.shape import strain_from_axes
-
         u, vm, _ = strain_from_axes(np.sqrt(lam))  # ln(sqrt(lambda_i) / mean) = ln(lambda_i / mean) / 2
     else:
         u, vm = np.full(3, np.nan), np.nan

@@ -45,10 +45,13 @@ from __future__ import annotations
 import numpy as np
 
 from bubsub.core.io.columns import BUBBLE_COLUMN_INFO
-from bubsub.core.projection.mesh import equivalent_radius
+from bubsub.core.io.tables import BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D
+from bubsub.core.projection.items import bubble_ids, resolve_items
+from bubsub.core.projection.mesh import Mesh, Polygon, equivalent_radius
+from bubsub.core.projection.subdivision import loop_subdivision
 
-__all__ = ["solid_moments", "bubble_shape", "bubble_shapes", "bubble_sizes", "strain_from_axes", "thomsen_area",
-           "SHAPE_COLUMN_INFO", "SHAPE_COLUMNS"]
+__all__ = ["solid_moments", "bubble_shape", "bubble_shapes", "bubble_sizes", "bubble_table", "strain_from_axes",
+           "thomsen_area", "SHAPE_COLUMN_INFO", "SHAPE_COLUMNS"]
 
 #: Knud Thomsen's exponent in FoamQuant's ellipsoid area.
 THOMSEN_P = 1.6
@@ -93,8 +96,6 @@ def _smooth_volume_area(vertex_arrays, face_arrays, volume, area):
     volume, area : (n,) float
         ``X_1 + (X_1 - X_0) / 3`` with ``X_1`` of the meshes after one more Loop step.
     """
-    from bubsub.core.projection.subdivision import loop_subdivision
-
     steps = {}  # bubbles of one reconstruction share a few topologies: one matrix each
     finer_v, finer_f = [], []
     for k, (v, f) in enumerate(zip(vertex_arrays, face_arrays)):
@@ -147,6 +148,52 @@ def bubble_sizes(meshes):
         return np.zeros(0), np.zeros(0), np.zeros((0, 3))
     volume, area, centroid, _ = _checked_moments(meshes)
     return volume, area, centroid
+
+
+def bubble_table(items, ids=None):
+    """Per-bubble measurements.
+
+    Parameters
+    ----------
+    items : sequence of Mesh or of Polygon (or SubdivisionSurface, measured refined)
+    ids : sequence of int, optional
+        Default ``0..n-1``.
+
+    Returns
+    -------
+    list of dict
+        2D rows have :data:`BUBBLE_COLUMNS_2D` (``equivalent_diameter_mm =
+        2 sqrt(area / pi)``); 3D rows have :data:`BUBBLE_COLUMNS_3D`
+        (``equivalent_diameter_mm = (6 volume / pi)^(1/3)``; the surface area
+        of :func:`bubble_sizes`, as ``bubsub analyse``); units and meanings in :data:`BUBBLE_COLUMN_INFO`.
+    """
+    if isinstance(items, (Mesh, Polygon)) or hasattr(items, "fine"):
+        items = [items]
+    items = list(items)
+    resolved = [it.fine() if not isinstance(it, (Mesh, Polygon)) and hasattr(it, "fine") else it for it in items]
+    if not resolved:
+        return []
+    if all(isinstance(it, Polygon) for it in resolved):
+        want = Polygon
+    elif all(isinstance(it, Mesh) for it in resolved):
+        want = Mesh
+    else:
+        kinds = sorted({type(it).__name__ for it in resolved})
+        raise ValueError(f"items must be all Mesh or all Polygon, got {kinds}")
+    resolved = resolve_items(resolved, want, "items")
+    bid = bubble_ids(ids, len(resolved))
+    rows = []
+    if want is Mesh:
+        volume, area, centroid = bubble_sizes(resolved)
+        for i, v, a, c in zip(bid, volume, area, centroid):
+            values = (c[0], c[1], c[2], v, a, 2.0 * equivalent_radius(v, 3))
+            rows.append(dict(zip(BUBBLE_COLUMNS_3D, (i, *map(float, values)))))
+        return rows
+    for i, it in zip(bid, resolved):
+        c = np.asarray(it.centroid, dtype=float)
+        values = (c[0], c[1], it.area, it.perimeter, 2.0 * it.equivalent_radius)
+        rows.append(dict(zip(BUBBLE_COLUMNS_2D, (i, *map(float, values)))))
+    return rows
 
 
 def thomsen_area(semi_axes, p=THOMSEN_P):

@@ -47,6 +47,12 @@ from bubsub.core.foam.checks import count, finite, frozen, nonneg, positive, rng
 from bubsub.core.foam.ellipsoids import (contact_function, ellipsoid_mesh, ellipsoid_volumes, fraction_below,
                                          project_cylinder, project_ellipsoids, shape_matrices)
 from bubsub.core.projection.mesh import equivalent_radius
+from bubsub.core.foam.simulate import add_poisson_noise
+from bubsub.core.io.atomic import atomic_write_text
+from bubsub.core.io.meshio import write_ply
+from bubsub.core.io.scanfile import Scan, write_scan
+from bubsub.core.io.tables import write_csv
+from bubsub.core.projection.geometry import ScanGeometry
 
 __all__ = ["ColumnPhantom", "column_phantom", "expected_visible", "column_geometry", "simulate_column", "write_column", "COLUMN_PRESETS",
            "TRUTH_COLUMN_INFO"]
@@ -322,8 +328,6 @@ def _pack(rng, axes, rotations, radius, z_half, gap, steps):
 
 def column_geometry(phantom, n_angles=40, arc=180.0):
     """The parallel-beam scan of a column: ``n_angles`` equiangular views over ``arc`` degrees."""
-    from bubsub.core.projection.geometry import ScanGeometry
-
     n = count("n_angles", n_angles)
     arc = positive("arc", arc)
     angles = np.linspace(0.0, np.radians(arc), n, endpoint=False)
@@ -352,9 +356,6 @@ def simulate_column(phantom, *, n_angles=40, arc=180.0, photons=1e4, supersampli
         ``data`` (line integrals), ``background`` (noise-free cylinder),
         ``bubble_contrast``, simulation settings in ``attrs``.
     """
-    from bubsub.core.foam.simulate import add_poisson_noise
-    from bubsub.core.io.scanfile import Scan
-
     if not isinstance(phantom, ColumnPhantom):
         raise ValueError(f"phantom must be a ColumnPhantom, got {type(phantom).__name__}")
     geometry = column_geometry(phantom, n_angles, arc)
@@ -419,11 +420,6 @@ def write_column(out, phantom, scan, *, truth_subdivisions=4, grid_voxel=None):
     meta : dict
         The contents of ``phantom.json``.
     """
-    from bubsub.core.io.atomic import atomic_write_text
-    from bubsub.core.io.meshio import write_ply
-    from bubsub.core.io.tables import write_csv
-    from bubsub.core.io.scanfile import write_scan
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     idx = np.flatnonzero(phantom.visible)

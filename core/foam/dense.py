@@ -33,6 +33,7 @@ from scipy.spatial import ConvexHull, HalfspaceIntersection
 from bubsub.core.foam.checks import count, finite, frozen, nonneg, positive, rng_from_seed, size_vector, unit_icosphere
 from bubsub.core.foam.containers import liquid_box, liquid_square
 from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.foam.phantoms import FoamPhantom
 
 __all__ = ["dense_foam2d", "dense_foam3d"]
 
@@ -114,8 +115,6 @@ def _dense(seed, ndim, n, box, film, rho, spacing, polydispersity, margin, max_a
 
 
 def _phantom(bubbles, centres, radii, box, liquid_attenuation, gas_attenuation, seed):
-    from bubsub.core.foam.phantoms import FoamPhantom
-
     contrast = gas_attenuation - liquid_attenuation
     ndim = len(box)
     liquid = liquid_square(box[0], liquid_attenuation) if ndim == 2 else liquid_box(tuple(box), liquid_attenuation)

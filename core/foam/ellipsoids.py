@@ -35,6 +35,7 @@ import numpy as np
 from bubsub.core.foam.checks import unit_icosphere
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh
+from bubsub.core.voxel.raster import pixel_centres
 
 __all__ = ["shape_matrices", "contact_function", "ellipsoid_chords", "cylinder_chords", "project_ellipsoids",
            "project_cylinder", "ellipsoid_mesh", "fraction_below", "ellipsoid_volumes", "ellipsoid_labels"]
@@ -402,8 +403,6 @@ def ellipsoid_labels(centres, axes, rotations, shape, extent):
     (slices, rows, cols) int32
         Where ellipsoids overlap, the later one wins.
     """
-    from bubsub.core.voxel.raster import pixel_centres
-
     z, y, x = pixel_centres(shape, extent)
     c = np.atleast_2d(np.asarray(centres, dtype=float))
     m, s = shape_matrices(axes, rotations, -2), shape_matrices(axes, rotations, 2)

@@ -26,6 +26,8 @@ import numpy as np
 
 from bubsub.core.foam.phantoms import FoamPhantom, foam2d, foam3d, liquid_box, liquid_square
 from bubsub.core.projection.mesh import Mesh, Polygon
+from bubsub.core.foam.simulate import simulated_scan
+from bubsub.core.projection.projector import MeshProjector
 
 __all__ = ["ExpandingFoam", "expanding2d", "expanding3d"]
 
@@ -154,9 +156,6 @@ def simulate_expanding(foam, geometry, *, projections_per_subscan, photons=None,
     mid_times : (n_subscans,) float
         Each subscan's mid-time in [0, 1] (where its truth is taken).
     """
-    from bubsub.core.foam.simulate import simulated_scan
-    from bubsub.core.projection.projector import MeshProjector
-
     n = geometry.n_angles
     k = int(projections_per_subscan)
     if k < 1 or n % k:

@@ -58,6 +58,12 @@ from bubsub.core.foam.column import (TRUTH_COLUMN_INFO, ColumnPhantom, expected_
 from bubsub.core.foam.ellipsoids import (contact_function, ellipsoid_mesh, ellipsoid_volumes, fraction_below,
                                          project_cylinder, project_ellipsoids, shape_matrices)
 from bubsub.core.projection.mesh import equivalent_radius
+from bubsub.core.foam.simulate import add_poisson_noise
+from bubsub.core.io.atomic import atomic_write_text
+from bubsub.core.io.meshio import write_ply
+from bubsub.core.io.scanfile import Scan, write_scan
+from bubsub.core.io.tables import write_csv
+from bubsub.core.projection.geometry import ScanGeometry
 
 __all__ = ["FlowingFoam", "FoamState", "flowing_foam", "flowing_geometry", "simulate_flowing", "write_flowing",
            "EVENT_COLUMN_INFO", "FLOWING_DEFAULTS"]
@@ -347,8 +353,6 @@ def _choose_merges(rng, col, vanish_time, n_merge, duration, velocity):
 
 def flowing_geometry(foam, projections_per_subscan=40):
     """Continuous rotation: ``projections_per_subscan`` views per 180 degrees, subscan after subscan."""
-    from bubsub.core.projection.geometry import ScanGeometry
-
     p = count("projections_per_subscan", projections_per_subscan)
     n = int(round(foam.duration)) * p
     c = foam.column
@@ -384,9 +388,6 @@ def simulate_flowing(foam, *, projections_per_subscan=40, photons=1e4, supersamp
         ``(n_projections, rows, cols)`` line integrals in acquisition order, with ``time``,
         ``projections_per_subscan`` and the cylinder's noise-free projection as ``background``.
     """
-    from bubsub.core.foam.simulate import add_poisson_noise
-    from bubsub.core.io.scanfile import Scan
-
     if not isinstance(foam, FlowingFoam):
         raise ValueError(f"foam must be a FlowingFoam, got {type(foam).__name__}")
     c = foam.column
@@ -524,11 +525,6 @@ def write_flowing(out, foam, scan, *, truth_subdivisions=3, grid_voxel=None, sec
     meta : dict
         The contents of ``phantom.json``.
     """
-    from bubsub.core.io.atomic import atomic_write_text
-    from bubsub.core.io.meshio import write_ply
-    from bubsub.core.io.scanfile import write_scan
-    from bubsub.core.io.tables import write_csv
-
     out = Path(out)
     (out / "truth").mkdir(parents=True, exist_ok=True)
     c = foam.column

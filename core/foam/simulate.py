@@ -28,6 +28,8 @@ from bubsub.core.foam.phantoms import FoamPhantom
 from bubsub.core.voxel.raster import check_grid
 from bubsub.core.io.scanfile import Scan
 from bubsub.core.validate import check_int
+from bubsub.core.projection.projector import MeshProjector
+from bubsub.core.voxel.astra2d import AstraProjector2D, have_astra as _have_astra
 
 __all__ = [
     "project_image",
@@ -143,8 +145,6 @@ def project_image(image, extent, geometry, projector="auto"):
     (n_angles, det_count) float32
         Line integrals.
     """
-    from bubsub.core.voxel.astra2d import AstraProjector2D, have_astra as _have_astra
-
     if not _have_astra():  # pragma: no cover - depends on the environment
         raise ImportError(
             "voxel projection needs the ASTRA toolbox (pip install astra-toolbox, or bubsub[astra]); "
@@ -255,8 +255,6 @@ def simulate_2d(
         info = {"image_rows": shape[0], "image_cols": shape[1], "supersample": supersample,
                 "projector": projector if projector != "auto" else ASTRA_PROJECTORS[geometry.kind][0]}
     elif method == "mesh":
-        from bubsub.core.projection.projector import MeshProjector
-
         proj = MeshProjector(geometry)
         clean = proj.forward(phantom.items)
         background = proj.forward([phantom.liquid])
@@ -289,8 +287,6 @@ def simulate_3d(phantom, geometry, *, photons=None, seed=0, supersampling=1, thr
     Scan
         As :func:`simulate_2d`; shapes ``(n_angles, rows, cols)``.
     """
-    from bubsub.core.projection.projector import MeshProjector
-
     _check_phantom(phantom, 3)
     if not isinstance(geometry, ScanGeometry) or geometry.ndim != 3:
         raise ValueError("simulate_3d needs a 3D ScanGeometry (cone_vec or parallel3d_vec)")

@@ -35,8 +35,8 @@ def unit_column(quantity, unit):
     return f"{quantity}_{suffix}" if suffix else quantity
 
 
-#: ``column name: (unit, meaning)`` of every column :func:`bubble_table` writes; ``bubsub analyse``'s
-#: ``bubbles.csv`` describes the same columns with the same words
+#: ``column name: (unit, meaning)`` of every column :func:`bubsub.core.analysis.shape.bubble_table` writes;
+#: ``bubsub analyse``'s ``bubbles.csv`` describes the same columns with the same words
 #: (:data:`bubsub.core.analysis.shape.SHAPE_COLUMN_INFO`).
 BUBBLE_COLUMN_INFO = {
     "id": ("", "bubble id (the bubble_id of the PLY faces / the id of the JSON polygon)"),

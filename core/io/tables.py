@@ -1,4 +1,4 @@
-"""Tables (CSV) whose columns carry their units, each with its CSV-on-the-Web sidecar; the bubble table.
+"""Tables (CSV) whose columns carry their units, each with its CSV-on-the-Web sidecar; the bubble table's columns.
 
 Every table bubsub writes goes through :func:`write_table`, the one place
 that decides how a table is written:
@@ -22,11 +22,13 @@ and :func:`markdown_columns` gives the same descriptions as the docs' column
 table (``tests/test_tables.py`` checks that the docs list every column of
 bubsub's tables so).
 
-:func:`bubble_table` measures bubbles, with the definitions the analysis
-uses (:mod:`bubsub.core.analysis.shape`), so a bubble has the same values in
-``bubsub reconstruct``'s and ``bubsub analyse``'s ``bubbles.csv``:
-``id, centroid_x_mm, centroid_y_mm[, centroid_z_mm], area_mm2 | volume_mm3,
-perimeter_mm | surface_area_mm2, equivalent_diameter_mm``.
+The bubble table's columns are :data:`BUBBLE_COLUMNS_2D` and
+:data:`BUBBLE_COLUMNS_3D`: ``id, centroid_x_mm, centroid_y_mm[,
+centroid_z_mm], area_mm2 | volume_mm3, perimeter_mm | surface_area_mm2,
+equivalent_diameter_mm``; its rows are measured by
+:func:`bubsub.core.analysis.shape.bubble_table`, with the analysis'
+definitions, so a bubble has the same values in ``bubsub reconstruct``'s and
+``bubsub analyse``'s ``bubbles.csv``.
 
 Every writer is atomic (:mod:`bubsub.core.io.atomic`).
 """
@@ -43,14 +45,11 @@ import numpy as np
 
 from bubsub.core.io.atomic import atomic_open
 from bubsub.core.io.columns import BUBBLE_COLUMN_INFO, FOV_COLUMN_INFO, UNIT_SUFFIXES, unit_column
-from bubsub.core.projection.items import bubble_ids, resolve_items
-from bubsub.core.projection.mesh import Mesh, Polygon, equivalent_radius
 
 __all__ = [
     "UNIT_SUFFIXES",
     "SIGNIFICANT_DIGITS",
     "unit_column",
-    "bubble_table",
     "format_cell",
     "write_table",
     "write_csv",
@@ -66,61 +65,11 @@ __all__ = [
 SIGNIFICANT_DIGITS = 6
 
 
-#: Columns of :func:`bubble_table` for 2D bubbles.
+#: Columns of :func:`bubsub.core.analysis.shape.bubble_table` for 2D bubbles.
 BUBBLE_COLUMNS_2D = ("id", "centroid_x_mm", "centroid_y_mm", "area_mm2", "perimeter_mm", "equivalent_diameter_mm")
-#: Columns of :func:`bubble_table` for 3D bubbles.
+#: Columns of :func:`bubsub.core.analysis.shape.bubble_table` for 3D bubbles.
 BUBBLE_COLUMNS_3D = ("id", "centroid_x_mm", "centroid_y_mm", "centroid_z_mm", "volume_mm3", "surface_area_mm2",
                      "equivalent_diameter_mm")
-
-
-def bubble_table(items, ids=None):
-    """Per-bubble measurements.
-
-    Parameters
-    ----------
-    items : sequence of Mesh or of Polygon (or SubdivisionSurface, measured refined)
-    ids : sequence of int, optional
-        Default ``0..n-1``.
-
-    Returns
-    -------
-    list of dict
-        2D rows have :data:`BUBBLE_COLUMNS_2D` (``equivalent_diameter_mm =
-        2 sqrt(area / pi)``); 3D rows have :data:`BUBBLE_COLUMNS_3D`
-        (``equivalent_diameter_mm = (6 volume / pi)^(1/3)``; the surface area
-        of :func:`bubsub.core.analysis.shape.bubble_sizes`, as ``bubsub
-        analyse``); units and meanings in :data:`BUBBLE_COLUMN_INFO`.
-    """
-    if isinstance(items, (Mesh, Polygon)) or hasattr(items, "fine"):
-        items = [items]
-    items = list(items)
-    resolved = [it.fine() if not isinstance(it, (Mesh, Polygon)) and hasattr(it, "fine") else it for it in items]
-    if not resolved:
-        return []
-    if all(isinstance(it, Polygon) for it in resolved):
-        want = Polygon
-    elif all(isinstance(it, Mesh) for it in resolved):
-        want = Mesh
-    else:
-        kinds = sorted({type(it).__name__ for it in resolved})
-        raise ValueError(f"items must be all Mesh or all Polygon, got {kinds}")
-    resolved = resolve_items(resolved, want, "items")
-    bid = bubble_ids(ids, len(resolved))
-    rows = []
-    if want is Mesh:
-        # the analysis' definitions, imported here because that module imports this one
-        from bubsub.core.analysis.shape import bubble_sizes
-
-        volume, area, centroid = bubble_sizes(resolved)
-        for i, v, a, c in zip(bid, volume, area, centroid):
-            values = (c[0], c[1], c[2], v, a, 2.0 * equivalent_radius(v, 3))
-            rows.append(dict(zip(BUBBLE_COLUMNS_3D, (i, *map(float, values)))))
-        return rows
-    for i, it in zip(bid, resolved):
-        c = np.asarray(it.centroid, dtype=float)
-        values = (c[0], c[1], it.area, it.perimeter, 2.0 * it.equivalent_radius)
-        rows.append(dict(zip(BUBBLE_COLUMNS_2D, (i, *map(float, values)))))
-    return rows
 
 
 def markdown_columns(columns):

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from bubsub.core.projection.mesh import Mesh, Polygon, bounding_box
+from bubsub.core.voxel.raster import coverage
 
 __all__ = ["Violation", "segment_crossings", "self_crossings", "self_crossing_vertices",
            "crossings_between", "overlap_measure",
@@ -307,8 +308,6 @@ def overlap_measure(a, b, samples=None):
     float
         0 when no grid point lies inside both.
     """
-    from bubsub.core.voxel.raster import coverage
-
     ndim = a.vertices.shape[1]
     (alo, ahi), (blo, bhi) = bounding_box(a.vertices), bounding_box(b.vertices)
     lo, hi = np.maximum(alo, blo), np.minimum(ahi, bhi)

@@ -43,8 +43,8 @@ Three modules share the work, all on one slab layout (core, rows read,
 origin, ownership heights) that :mod:`.slab_layout` defines with the plan
 and the halo; :mod:`.slab_stitch` holds the ownership rules (stitching, and
 the fit of known bubbles); this module runs the slabs, writes and reads
-their checkpoints and makes the report. Every name of the three is
-importable from here.
+their checkpoints and makes the report. The other two modules' entry
+points are importable from here too (this module's ``__all__``).
 
 Cone beam: the rows of a cone-beam detector are not slices of the sample
 (the rays diverge), so :func:`check_slab_geometry` refuses it; such a scan

@@ -55,7 +55,8 @@ from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, initial_
 from bubsub.core import MeshProjector
 from bubsub.core.foam.column import TRUTH_COLUMN_INFO, column_phantom, simulate_column, truth_grid, write_column
 from bubsub.core.foam.ellipsoids import shape_matrices
-from bubsub.core.foam.flowing import FLOWING_DEFAULTS, flowing_foam, simulate_flowing, truth_rows
+from bubsub.core.foam.flowing import FLOWING_DEFAULTS, flowing_foam
+from bubsub.core.foam.flowing_scan import simulate_flowing, truth_rows
 from bubsub.core.io.scanfile import Scan, read_scan, write_scan
 from bubsub.core.io.tables import write_csv
 

@@ -8,7 +8,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from bubsub.core.foam.ellipsoids import contact_function, ellipsoid_mesh, shape_matrices
-from bubsub.core.foam.flowing import flowing_foam, projection_times, simulate_flowing
+from bubsub.core.foam.flowing import flowing_foam
+from bubsub.core.foam.flowing_scan import projection_times, simulate_flowing
 
 #: A tiny column: 32 x 96 pixels of 48 um, about 30 bubbles in view, 4 subscans.
 TINY = dict(rows=32, cols=96, pixel_size=0.048, subscans=4, coalescences=1)

@@ -163,7 +163,7 @@ def simulate_flowing_to_dir(out, *, subscans=None, projections_per_subscan=None,
     180 degrees each, continuous rotation, 128 x 384 pixels of 12 um, ~150 bubbles in view. ``det_count``
     sets the columns (a third as many rows) and keeps the field of view: the pixel is ``0.012 * 384 / det_count``
     mm. ``foam``: more options of :func:`~bubsub.core.foam.flowing.flowing_foam` (``flow``, ``vanishing``,
-    ``coalescences``, ...). Writes what :func:`~bubsub.core.foam.flowing.write_flowing` lists.
+    ``coalescences``, ...). Writes what :func:`~bubsub.core.foam.flowing_scan.write_flowing` lists.
 
     Returns
     -------
@@ -173,7 +173,8 @@ def simulate_flowing_to_dir(out, *, subscans=None, projections_per_subscan=None,
     meta : dict
         ``phantom.json``.
     """
-    from bubsub.core.foam.flowing import FLOWING_DEFAULTS, flowing_foam, simulate_flowing, write_flowing
+    from bubsub.core.foam.flowing import FLOWING_DEFAULTS, flowing_foam
+    from bubsub.core.foam.flowing_scan import simulate_flowing, write_flowing
 
 
     d = FLOWING_DEFAULTS

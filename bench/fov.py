@@ -68,7 +68,9 @@ from bubsub.bench.matching import column_truth, mesh_labels, truth_labels
 from bubsub.bench.reconstruct import cli_command as _cli
 from bubsub.bench.scale import run_tree, simulate_case, table
 from bubsub.clients.pipeline import fov as fovmod
+from bubsub.clients.pipeline.evaluate import evaluate_dir
 from bubsub.clients.pipeline.fov import field_of_view, fov_mask, truncated_flags
+from bubsub.clients.pipeline.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 from bubsub.core import MeshProjector
 from bubsub.core.foam.containers import sphere_mesh
@@ -85,7 +87,7 @@ from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 from bubsub.core.voxel.segment import binarise
 
 __all__ = ["fov_phantom", "fov_scan", "fov_ddi", "watershed_bubbles", "voxel_route", "column_case", "local_case",
-           "local_ideal_case", "interior_scores", "main"]
+           "local_ideal_case", "inside_case", "interior_scores", "main"]
 
 #: (centre mm, radius mm, class): field of view radius 2.4 mm, half height 1.2 mm
 LAYOUT = (
@@ -281,6 +283,57 @@ LOCAL_SCAN = {"cols": 256, "pixel_size": 0.012, "axis_offset": 5.3, "n_angles": 
               "supersample": 2}
 
 
+#: The raw scan of a liquid cylinder inside the detector (:func:`inside_case`): 240 columns of 6 um, 60
+#: projections over 180 degrees, 2 rows; the cylinder's edge :data:`INSIDE_MARGIN` binned pixels from each side.
+INSIDE_SCAN = {"cols": 240, "pixel_size": 0.006, "axis_offset": 5.3, "n_angles": 60, "rows": 2, "distance": 300.0,
+               "supersample": 2}
+#: Binned pixels (``--bin 2``) between the liquid cylinder's edge and each side of the axis-centred crop.
+INSIDE_MARGIN = 9
+
+
+def inside_case(out, seed):
+    """Simulate, prepare, reconstruct and score a raw scan whose liquid cylinder stands just inside the detector.
+
+    The scan of ``tests/test_truncation.py``: :data:`INSIDE_SCAN` (flats,
+    darks, 16 keV, 300 mm, the axis 5.3 pixels off centre), the liquid
+    cylinder :data:`INSIDE_MARGIN` binned pixels inside each side of the
+    columns ``prepare`` keeps about the axis, holding bubbles of 0.1-0.22
+    times its radius (:func:`bubsub.core.foam.raw.disc_foam`, 12 placed);
+    phase retrieval spreads its edge into the outermost columns. Through
+    ``bubsub prepare --bin 2 --delta-beta 1450 --center auto --background
+    auto`` and ``bubsub reconstruct`` with its defaults, scored by
+    ``bubsub evaluate`` (:func:`bubsub.clients.pipeline.evaluate.evaluate_dir`).
+
+    Returns
+    -------
+    dict
+        ``ddi``, ``truth``, ``found``, ``spurious``, ``reconstructed``, ``axis_error_px`` (raw pixels),
+        ``contrast`` (1/mm), ``prepare_s``, ``reconstruct_s``.
+    """
+    from pathlib import Path
+
+    c = INSIDE_SCAN
+    out = Path(out)
+    axis = c["cols"] / 2 - 0.5 + c["axis_offset"]
+    crop = int(2 * min(axis + 0.5, c["cols"] - 0.5 - axis)) // 2 * 2  # the columns prepare keeps, raw
+    radius = (crop / 4 - INSIDE_MARGIN) * 2 * c["pixel_size"]
+    s = raw_settings(seed=seed, container_radius=radius, wall=0.0, **c)
+    write_raw_simulation(out, disc_foam(seed, radius, n_bubbles=12, radius_range=(0.1 * radius, 0.22 * radius)), s)
+    t0 = time.perf_counter()
+    report = prepare(out / "raw.h5", out / "scan.h5", prepare_options(
+        roi="1:2,:", bin=2, delta_beta=1450, center="auto", background="auto"), progress=False)
+    t1 = time.perf_counter()
+    rec = reconstruct(read_scan(out / "scan.h5"), ReconstructionSettings(progress=False))
+    t2 = time.perf_counter()
+    write_outputs(out / "rec", rec, scan_path=out / "scan.h5")
+    res = evaluate_dir(out / "rec", out)
+    steps = {x["step"]: x for x in report["steps"]}
+    return {"ddi": res["ddi"], "truth": res["bubbles_truth"], "found": res["matching"]["found"],
+            "spurious": res["matching"]["spurious"], "reconstructed": res["bubbles_reconstructed"],
+            "axis_error_px": steps["center"]["axis_column_raw"] - s.axis_column,
+            "contrast": steps["contrast"]["bubble_contrast_per_mm"], "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
+
+
 def local_case(out, seed, *, center="auto"):
     """Simulate, prepare, reconstruct and score one local-tomography scan (see the module docstring).
 
@@ -416,6 +469,19 @@ def _print_local(args):
     return 0
 
 
+def _print_inside(args):
+    from pathlib import Path
+
+    print("| seed | axis error (raw px) | contrast (1/mm) | bubbles | found (IoU >= 0.5) | spurious | DDI | prepare s | "
+          "reconstruct s |")
+    print("|---|---|---|---|---|---|---|---|---|", flush=True)
+    for seed in args.inside:
+        r = inside_case(Path(args.out) / f"inside{seed}", seed)
+        print(f"| {seed} | {r['axis_error_px']:+.2f} | {r['contrast']:.4f} | {r['truth']} | {r['found']} | "
+              f"{r['spurious']} | {r['ddi']:.4f} | {r['prepare_s']:.0f} | {r['reconstruct_s']:.0f} |", flush=True)
+    return 0
+
+
 def _print_local_ideal(args):
     print("| seed | preview radius / field of view's | interior bubbles | found (IoU >= 0.5) | spurious | "
           "DDI (interior) | bubbles reconstructed | reconstruct s |")
@@ -448,6 +514,8 @@ def main(argv=None):
                      help="the reconstruction side alone: exact projections and background (local_ideal_case)")
     loc.add_argument("--local-extend", type=float, nargs="+", default=[1.25], metavar="F",
                      help="with --local-ideal: the preview's radius over the field of view's (default 1.25)")
+    ap.add_argument("--inside", type=int, nargs="+", metavar="SEED",
+                    help="raw scans of a liquid cylinder just inside the detector, these seeds (inside_case)")
     args, extra = ap.parse_known_args(argv)
     if args.column is not None:
         return _print_column(args, extra)
@@ -455,6 +523,8 @@ def main(argv=None):
         return _print_local(args)
     if args.local_ideal:
         return _print_local_ideal(args)
+    if args.inside:
+        return _print_inside(args)
     if extra:
         ap.error(f"unrecognized arguments: {' '.join(extra)}")
     print("| geometry | FOV model | class | bubbles | found | flagged truncated | DDI in FOV (mean) | DDI max | "

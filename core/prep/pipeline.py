@@ -245,10 +245,6 @@ def _jsonable(v):
     raise TypeError(type(v).__name__)
 
 
-#: Pixels the liquid and gas masks of the contrast estimate are eroded by on a row with no air at its sides (2
-#: beside air): on the simulated local-tomography scan of ``python -m bubsub.bench fov --local`` the estimate
-#: is -0.078 1/mm with 2 and -0.088 with 4 (truth -0.1; phase retrieval blurs the bubbles' edges).
-LOCAL_CONTRAST_ERODE = 4
 #: Phase-retrieval lengths cropped from each side of a scan with no air at its sides (see :func:`_phase_margin`).
 PHASE_MARGIN_LENGTHS = 2.0
 
@@ -546,13 +542,11 @@ def _contrast(data_ds, bg_ds, geometry, o, steps):
         entry["source"] = "given"
     else:
         g2 = _row_geometry(geometry)
-        row, erode = sino, 2
-        if bg_ds is not None and not sees_air(sino):
-            # local tomography: the liquid's chords out (no cupping), and the phases' cores only (the
-            # interior's reconstruction is blurrier than one beside air: LOCAL_CONTRAST_ERODE)
-            row, erode = sino - (bg_ds[()] if two_d else bg_ds[:, mid]), LOCAL_CONTRAST_ERODE
+        row = sino
+        if bg_ds is not None and not sees_air(sino):  # local tomography: the liquid's chords out (no cupping)
+            row = sino - (bg_ds[()] if two_d else bg_ds[:, mid])
         image, extent, r, _ = fbp_row(row, g2, min(g2.det_count, 512))
-        liquid, gas = liquid_and_gas(image, r <= (o.foam_radius or 0.9 * extent[1]), erode=erode)
+        liquid, gas = liquid_and_gas(image, r <= (o.foam_radius or 0.9 * extent[1]))
         contrast = gas - liquid
         entry.update(source="estimated from an FBP of the middle row (Otsu split of the foam region)",
                      liquid_per_mm=liquid, gas_per_mm=gas)

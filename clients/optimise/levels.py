@@ -119,7 +119,7 @@ def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, pen
     Returns
     -------
     result : FitResult
-        The last level's, with ``iterations`` and ``evaluations`` summed over the levels.
+        The last level's, with ``iterations``, ``evaluations`` and ``seconds`` summed over the levels.
     levels : list of dict
         Per level: ``bin``, ``detector`` (rows, cols), ``subdivision`` (Loop levels of the fitted
         surfaces: :func:`coarse_surfaces`), ``iterations``, ``evaluations``, ``seconds``,
@@ -162,5 +162,6 @@ def fit_levels(projector, surfaces, data, *, factors, iterations, rtol=None, pen
         if result.interrupted:
             break
     result.iterations, result.evaluations = total_it, total_ev
+    result.seconds = float(sum(level["seconds"] for level in summary))
     result.surfaces = coarse_surfaces(result.surfaces, 1, final_levels)  # an interrupted binned level's too
     return result, summary

@@ -48,6 +48,7 @@ import time as _time
 import numpy as np
 
 from bubsub.core import MeshProjector, SubdivisionSurface
+from bubsub.core.malloc import release_free_memory
 from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.projection.remesh import SHRINK, warm_start
@@ -55,6 +56,7 @@ from bubsub.core.validate import check_int
 
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.pipeline.fov import field_of_view, fov_report, seen_by
+from bubsub.clients.pipeline.local import scene_objective
 from bubsub.clients.pipeline.preview import preview_voxel_size
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
 from bubsub.clients.pipeline.resolution import levels_by_size
@@ -236,9 +238,11 @@ class SubscanResult:
         ``initial_objective``, ``seconds`` (wall clock of the whole step:
         everything below, not the writing of the subscan folder),
         ``cpu_seconds`` (CPU time of this process over the step),
-        ``seconds_parts`` (cold: ``preview_and_centres``, ``fit``, ``other``
-        = radius estimation, topology rounds, repair, held-out MSE; warm:
-        ``remesh``, ``fit``, ``holdout``; ``voxel_baseline`` when run),
+        ``seconds_parts`` and ``cpu_seconds_parts`` (wall and CPU seconds of
+        each phase; cold: the static pipeline's phases, ``preview``,
+        ``initial_bubbles``, ``radius_estimation``, ``fit``, ``topology``,
+        ``validity``, ...; warm: ``remesh``, ``fit``, ``detect``,
+        ``holdout``; ``voxel_baseline`` when run),
         ``holdout_mse`` (with a holdout), ``bubbles``, ``diverged``,
         ``interrupted`` and for the cold start the static pipeline's report
         fields.
@@ -276,7 +280,9 @@ def _slab_count(scan, settings, halo=None):
 def _cold(scan, settings):
     slabs, halo = _slab_count(scan, settings)
     static = _static_settings(settings)
-    rec = reconstruct(scan, static) if slabs == 1 else reconstruct_slabs(scan, static, slabs=slabs, halo=halo)
+    # the dynamic scan's bubble signal is checked whole before any subscan (reconstruct4d.reconstruct_dynamic)
+    rec = reconstruct(scan, static, signal_checked=True) if slabs == 1 else \
+        reconstruct_slabs(scan, static, slabs=slabs, halo=halo, signal_checked=True)
     r = rec.report
     report = {"start": "cold", "iterations": r["iterations"], "evaluations": r["evaluations"],
               "objective": r["final_objective"],
@@ -284,9 +290,9 @@ def _cold(scan, settings):
               "interrupted": r["interrupted"], "holdout_mse": r.get("holdout_mse"), "stop_reason": r.get("stop_reason"),
               # the voxel the preview used: the default contact gap of bubsub analyse on the 4D folder
               "preview": r.get("preview"),
-              # radius estimation, topology rounds, validity check and repair, held-out MSE: the rest
-              "seconds_parts": {"preview_and_centres": r["seconds_initialisation"], "fit": r["seconds_fit"],
-                                "other": r["seconds_total"] - r["seconds_initialisation"] - r["seconds_fit"]}}
+              # the static pipeline's phases (preview, initial_bubbles, radius_estimation, fit, topology,
+              # validity, ...), wall and CPU seconds
+              "seconds_parts": dict(r["seconds_parts"]), "cpu_seconds_parts": dict(r["cpu_seconds_parts"])}
     if slabs > 1:
         report.update({k: r[k] for k in ("slabs", "slab_halo_rows", "stitch", "objective_note")})
     ids = range(len(rec.surfaces))
@@ -324,7 +330,7 @@ def _warm_fit(geometry, data, starts, settings):
         When the objective is not finite.
     """
     projector = MeshProjector(geometry, supersampling=settings.supersampling)
-    initial = float(projector.objective(starts, data)[0])
+    initial = scene_objective(projector, starts, data)  # a projection without the gradient: reported only
     result, levels = fit_levels(projector, starts, data, factors=bin_factors(geometry), iterations=settings.iterations,
                                 rtol=settings.warm_rtol if settings.warm_rtol > 0 else None,
                                 rtol_window=settings.warm_window, progress=settings.progress)
@@ -355,11 +361,23 @@ def _fit_slabs(scan, starts, settings, slabs, halo):
                         objective_note=OBJECTIVE_NOTE)
 
 
+def _mark(report, name, since):
+    """Add the wall and CPU seconds (this process, all threads) from ``since`` to phase ``name`` of
+    ``report``'s ``seconds_parts`` and ``cpu_seconds_parts``; the clock readings now, for the next phase."""
+    release_free_memory()  # the phase's freed arrays go back to the system: the peak RSS of the process
+    now = _time.perf_counter(), _time.process_time()
+    for key, t, t0 in (("seconds_parts", now[0], since[0]), ("cpu_seconds_parts", now[1], since[1])):
+        parts = report.setdefault(key, {})
+        parts[name] = parts.get(name, 0.0) + t - t0
+    return now
+
+
 def _warm(scan, previous, settings):
-    t0 = _time.perf_counter()
+    t0 = _time.perf_counter(), _time.process_time()
     ids, starts, ended = _warm_starts(scan, previous, settings)
     report = {"start": "warm", "iterations": 0, "objective": None, "initial_objective": None,
-              "interrupted": False, "diverged": False, "seconds_parts": {"remesh": _time.perf_counter() - t0}}
+              "interrupted": False, "diverged": False}
+    t0 = _mark(report, "remesh", t0)
     if not starts:
         return BubbleState.from_surfaces([], [], scan.bubble_contrast, previous.next_id), report, ended
     # a bubble that grew or shrank since its successor's fit takes the levels of its size
@@ -372,14 +390,14 @@ def _warm(scan, previous, settings):
         # a diverged fit is kept and flagged; the chain goes on from the last good state
         report.update(diverged=True, error=str(exc))
         return previous, report, {}
-    report["seconds_parts"]["fit"] = fields.pop("seconds_fit")
+    fields.pop("seconds_fit")
+    t0 = _mark(report, "fit", t0)  # with the projectors' set-up and the initial objective
     report["objective"] = fields.pop("final_objective")
     report.update(fields)
     next_id = previous.next_id
     if settings.detect:
-        t1 = _time.perf_counter()
         ids, fitted, lineage, report["detection"], next_id = _detect(scan, previous, ids, fitted, settings)
-        report["seconds_parts"]["detect"] = _time.perf_counter() - t1
+        t0 = _mark(report, "detect", t0)
         ended.update(lineage.pop("removed"))
         for c in lineage["coalescences"]:
             ended[c["parent"]] = "coalescence (going backwards: split into {} and {})".format(*c["children"])
@@ -458,18 +476,17 @@ def reconstruct_subscan(scan, previous, settings, index=0, time=0.0):
         report["diverged"] = False
     else:
         state, report, ended = _warm(scan, previous, settings)
-    parts = report.setdefault("seconds_parts", {})
     _, _, g_val, d_val = _split(scan, settings.holdout)
     if g_val is not None and report.get("holdout_mse") is None:
-        t1 = _time.perf_counter()
+        t1 = _time.perf_counter(), _time.process_time()
         pred = MeshProjector(g_val, supersampling=settings.supersampling).forward(state.surfaces()) \
             if len(state) else np.zeros(g_val.shape, np.float32)
         report["holdout_mse"] = projection_mse(pred, d_val)
-        parts["holdout"] = _time.perf_counter() - t1
+        _mark(report, "holdout", t1)
     if settings.voxel_baseline and g_val is not None:
         baseline = voxel_baseline(scan, settings.holdout)
         report["voxel_holdout_mse"] = baseline["holdout_mse"]
-        parts["voxel_baseline"] = baseline["seconds"]
+        report.setdefault("seconds_parts", {})["voxel_baseline"] = baseline["seconds"]
     # the field of view: bubbles.csv and tracks.csv flag the bubbles cut by its edge
     report.update(subscan=int(index), time=float(time), bubbles=len(state), field_of_view_mm=fov_report(scan.geometry),
                   ended={str(k): v for k, v in sorted(ended.items())}, seconds=_time.perf_counter() - t0,

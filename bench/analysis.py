@@ -62,6 +62,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from bubsub.bench.analysis_truth import column_truth, load_column, shape_table
 from bubsub.core.projection.mesh import equivalent_radius
@@ -81,8 +82,6 @@ __all__ = ["score", "foamquant_route", "label_contacts", "compare", "cost_table"
 
 def _match(centroids, truth):
     """Measured index -> truth index: nearest centres within half the true equivalent radius, one to one."""
-    from scipy.spatial import cKDTree
-
     if not len(centroids):
         return {}
     d, k = cKDTree(np.asarray(centroids)).query(truth["centre"], k=1)

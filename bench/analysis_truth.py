@@ -14,6 +14,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import minimize
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+from scipy.special import ellipeinc, ellipkinc
 
 from bubsub.core.analysis.contacts import find_contacts
 from bubsub.core.analysis.shape import bubble_shape, strain_from_axes
@@ -25,8 +29,6 @@ __all__ = ["ellipsoid_area", "ellipsoid_gap", "subdivided_ellipsoid", "shape_tab
 
 def ellipsoid_area(axes):
     """Exact surface area of an ellipsoid of semi-axes ``axes`` (Legendre's form), mm^2."""
-    from scipy.special import ellipeinc, ellipkinc
-
     a, b, c = sorted((float(x) for x in axes), reverse=True)
     if a - c < 1e-12 * a:
         return 4 * np.pi * a * a
@@ -51,8 +53,6 @@ def ellipsoid_gap(c1, S1, c2, S2):
     point : (3,) float
         Midpoint of the two support points along the best ``n``.
     """
-    from scipy.optimize import minimize
-
     c1, c2 = np.asarray(c1, dtype=float), np.asarray(c2, dtype=float)
     d = c2 - c1
 
@@ -98,8 +98,6 @@ def shape_table(pairs=20, seed=1):
         Ellipsoid pairs of the gap table, at support-plane distances spread over 5-50 um.
     seed : int
     """
-    from scipy.spatial.transform import Rotation
-
 
     axes = np.array([0.6, 0.45, 0.3])
     rot = Rotation.from_euler("zyx", [30, 50, -20], degrees=True).as_matrix()
@@ -185,8 +183,6 @@ def column_truth(col, gap):
         closer than ``gap`` whose contact point lies in the rows; ``gaps``: the distance of every pair
         examined; ``liquid_fraction`` of the liquid cylinder within the rows.
     """
-    from scipy.spatial import cKDTree
-
 
     centre, axes = col["centres"], col["axes"]
     shapes = shape_matrices(axes, col["rotations"])

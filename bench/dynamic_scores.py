@@ -38,6 +38,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from bubsub.bench.matching import MIN_IOU, match, overlaps, truth_labels
 
@@ -89,8 +90,6 @@ def visible_ball(table, meta):
     bottom planes; for a cut one, the maximum of the Euclidean distance
     transform of its part between the planes, sampled on a one-pixel grid.
     """
-    from scipy import ndimage
-
     c = meta["column"]
     px, h = c["pixel_size_mm"], c["fov_half_height_mm"]
     if not len(table.get("id", ())):

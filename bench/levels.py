@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from bubsub.clients.optimise import levels
 from bubsub.clients.optimise.levels import bin_factors
@@ -72,8 +73,6 @@ def run(scan, surfaces, *, factors, iterations, coarse, rtol):
 
 
 def main(argv=None):
-    from threadpoolctl import threadpool_limits
-
 
     p = argparse.ArgumentParser(prog="python -m bubsub.bench levels", description=__doc__.split("\n\n")[0])
     p.add_argument("scan", help="a scan file (e.g. bubsub simulate --phantom column)")

@@ -27,6 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from bubsub.clients.pipeline.evaluate import evaluate_dir
@@ -130,8 +131,6 @@ def _memory_child(raw, out, slab_mb, background="auto"):
 def run_memory(out, *, sizes=(1, 4), slab_mb=32.0, backgrounds=("auto",)):
     """Peak RSS, wall and CPU seconds of ``prepare`` for raw files ``sizes`` x 47 MB, slabs of ``slab_mb``,
     with each background method in turn on the same file."""
-    import h5py
-
     out = Path(out)
     rng = np.random.default_rng(0)
     print(f"slab size {slab_mb:g} MB")

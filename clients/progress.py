@@ -21,6 +21,8 @@ import os
 import sys
 import time
 
+from tqdm.auto import tqdm
+
 __all__ = ["phase", "Phase"]
 
 
@@ -49,8 +51,6 @@ class Phase:
         self.closed = False
         self.bar = None
         if enabled and _use_bar(stream):
-            from tqdm.auto import tqdm
-
             self.bar = tqdm(total=total, desc=desc, unit="it" if unit == "iteration" else unit, leave=True,
                             file=stream, dynamic_ncols=True)
 

@@ -43,6 +43,23 @@ OPTIONAL = {
     "embreex": "a backend that is not the default; its import fails on some platforms",
     "matplotlib": "heavy (0.3 s): only figures need it", "mpl_toolkits": "matplotlib's",
     "numba": "heavy (0.4 s) and compiles: the kernel modules load where a kernel is first called",
+    "trimesh": "heavy (1 s): only the 3D self-crossing checks and some benchmarks need it",
+    "algotom": "heavy (3 s): only prepare's stripe removal and centre search need it",
+    "threadpoolctl": "imported where the BLAS threads are limited, which goes on without it",
+    "scipy.optimize": "heavy (0.2 s): not loaded by `import bubsub.core` nor `bubsub --help`",
+    "scipy.sparse.linalg": "heavy (0.2 s): not loaded by `import bubsub.core` nor `bubsub --help`",
+    "scipy.sparse.csgraph": "heavy (0.2 s, loads scipy.sparse.linalg): not loaded by `import bubsub.core`",
+}
+
+
+def _optional(target):
+    """Whether the third-party module ``target`` is (under) an :data:`OPTIONAL` one."""
+    parts = target.split(".")
+    return any(".".join(parts[:k]) in OPTIONAL for k in range(1, len(parts) + 1))
+
+#: ``(importing module, third-party package)`` imported inside a function for a reason of their own.
+THIRD_PARTY_ALLOWED = {
+    ("bubsub.service.app", "scipy"): "scipy's own BLAS is loaded just before the server limits its threads",
 }
 
 #: Modules that ``bubsub --help`` imports for their catalogues (the experiments, the phantoms); what they run they
@@ -57,9 +74,6 @@ FUNCTION_LEVEL_ALLOWED = {
         "a backend loads its compiled kernels (numba, Embree) only when it is selected",
     ("bubsub.core.projection.backends", "bubsub.core.projection.backends.embreex"):
         "a backend loads its compiled kernels (numba, Embree) only when it is selected",
-    ("bubsub.clients", "bubsub.clients.optimise.fit"):
-        "the package's lazy attributes: importing a bubsub.clients module does not import the optimiser "
-        "(scipy.optimize)",
     ("bubsub.core.io.scanfile", "bubsub.core.prep.flats"): "the cycle io <-> prep (UNIT_CYCLES_ALLOWED)",
 }
 
@@ -210,7 +224,7 @@ def optional_modules(imports):
     """The bubsub modules that import an :data:`OPTIONAL` module at their top: importing one of them inside a
     function keeps its extra (or its weight) optional to the importing module."""
     return {name for name, target, _, function, _ in imports
-            if function is None and not _internal(target) and target.split(".")[0] in OPTIONAL}
+            if function is None and not _internal(target) and _optional(target)}
 
 
 def lazy_bubsub_imports(imports, start_up=()):
@@ -255,9 +269,11 @@ def test_bubsub_help_imports_no_pipeline_and_no_heavy_library(help_modules):
 
 
 #: Modules whose function-level imports are not checked yet (edits under way in them).
-PENDING = ("bubsub.bench.bubbles", "bubsub.clients.pipeline.detect4d", "bubsub.clients.pipeline.dynamic",
-           "bubsub.clients.pipeline.local", "bubsub.clients.pipeline.slabs", "bubsub.clients.pipeline.topology",
-           "bubsub.core.foam.raw", "bubsub.core.prep.background")
+PENDING = ("bubsub.bench.bubbles", "bubsub.bench.fov", "bubsub.clients.pipeline.detect4d",
+           "bubsub.clients.pipeline.dynamic", "bubsub.clients.pipeline.local", "bubsub.clients.pipeline.slabs",
+           "bubsub.clients.pipeline.topology", "bubsub.core.foam.raw", "bubsub.core.prep.background",
+           "bubsub.core.prep.centre", "bubsub.core.prep.options", "bubsub.core.prep.pipeline",
+           "bubsub.core.prep.readers")
 
 
 def test_bubsub_imports_inside_functions_have_a_reason(help_modules):
@@ -284,6 +300,18 @@ def test_the_reasons_for_imports_inside_functions_are_narrow():
         ("bubsub.core.voxel.projector3d", "bubsub.core.voxel.grid"),
         ("bubsub.clients.pipeline.slabs", "bubsub.clients.pipeline.outputs"),
         ("bubsub.clients.pipeline.simulation", "bubsub.core.io.scanfile")}
+
+
+def test_third_party_imports_inside_functions_are_optional_extras():
+    stdlib = set(sys.stdlib_module_names)
+    found = {(name, target.split(".")[0]) for name, target, _, function, _ in IMPORTS
+             if function and not _internal(target) and target.split(".")[0] not in stdlib
+             and not _optional(target) and name not in PENDING}
+    unexpected = sorted(found - set(THIRD_PARTY_ALLOWED))
+    assert not unexpected, ("third-party imports inside functions that are not optional extras (move them to the "
+                            "top):\n" + "\n".join(map(str, unexpected)))
+    stale = sorted(set(THIRD_PARTY_ALLOWED) - found)
+    assert not stale, f"these allowed imports are gone: remove them from THIRD_PARTY_ALLOWED: {stale}"
 
 
 @pytest.mark.parametrize("package", NO_ARGPARSE)

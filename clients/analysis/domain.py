@@ -31,7 +31,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import h5py
 import numpy as np
+from scipy.optimize import least_squares
 
 from bubsub.core.analysis.regions import Domain
 from bubsub.core.io.scanfile import read_geometry
@@ -185,8 +187,6 @@ def _cylinder_chords(origin, direction, p):
 
 def _fit(model, start, origin, direction, values):
     """Least-squares fit of ``attenuation x chord`` to the background; ``(params, relative residual)``."""
-    from scipy.optimize import least_squares
-
     def residual(p):
         chord = model(origin, direction, p)
         mu = float(chord @ values) / max(float(chord @ chord), 1e-30)
@@ -220,8 +220,6 @@ def background_sample(scan_path):
     residual : float or None
         The fit's relative residual ``|mu L - background| / |background|``.
     """
-    import h5py
-
 
     g = read_geometry(scan_path)
     if g.ndim != 3:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
 from bubsub.core.validate import check_int
 from bubsub.clients.cluster.engine import distributed
@@ -132,8 +133,6 @@ def link_ids(earlier, later, min_overlap=MIN_OVERLAP):
     overlaps : dict
         ``earlier id -> IoU`` of each match.
     """
-    from scipy.optimize import linear_sum_assignment
-
 
     a, b = earlier.surfaces(), later.surfaces()
     if not a or not b:

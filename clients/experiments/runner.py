@@ -36,7 +36,7 @@ from bubsub.clients.cluster.engine import run_tasks
 from bubsub.clients.pipeline.figures import subplots
 from bubsub.clients.progress import phase
 from bubsub.core import ScanGeometry
-from bubsub.core.foam import dense as dense_foams, phantoms, simulate
+from bubsub.core.foam import phantoms, simulate
 from bubsub.core.io.tables import write_table
 from bubsub.core.voxel.astra2d import reconstruct_2d
 from bubsub.core.voxel.reconstruct3d import reconstruct_3d
@@ -99,6 +99,8 @@ def case_config(exp, quick):
 
 def simulate_case(ndim, seed, angles, photons, cfg, quick, dense=False):
     """``(phantom, scan, grid shape, grid extent)`` of one run: the seed's foam, its scan and DDI grid."""
+    from bubsub.core.foam import dense as dense_foams  # scipy.optimize, which bubsub --help does not import
+
     if ndim == 2:
         size = 5.0 if quick else 10.0
         if dense:  # films of 0.08 mm: 4 pixels of the evaluation grid in both modes

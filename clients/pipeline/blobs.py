@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from skimage.feature import peak_local_max
 
 from bubsub.core.projection.projector import default_threads
 from bubsub.core.threads import thread_map
@@ -164,8 +165,6 @@ def _blob_log(img, min_sigma, max_sigma, num_sigma, threshold):
     cube : (*img.shape, num_sigma) float
         ``-sigma^2 LoG_sigma(img)``.
     """
-    from skimage.feature import peak_local_max
-
     ndim = img.ndim
     scales = np.linspace(np.full(ndim, min_sigma), np.full(ndim, max_sigma), num_sigma)  # (num_sigma, ndim)
     cube = np.empty(img.shape + (num_sigma,))

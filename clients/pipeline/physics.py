@@ -4,6 +4,7 @@ the contrast (:func:`check_physical_signal`)."""
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from bubsub.clients.pipeline.fov import FOV_EXTEND
 from bubsub.clients.pipeline.sides import LOCAL_VIEWS, side_hits
@@ -238,8 +239,6 @@ def away_from(mask, margin):
     -------
     bool ndarray, ``mask.shape``
     """
-    from scipy import ndimage
-
     size = [1] * mask.ndim
     size[-1] = 2 * margin + 1
     return ~ndimage.maximum_filter(mask, size=size, mode="nearest")

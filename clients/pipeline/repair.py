@@ -41,6 +41,8 @@ violations are returned, so the report says what was wrong and what was done.
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.linalg import spsolve
 
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.core.projection.validity import check_bubbles, self_crossing_vertices, self_crossings
@@ -115,9 +117,6 @@ def continued(surface, unseen):
         fit is degenerate (radius outside half to twice the seen vertices'
         median distance from its centre).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.linalg import spsolve
-
     v = np.asarray(surface.vertices, dtype=float)
     unseen = np.asarray(unseen, dtype=bool)
     seen = ~unseen

@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import brentq
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from bubsub.core.foam.checks import count, finite, frozen, nonneg, positive, rng_from_seed
 from bubsub.core.foam.ellipsoids import (contact_function, ellipsoid_mesh, ellipsoid_volumes, fraction_below,
@@ -276,7 +277,6 @@ def column_phantom(n_bubbles=600, *, seed=0, rows=256, cols=768, pixel_size=0.01
     g = np.clip(g - g.mean(axis=1, keepdims=True), -_ASPECT_CLIP, _ASPECT_CLIP)
     g -= g.mean(axis=1, keepdims=True)
     axes = r_eq[:, None] * np.exp(g)
-    from scipy.spatial.transform import Rotation
 
     rotations = Rotation.random(n, random_state=rng).as_matrix()
     centres = _pack(rng, axes, rotations, radius, z_half, gap, steps)

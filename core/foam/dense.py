@@ -28,6 +28,7 @@ The result is an exact, disjoint, convex-bubble foam whose films are
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
 from bubsub.core.foam.checks import count, finite, frozen, nonneg, positive, rng_from_seed, size_vector, unit_icosphere
@@ -70,7 +71,6 @@ def _cell_vertices(i, seeds, weights, half_box, shrink):
             rows.append(np.append(e, -(half_box[k] - shrink)))
     H = np.array(rows)
     # an interior point: the Chebyshev centre of the half-spaces (a small LP)
-    from scipy.optimize import linprog
 
     A, b = H[:, :d], -H[:, d]
     res = linprog(np.append(np.zeros(d), -1.0), A_ub=np.hstack([A, np.linalg.norm(A, axis=1)[:, None]]), b_ub=b,

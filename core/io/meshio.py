@@ -29,6 +29,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 from plyfile import PlyData, PlyElement, PlyElementParseError, PlyHeaderParseError
 
 from bubsub.core.io.atomic import atomic_open
@@ -197,8 +198,7 @@ def read_ply(path, attenuation=None, *, with_ids=False):
 
 def _components(faces, n_vertices):
     """Connected-component id of each face, numbered in order of first appearance."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
+    from scipy.sparse.csgraph import connected_components  # 0.2 s: not at `import bubsub.core`
 
     if len(faces) == 0:
         return np.zeros(0, dtype=np.int64)

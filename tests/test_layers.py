@@ -314,7 +314,30 @@ def test_third_party_imports_inside_functions_are_optional_extras():
     assert not stale, f"these allowed imports are gone: remove them from THIRD_PARTY_ALLOWED: {stale}"
 
 
-@pytest.mark.parametrize("package", NO_ARGPARSE)
-def test_no_argument_parsing_below_the_cli(package):
-    users = sorted({name for name, target, _, _, _ in IMPORTS if target == "argparse" and _under(name, (package,))})
-    assert not users, f"argparse below the CLI (move the options to bubsub.clients.cli): {users}"
+#: Parser methods: a module calling one of them defines command-line options.
+PARSER_METHODS = {"add_argument", "add_argument_group", "add_mutually_exclusive_group", "add_subparsers", "add_parser"}
+
+
+def option_definers(modules):
+    """The modules (of ``{name: path}``) that import argparse or call a parser's methods."""
+    found = set()
+    for name, path in modules.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in PARSER_METHODS:
+                found.add(name)
+            elif isinstance(node, ast.Import) and any(a.name == "argparse" for a in node.names):
+                found.add(name)
+    return found
+
+
+def test_option_definers_are_found(tmp_path):
+    (tmp_path / "a.py").write_text("def add(parser):\n    g = parser.add_argument_group('x')\n    g.add_argument('--n')\n")
+    (tmp_path / "b.py").write_text("def f():\n    import argparse\n")
+    (tmp_path / "c.py").write_text("def f(d):\n    d.add('x')\n")
+    assert option_definers({n: tmp_path / f"{n}.py" for n in "abc"}) == {"a", "b"}
+
+
+def test_no_command_line_options_below_the_cli():
+    modules = {name: path for path, name in _modules() if _under(name, NO_ARGPARSE)}
+    users = sorted(option_definers(modules))
+    assert not users, f"command-line options below the CLI (move them to bubsub.clients.cli): {users}"

@@ -160,9 +160,10 @@ def tracks_info(time_unit, columns=None):
     return info if columns is None else {c: info[c] for c in columns}
 
 
-def write_tracks(path, results, time_unit):
-    """Write ``tracks.csv`` and its sidecar (atomically); the one place its columns are decided."""
-    rows = track_rows(results, time_unit)
+def write_tracks(path, results, time_unit, rows=None):
+    """Write ``tracks.csv`` and its sidecar (atomically); the one place its columns are decided. ``rows``:
+    :func:`track_rows` of ``results`` when already made."""
+    rows = track_rows(results, time_unit) if rows is None else rows
     columns = list(rows[0]) if rows else ["subscan", time_column(time_unit), "bubble_id"]
     return write_table(path, rows, tracks_info(time_unit, columns),
                        title="bubble tracks of a bubsub reconstruct4d run: one row per subscan and bubble")[0]
@@ -173,7 +174,9 @@ def write_summary(out, results, *, layout, time_unit, settings, engine="local", 
     """Write ``tracks.csv``, ``report.json``, ``growth.png`` and ``mse.png`` for the completed subscans."""
     out = Path(out)
     results = sorted(results, key=lambda r: r.index)
-    write_tracks(out / "tracks.csv", results, time_unit)
+    # the rows once: each subscan's bubble table and field-of-view columns are a few seconds of a run's summary
+    rows = track_rows(results, time_unit)
+    write_tracks(out / "tracks.csv", results, time_unit, rows)
     lineage = write_lineage(out / "lineage.csv", results, time_unit)
     per = [dict(r.report) for r in results]
     ended = [i for r in results for i in r.ended]
@@ -200,7 +203,7 @@ def write_summary(out, results, *, layout, time_unit, settings, engine="local", 
     }
     atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
     if results:
-        plot_growth(out / "growth.png", track_rows(results, time_unit), time_unit)
+        plot_growth(out / "growth.png", rows, time_unit)
         plot_mse(out / "mse.png", per)
     return report
 

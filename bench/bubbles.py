@@ -22,14 +22,21 @@ import dataclasses
 import time
 
 import numpy as np
+from scipy import ndimage
+
+from bubsub.clients.experiments.runner import EXPERIMENTS, case_config, simulate_case
+from bubsub.clients.pipeline.initial import initial_centres
+from bubsub.clients.pipeline.preview import voxel_preview
+from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
+from bubsub.core.metrics import dice_dissimilarity
+from bubsub.core.voxel.grid import world_to_index
+from bubsub.core.voxel.raster import label_image
 
 __all__ = ["main", "count_centres", "per_bubble", "setting_value"]
 
 
 def count_centres(labels, centres, extent):
     """``(one, missed, multi, spurious)``: truth bubbles holding exactly one, no, several centres; centres in liquid."""
-    from bubsub.core.voxel.grid import world_to_index
-
     idx = np.round(world_to_index(np.asarray(centres).reshape(-1, labels.ndim), labels.shape, extent)).astype(int)
     idx = np.clip(idx, 0, np.array(labels.shape) - 1)
     counts = np.bincount(labels[tuple(idx.T)], minlength=int(labels.max()) + 1)
@@ -38,8 +45,6 @@ def count_centres(labels, centres, extent):
 
 def per_bubble(truth_labels, rec_labels):
     """One row per truth bubble: ``(truth id, voxels, reconstructed id or 0, DDI, merged with [truth ids])``."""
-    from bubsub.core.metrics import dice_dissimilarity
-
     rows, owner = [], {}
     for i in range(1, int(truth_labels.max()) + 1):
         t = truth_labels == i
@@ -68,13 +73,6 @@ def setting_value(text, current):
 
 
 def main(argv=None):
-    from bubsub.clients.experiments.runner import EXPERIMENTS, case_config, simulate_case
-    from bubsub.clients.pipeline.initial import initial_centres
-    from bubsub.clients.pipeline.preview import voxel_preview
-    from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
-    from bubsub.core.metrics import dice_dissimilarity
-    from bubsub.core.voxel.raster import label_image
-
     p = argparse.ArgumentParser(prog="python -m bubsub.bench bubbles", description=__doc__.split("\n\n")[0])
     p.add_argument("experiment", choices=sorted(EXPERIMENTS))
     p.add_argument("--quick", action="store_true")
@@ -122,7 +120,6 @@ def main(argv=None):
     changes = [c["change"] for c in (rec.report["topology"] or {}).get("changes", [])]
     print(f"topology changes: {', '.join(changes) or 'none'}; validity actions: "
           f"{', '.join(x['action'] for x in rec.report['validity']['actions']) or 'none'}")
-    from scipy import ndimage
 
     near = ndimage.distance_transform_edt(~truth) <= 2
     fp, fn = mask & ~truth, ~mask & truth

@@ -63,6 +63,10 @@ import argparse
 import time
 
 import numpy as np
+from scipy import ndimage
+from skimage.feature import peak_local_max
+from skimage.filters import gaussian
+from skimage.segmentation import watershed
 
 from bubsub.bench.matching import column_truth, mesh_labels, truth_labels
 from bubsub.bench.reconstruct import cli_command as _cli
@@ -213,11 +217,6 @@ def watershed_bubbles(mask, sig_seeds=1.0, sig_watershed=1.0, min_distance=1):
     (slices, rows, cols) int32
         Bubble labels 1..n, 0 outside the mask.
     """
-    from scipy import ndimage
-    from skimage.feature import peak_local_max
-    from skimage.filters import gaussian
-    from skimage.segmentation import watershed
-
     dist = ndimage.distance_transform_edt(mask)
     peaks = peak_local_max(gaussian(dist, sigma=sig_seeds), min_distance=int(min_distance), exclude_border=False)
     seeds = np.zeros(mask.shape, bool)

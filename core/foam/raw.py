@@ -45,10 +45,15 @@ from __future__ import annotations
 
 import dataclasses
 
+import h5py
 import numpy as np
 
-from bubsub.core.io.atomic import atomic_path
+from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.prep.phase import fresnel_propagate, wavelength_mm
+from bubsub.core.foam.phantoms import foam2d
+from bubsub.core.io.meshio import write_polygons_json
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.projection.projector import MeshProjector
 
 __all__ = ["RawSettings", "raw_settings", "wave_supersampling", "simulate_raw", "write_raw", "disc_foam",
            "write_raw_simulation"]
@@ -156,9 +161,6 @@ def simulate_raw(phantom, settings):
         ``data`` (n_angles, rows, cols) uint16, ``data_white`` and
         ``data_dark`` (n, rows, cols) uint16, ``theta`` (n_angles,) degrees.
     """
-    from bubsub.core.projection.geometry import ScanGeometry
-    from bubsub.core.projection.projector import MeshProjector
-
     s = settings
     if phantom.ndim != 2:
         raise ValueError("simulate_raw needs a 2D foam phantom")
@@ -248,8 +250,6 @@ def _detector(intensity, theta, s, rng):
 
 def write_raw(path, raw, settings):
     """Write a raw scan as a Data Exchange HDF5 file (atomically); returns the path."""
-    import h5py
-
     s = settings
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
@@ -293,8 +293,6 @@ def disc_foam(seed, radius, *, n_bubbles, radius_range, liquid_attenuation=0.1, 
     FoamPhantom
         2D; its ``size`` is the disc's bounding square.
     """
-    from bubsub.core.foam.phantoms import foam2d
-
     ph = foam2d(seed, n_bubbles=n_bubbles, size=2.0 * radius, radius_range=radius_range,
                 liquid_attenuation=liquid_attenuation, gap=gap, margin=margin, perturbation=perturbation)
     keep = [k for k, b in enumerate(ph.bubbles) if np.hypot(*b.vertices.T).max() < radius - margin]
@@ -326,8 +324,6 @@ def write_raw_simulation(out, phantom, settings, *, grid=1000):
     import json
     from pathlib import Path
 
-    from bubsub.core.io.atomic import atomic_write_text
-    from bubsub.core.io.meshio import write_polygons_json
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

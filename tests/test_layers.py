@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from test_layout import _modules
+from test_layout import _modules, strongly_connected
 
 #: A module's unit: its sub-package below ``bubsub.core`` or ``bubsub.clients`` (nested folders belong to it), a
 #: module directly in ``core/`` or ``clients/`` on its own, the whole of ``service`` and of ``bench``.
@@ -41,21 +41,15 @@ OPTIONAL = {
     "swagger_ui_bundle": "the 'service' extra", "starlette": "the 'service' extra",
     "gpytoolbox": "the 'dynamic' extra", "foamquant": "the 'foamquant' extra", "psutil": "not a dependency",
     "embreex": "a backend that is not the default; its import fails on some platforms",
-    "matplotlib": "heavy (0.3 s): only figures need it", "mpl_toolkits": "matplotlib's",
-    "numba": "heavy (0.4 s) and compiles: the kernel modules load where a kernel is first called",
-    "trimesh": "heavy (1 s): only the 3D self-crossing checks and some benchmarks need it",
-    "algotom": "heavy (3 s): only prepare's stripe removal and centre search need it",
+    "matplotlib": "heavy: only figures need it", "mpl_toolkits": "matplotlib's",
+    "numba": "heavy, and compiles: the kernel modules load where a kernel is first called",
+    "trimesh": "heavy: only the 3D self-crossing checks and some benchmarks need it",
+    "algotom": "heavy: only prepare's stripe removal and centre search need it",
     "threadpoolctl": "imported where the BLAS threads are limited, which goes on without it",
-    "scipy.optimize": "heavy (0.2 s): not loaded by `import bubsub.core` nor `bubsub --help`",
-    "scipy.sparse.linalg": "heavy (0.2 s): not loaded by `import bubsub.core` nor `bubsub --help`",
-    "scipy.sparse.csgraph": "heavy (0.2 s, loads scipy.sparse.linalg): not loaded by `import bubsub.core`",
+    "scipy.optimize": "heavy: not loaded by `import bubsub.core` nor `bubsub --help`",
+    "scipy.sparse.linalg": "heavy: not loaded by `import bubsub.core` nor `bubsub --help`",
+    "scipy.sparse.csgraph": "heavy (loads scipy.sparse.linalg): not loaded by `import bubsub.core`",
 }
-
-
-def _optional(target):
-    """Whether the third-party module ``target`` is (under) an :data:`OPTIONAL` one."""
-    parts = target.split(".")
-    return any(".".join(parts[:k]) in OPTIONAL for k in range(1, len(parts) + 1))
 
 #: ``(importing module, third-party package)`` imported inside a function for a reason of their own.
 THIRD_PARTY_ALLOWED = {
@@ -85,6 +79,12 @@ UNIT_CYCLES_ALLOWED = [
      "into core/projection with the renaming of the two raster.py"),
     ({"bubsub.core.io", "bubsub.core.prep"}, "io.scanfile converts raw counts with prep.flats' flat-field model"),
 ]
+
+
+def _optional(target):
+    """Whether the third-party module ``target`` is (under) an :data:`OPTIONAL` one."""
+    parts = target.split(".")
+    return any(".".join(parts[:k]) in OPTIONAL for k in range(1, len(parts) + 1))
 
 
 def _unit(name):
@@ -172,8 +172,6 @@ def layer_violations(imports):
 
 def unit_cycles(imports):
     """Cycles between units (sets of units), function-level imports included."""
-    from test_layout import strongly_connected
-
     graph = {}
     for name, target, _, _, _ in imports:
         if _internal(target) and not name.endswith(".__init__") and _unit(target) != _unit(name):
@@ -182,12 +180,13 @@ def unit_cycles(imports):
 
 
 def test_the_checks_find_what_they_look_for():
-    # an invented import list: core importing clients, clients importing the CLI, a two-unit cycle, an argparse
-    fake = [("bubsub.core.io.x", "bubsub.clients.pipeline.y", 3, True, False),
-            ("bubsub.clients.cluster.e", "bubsub.clients.cli.args", 9, True, False),
-            ("bubsub.clients.pipeline.y", "bubsub.clients.cluster.e", 1, False, False),
-            ("bubsub.clients.cluster.e", "bubsub.clients.pipeline.y", 2, True, False),
-            ("bubsub.service.app", "bubsub.service.jobs", 2, False, True)]
+    # an invented import list: core importing clients, clients importing the CLI, a two-unit cycle through a
+    # function-level import, a relative import within the service
+    fake = [("bubsub.core.io.x", "bubsub.clients.pipeline.y", 3, "f", False),
+            ("bubsub.clients.cluster.e", "bubsub.clients.cli.args", 9, "add", False),
+            ("bubsub.clients.pipeline.y", "bubsub.clients.cluster.e", 1, None, False),
+            ("bubsub.clients.cluster.e", "bubsub.clients.pipeline.y", 2, "run", False),
+            ("bubsub.service.app", "bubsub.service.jobs", 2, None, True)]
     assert layer_violations(fake) == ["bubsub.core.io.x -> bubsub.clients.pipeline.y (line 3)",
                                       "bubsub.clients.cluster.e -> bubsub.clients.cli.args (line 9)"]
     assert unit_cycles(fake) == [{"bubsub.clients.pipeline", "bubsub.clients.cluster"}]

@@ -44,7 +44,7 @@ def _simulate_raw(args, out):
 
 
 def _simulate_column(args, out):
-    from bubsub.core.foam.column import column_phantom, simulate_column, write_column  # scipy.optimize: 0.2 s
+    from bubsub.core.foam.column import column_phantom, simulate_column, write_column  # loads scipy.optimize
 
     if args.beam == "cone":
         raise ValueError("the column phantom is a parallel-beam scan; drop --beam cone")

@@ -198,7 +198,7 @@ def read_ply(path, attenuation=None, *, with_ids=False):
 
 def _components(faces, n_vertices):
     """Connected-component id of each face, numbered in order of first appearance."""
-    from scipy.sparse.csgraph import connected_components  # 0.2 s: not at `import bubsub.core`
+    from scipy.sparse.csgraph import connected_components  # heavy: not at `import bubsub.core`
 
     if len(faces) == 0:
         return np.zeros(0, dtype=np.int64)

@@ -199,7 +199,7 @@ def lsqr(op, b, iterations=20, *, damp=0.0):
     -------
     ndarray float32, shape ``op.shape``
     """
-    from scipy.sparse.linalg import LinearOperator, lsqr as _lsqr  # 0.2 s: not at `import bubsub.core`
+    from scipy.sparse.linalg import LinearOperator, lsqr as _lsqr  # heavy: not at `import bubsub.core`
 
     n = check_iterations(iterations)
     b, _ = _check(op, b, None)

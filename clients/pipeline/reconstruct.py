@@ -154,11 +154,11 @@ def split_holdout(geometry, data, holdout):
     return geometry[keep], data[keep], geometry[rest], data[rest]
 
 
-def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
+def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signal_checked=False):
     """Reconstruct the bubbles of a scan: its phases, one after another.
 
     The scan's signal and the settings against its dimension are checked here, once per scan
-    (:func:`~bubsub.clients.pipeline.checks.check_bubble_signal`,
+    (:func:`~bubsub.clients.pipeline.checks.check_bubble_signal` unless ``signal_checked``,
     :func:`~bubsub.clients.pipeline.checks.check_settings`); the settings' values were checked when they
     were made.
 
@@ -174,6 +174,9 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
         local :class:`MeshProjector`. ``bubsub reconstruct --server`` passes
         one that creates a remote job with the surfaces' topology
         (:func:`bubsub.clients.remote.jobs.remote_projectors`).
+    signal_checked : bool
+        ``scan`` is part of a scan whose bubble signal was checked whole (a subscan of
+        :func:`~bubsub.clients.pipeline.reconstruct4d.reconstruct_dynamic`): not checked again.
 
     Returns
     -------
@@ -181,7 +184,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None):
     """
     s = settings or ReconstructionSettings()
     check_settings(s, scan.ndim)
-    check_bubble_signal(scan, background_subtracted=s.background_subtracted)
+    if not signal_checked:
+        check_bubble_signal(scan, background_subtracted=s.background_subtracted)
     clock = PhaseClock()
     contrast = scan.bubble_contrast
     g_fit, d_fit, g_val, d_val = split_holdout(scan.geometry, scan.bubble_data, s.holdout)
@@ -241,8 +245,7 @@ class PhaseContext:
     clock : PhaseClock
         Each phase marks its end on it (``report.json``'s ``seconds_parts``).
     report : dict
-        The phases' entries of ``report.json`` so far (``initialisation``, ``fit``, ``topology``,
-        ``validity``, ``refinement``, ...).
+        The phases' entries of ``report.json`` so far (``fit``, ``topology``, ``validity``, ...).
     """
 
     projector: MeshProjector

@@ -89,7 +89,7 @@ __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_orig
 _FORMAT = 1
 
 
-def run_slab(source, slab, settings, bubble_contrast=None, server=None, token=None):
+def run_slab(source, slab, settings, bubble_contrast=None, server=None, token=None, signal_checked=False):
     """Reconstruct one slab (a task: module-level, picklable arguments, small result).
 
     Parameters
@@ -102,6 +102,9 @@ def run_slab(source, slab, settings, bubble_contrast=None, server=None, token=No
         As :func:`read_scan`'s.
     server, token : str, optional
         A projector server to fit against (each slab a fitting job of its own).
+    signal_checked : bool
+        The scan's bubble signal was checked whole: the slab's is not checked again
+        (:func:`~bubsub.clients.pipeline.reconstruct.reconstruct`).
 
     Returns
     -------
@@ -109,7 +112,7 @@ def run_slab(source, slab, settings, bubble_contrast=None, server=None, token=No
     """
     local, origin = slab_scan(source, slab, bubble_contrast)
     with remote_projectors(server, token, supersampling=settings.supersampling) as factory:
-        rec = reconstruct(local, settings, projector_factory=factory)
+        rec = reconstruct(local, settings, projector_factory=factory, signal_checked=signal_checked)
     report = dict(rec.report, origin_mm=origin.tolist(), core_rows=list(slab.core), read_rows=list(slab.read))
     part, extent = core_preview(rec, local.geometry, slab, origin)
     return SlabResult(slab, [moved(s, origin) for s in rec.surfaces], report, part, extent)
@@ -175,7 +178,7 @@ def read_slab(path, key=None):
 
 # -- the whole scan ---------------------------------------------------------------------------------------
 def reconstruct_slabs(source, settings=None, *, slabs=None, halo=None, client=None, out=None, resume=False,
-                      server=None, token=None, bubble_contrast=None):
+                      server=None, token=None, bubble_contrast=None, signal_checked=False):
     """Reconstruct a scan slab by slab and stitch the bubbles (see the module docstring).
 
     Parameters
@@ -199,6 +202,9 @@ def reconstruct_slabs(source, settings=None, *, slabs=None, halo=None, client=No
     server, token : str, optional
         Fit every slab against this projector server.
     bubble_contrast : float, optional
+    signal_checked : bool
+        ``source``'s bubble signal was checked whole (a subscan of a checked dynamic scan): the slabs' are
+        not checked again; otherwise each slab checks its rows.
 
     Returns
     -------
@@ -240,8 +246,8 @@ def reconstruct_slabs(source, settings=None, *, slabs=None, halo=None, client=No
             bar.update(1, bubbles=sum(len(r.surfaces) for r in results if r is not None))
 
         task_source = source if is_scan(source) else str(source)
-        run_tasks(client, run_slab, [(task_source, plan[k], task_settings, bubble_contrast, server, token)
-                                     for k in todo], on_result=done)
+        run_tasks(client, run_slab, [(task_source, plan[k], task_settings, bubble_contrast, server, token,
+                                      signal_checked) for k in todo], on_result=done)
     surfaces, summary = stitch(results, geometry)
     preview, extent = stitch_previews(results)
     return Reconstruction(surfaces, _report(results, surfaces, summary, geometry, s, halo, len(todo),

@@ -33,34 +33,20 @@ merged, spurious; the cut bubbles apart; DDI).
 
 ``python -m bubsub.bench fov --column 600 --column-data /data/column600 [--out DIR] [RECONSTRUCT OPTIONS]``
 
-The local-tomography case (``--local SEED [SEED ...]``): a simulated raw
-beamline scan (:mod:`bubsub.core.foam.raw`: flats, darks, 16 keV, 300 mm
-Fresnel propagation, the axis 5.3 pixels off centre) of a liquid cylinder
-1.5 times the field of view's radius filled with bubbles out to its wall
-(:func:`bubsub.core.foam.raw.disc_foam`), run through ``bubsub prepare --bin
-2 --delta-beta 1450 --center auto --background auto`` (``--local-center
-given`` passes the true axis instead) and ``bubsub reconstruct`` with its
-defaults. Scored inside the interior cylinder, the field of view's radius
-less one largest bubble's diameter (:func:`interior_scores`): the true
-bubbles whose centroid lies there found with IoU >= 0.5, the reconstructed
-bubbles there that are no true bubble's best (spurious), the DDI there, and
-the axis error.
+The local-tomography cases (``--local``, ``--local-ideal``, ``--inside``):
+:mod:`bubsub.bench.fov_local`.
 
 ``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--out DIR]``
 
-``--local-ideal SEED ... --local-extend 1.25 1.6``: the reconstruction side
-alone on exact projections of such a foam with its liquid's exact projection
-as background (:func:`local_ideal_case`), the preview's radius for a foam
-wider than the detector varied (the design's alternative: every bubble of
-the foam in the model).
-
 ``python -m bubsub.bench fov --local-ideal 0 --local-extend 1.25 1.6``
-"""
 
+``python -m bubsub.bench fov --inside 0 1 2 [--out DIR]``
+"""
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
@@ -68,30 +54,25 @@ from skimage.feature import peak_local_max
 from skimage.filters import gaussian
 from skimage.segmentation import watershed
 
+from bubsub.bench.fov_local import print_inside, print_local, print_local_ideal
 from bubsub.bench.matching import column_truth, mesh_labels, truth_labels
 from bubsub.bench.reconstruct import cli_command as _cli
 from bubsub.bench.scale import run_tree, simulate_case, table
-from bubsub.clients.pipeline import fov as fovmod
-from bubsub.clients.pipeline.evaluate import evaluate_dir
 from bubsub.clients.pipeline.fov import field_of_view, fov_mask, truncated_flags
-from bubsub.clients.pipeline.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 from bubsub.core import MeshProjector
 from bubsub.core.foam.containers import sphere_mesh
-from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
-from bubsub.core.io.meshio import read_ply, read_polygons_json
+from bubsub.core.io.meshio import read_ply
 from bubsub.core.io.scanfile import Scan, read_scan
 from bubsub.core.matching import match
 from bubsub.core.metrics import bubble_mask, dice_dissimilarity
-from bubsub.core.prep import prepare, prepare_options
 from bubsub.core.projection.geometry import ScanGeometry
-from bubsub.core.projection.mesh import Mesh, Polygon
-from bubsub.core.voxel.raster import label_image, pixel_centres
+from bubsub.core.projection.mesh import Mesh
+from bubsub.core.voxel.raster import pixel_centres
 from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 from bubsub.core.voxel.segment import binarise
 
-__all__ = ["fov_phantom", "fov_scan", "fov_ddi", "watershed_bubbles", "voxel_route", "column_case", "local_case",
-           "local_ideal_case", "inside_case", "interior_scores", "main"]
+__all__ = ["fov_phantom", "fov_scan", "fov_ddi", "watershed_bubbles", "voxel_route", "column_case", "main"]
 
 #: (centre mm, radius mm, class): field of view radius 2.4 mm, half height 1.2 mm
 LAYOUT = (
@@ -237,9 +218,6 @@ def voxel_route(scan, meta, iterations=100):
 
 def column_case(args, extra):
     """The column case's rows: (route, scores, seconds, peak RSS MiB or None)."""
-    from pathlib import Path
-
-
     out = Path(args.out)
     sim, _ = simulate_case(Path(args.column_data) if args.column_data else out / f"column{args.column}", args.column)
     meta, tab = column_truth(sim)
@@ -277,222 +255,6 @@ def _print_column(args, extra):
     return 0
 
 
-#: The local-tomography case's raw scan: 256 columns of 12 um, 90 projections over 180 degrees, 2 rows.
-LOCAL_SCAN = {"cols": 256, "pixel_size": 0.012, "axis_offset": 5.3, "n_angles": 90, "rows": 2, "distance": 300.0,
-              "supersample": 2}
-
-
-#: The raw scan of a liquid cylinder inside the detector (:func:`inside_case`): 240 columns of 6 um, 60
-#: projections over 180 degrees, 2 rows; the cylinder's edge :data:`INSIDE_MARGIN` binned pixels from each side.
-INSIDE_SCAN = {"cols": 240, "pixel_size": 0.006, "axis_offset": 5.3, "n_angles": 60, "rows": 2, "distance": 300.0,
-               "supersample": 2}
-#: Binned pixels (``--bin 2``) between the liquid cylinder's edge and each side of the axis-centred crop.
-INSIDE_MARGIN = 9
-
-
-def inside_case(out, seed):
-    """Simulate, prepare, reconstruct and score a raw scan whose liquid cylinder stands just inside the detector.
-
-    The scan of ``tests/test_truncation.py``: :data:`INSIDE_SCAN` (flats,
-    darks, 16 keV, 300 mm, the axis 5.3 pixels off centre), the liquid
-    cylinder :data:`INSIDE_MARGIN` binned pixels inside each side of the
-    columns ``prepare`` keeps about the axis, holding bubbles of 0.1-0.22
-    times its radius (:func:`bubsub.core.foam.raw.disc_foam`, 12 placed);
-    phase retrieval spreads its edge into the outermost columns. Through
-    ``bubsub prepare --bin 2 --delta-beta 1450 --center auto --background
-    auto`` and ``bubsub reconstruct`` with its defaults, scored by
-    ``bubsub evaluate`` (:func:`bubsub.clients.pipeline.evaluate.evaluate_dir`).
-
-    Returns
-    -------
-    dict
-        ``ddi``, ``truth``, ``found``, ``spurious``, ``reconstructed``, ``axis_error_px`` (raw pixels),
-        ``contrast`` (1/mm), ``prepare_s``, ``reconstruct_s``.
-    """
-    from pathlib import Path
-
-    c = INSIDE_SCAN
-    out = Path(out)
-    axis = c["cols"] / 2 - 0.5 + c["axis_offset"]
-    crop = int(2 * min(axis + 0.5, c["cols"] - 0.5 - axis)) // 2 * 2  # the columns prepare keeps, raw
-    radius = (crop / 4 - INSIDE_MARGIN) * 2 * c["pixel_size"]
-    s = raw_settings(seed=seed, container_radius=radius, wall=0.0, **c)
-    write_raw_simulation(out, disc_foam(seed, radius, n_bubbles=12, radius_range=(0.1 * radius, 0.22 * radius)), s)
-    t0 = time.perf_counter()
-    report = prepare(out / "raw.h5", out / "scan.h5", prepare_options(
-        roi="1:2,:", bin=2, delta_beta=1450, center="auto", background="auto"), progress=False)
-    t1 = time.perf_counter()
-    rec = reconstruct(read_scan(out / "scan.h5"), ReconstructionSettings(progress=False))
-    t2 = time.perf_counter()
-    write_outputs(out / "rec", rec, scan_path=out / "scan.h5")
-    res = evaluate_dir(out / "rec", out)
-    steps = {x["step"]: x for x in report["steps"]}
-    return {"ddi": res["ddi"], "truth": res["bubbles_truth"], "found": res["matching"]["found"],
-            "spurious": res["matching"]["spurious"], "reconstructed": res["bubbles_reconstructed"],
-            "axis_error_px": steps["center"]["axis_column_raw"] - s.axis_column,
-            "contrast": steps["contrast"]["bubble_contrast_per_mm"], "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
-
-
-def local_case(out, seed, *, center="auto"):
-    """Simulate, prepare, reconstruct and score one local-tomography scan (see the module docstring).
-
-    Returns
-    -------
-    dict
-        :func:`interior_scores` and ``axis_error_px`` (raw pixels), ``center`` (the method or the error),
-        ``prepare_s``, ``reconstruct_s``; ``failed`` with the message where prepare stops.
-    """
-    from pathlib import Path
-
-
-    out = Path(out)
-    c = LOCAL_SCAN
-    axis = c["cols"] / 2 - 0.5 + c["axis_offset"]
-    half = min(axis + 0.5, c["cols"] - 0.5 - axis) * c["pixel_size"]
-    radius = 1.5 * half
-    s = raw_settings(seed=seed, container_radius=radius, wall=0.0, wider_than_detector=True, **c)
-    write_raw_simulation(out, disc_foam(seed, radius, n_bubbles=80, radius_range=(0.08 * half, 0.15 * half)), s)
-    t0 = time.perf_counter()
-    try:
-        report = prepare(out / "raw.h5", out / "scan.h5", prepare_options(
-            roi="1:2,:", bin=2, delta_beta=1450, center="auto" if center == "auto" else s.axis_column,
-            background="auto"), progress=False)
-    except ValueError as exc:
-        return {"failed": str(exc), "prepare_s": time.perf_counter() - t0}
-    t1 = time.perf_counter()
-    step = next(x for x in report["steps"] if x["step"] == "center")
-    scan = read_scan(out / "scan.h5")
-    rec = reconstruct(scan, ReconstructionSettings(progress=False))
-    t2 = time.perf_counter()
-    scores = interior_scores([x.fine() for x in rec.surfaces], read_polygons_json(out / "truth.json"), scan.geometry)
-    contrast = next(x for x in report["steps"] if x["step"] == "contrast")["bubble_contrast_per_mm"]
-    return {**scores, "axis_error_px": step["axis_column_raw"] - s.axis_column, "center": step["method"],
-            "contrast": contrast, "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
-
-
-def local_ideal_case(seed, extend):
-    """The local-tomography foam on exact projections, its liquid's exact projection as background.
-
-    90 parallel views over 180 degrees of a 128-column detector of 40 um
-    pixels; a liquid disc 1.5 times the field of view's radius filled with
-    bubbles (:func:`bubsub.core.foam.raw.disc_foam`), projected exactly
-    (Gaussian noise 0.003), reconstructed with its defaults but the preview
-    out to ``extend`` times the field of view's radius for a foam wider than
-    the detector (:data:`bubsub.clients.pipeline.fov.LOCAL_EXTEND`): the
-    reconstruction side alone, without the raw scan's preparation.
-
-    Returns
-    -------
-    dict
-        :func:`interior_scores` and ``reconstruct_s``.
-    """
-    g = ScanGeometry.parallel(np.linspace(0, np.pi, 90, endpoint=False), pixel_size=0.04, cols=128)
-    r_fov = fovmod.field_of_view(g)[0]
-    radius = 1.5 * r_fov
-    phantom = disc_foam(seed, radius, n_bubbles=120, radius_range=(0.06 * r_fov, 0.14 * r_fov))
-    t = np.linspace(0, 2 * np.pi, 96, endpoint=False)
-    liquid = Polygon(radius * np.stack([np.cos(t), np.sin(t)], 1) / np.cos(np.pi / 96), 0.1)  # circumscribed
-    projector = MeshProjector(g, supersampling=2)
-    background = projector.forward([liquid])
-    data = background + projector.forward(list(phantom.bubbles))
-    data += np.random.default_rng(seed).normal(0, 0.003, data.shape)
-    scan = Scan(data=data.astype(np.float32), geometry=g, background=background.astype(np.float32),
-                bubble_contrast=phantom.contrast)
-    before = fovmod.LOCAL_EXTEND
-    fovmod.LOCAL_EXTEND = extend
-    try:
-        t0 = time.perf_counter()
-        rec = reconstruct(scan, ReconstructionSettings(progress=False))
-        seconds = time.perf_counter() - t0
-    finally:
-        fovmod.LOCAL_EXTEND = before
-    return {**interior_scores([x.fine() for x in rec.surfaces], list(phantom.bubbles), g), "reconstruct_s": seconds}
-
-
-def interior_scores(rec, truth, geometry, *, pixels=600):
-    """Bubbles found, spurious bubbles and DDI inside the interior cylinder of a 2D reconstruction.
-
-    The interior is the field of view's disc shrunk by one largest true
-    bubble's diameter: a true bubble whose centroid lies there is wholly
-    inside the field of view. Both outline sets are rasterised on a grid
-    of ``pixels`` across the field of view (outside it set to 0) and matched
-    there (:func:`bubsub.core.matching.match`); a true bubble of the interior
-    is found with IoU >= 0.5; a reconstructed bubble whose centroid lies in
-    the interior and is no true bubble's best is spurious; the DDI counts the
-    interior's pixels.
-
-    Parameters
-    ----------
-    rec, truth : list of Polygon
-    geometry : ScanGeometry
-        2D.
-
-    Returns
-    -------
-    dict
-        ``interior_radius_mm``, ``truth``, ``found``, ``found_percent``, ``spurious``, ``ddi``, ``reconstructed``.
-    """
-    r_fov = field_of_view(geometry)[0]
-    r_int = r_fov - 2 * max(np.sqrt(abs(p.area) / np.pi) for p in truth)
-    extent = (-r_fov, r_fov, -r_fov, r_fov)
-    t_lab, r_lab = label_image(truth, (pixels, pixels), extent), label_image(rec, (pixels, pixels), extent)
-    yy, xx = (np.mgrid[:pixels, :pixels] + 0.5) * (2 * r_fov / pixels) - r_fov
-    r = np.hypot(xx, yy)
-    t_lab[r > r_fov], r_lab[r > r_fov] = 0, 0
-    m = match(t_lab, r_lab)
-    centre = lambda items: np.array([np.hypot(*np.asarray(p.vertices).mean(axis=0)) for p in items])
-    inner_t = set(np.flatnonzero(centre(truth) <= r_int) + 1)
-    inner_r = set(np.flatnonzero(centre(rec) <= r_int) + 1) if rec else set()
-    found = sum(1 for i, _, _, status in m["per_truth"] if i in inner_t and status == "found")
-    owners = {j for _, j, _, _ in m["per_truth"]}
-    return {"interior_radius_mm": r_int, "truth": len(inner_t), "found": found,
-            "found_percent": 100.0 * found / max(1, len(inner_t)), "spurious": len(inner_r - owners),
-            "ddi": float(dice_dissimilarity(r_lab[r <= r_int] > 0, t_lab[r <= r_int] > 0)), "reconstructed": len(rec)}
-
-
-def _print_local(args):
-    from pathlib import Path
-
-    print(f"| seed | centre | axis error (raw px) | contrast (1/mm) | interior bubbles | found (IoU >= 0.5) | spurious "
-          f"| DDI (interior) | prepare s | reconstruct s |")
-    print("|---|---|---|---|---|---|---|---|---|---|", flush=True)
-    for seed in args.local:
-        r = local_case(Path(args.out) / f"local{seed}", seed, center=args.local_center)
-        if "failed" in r:
-            print(f"| {seed} | {args.local_center} | prepare stopped: {r['failed']} | | | | | | "
-                  f"{r['prepare_s']:.0f} | |", flush=True)
-            continue
-        print(f"| {seed} | {args.local_center} | {r['axis_error_px']:+.2f} | {r['contrast']:.4f} | {r['truth']} | "
-              f"{r['found']} ({r['found_percent']:.0f} %) | {r['spurious']} | {r['ddi']:.4f} | {r['prepare_s']:.0f} | "
-              f"{r['reconstruct_s']:.0f} |", flush=True)
-    return 0
-
-
-def _print_inside(args):
-    from pathlib import Path
-
-    print("| seed | axis error (raw px) | contrast (1/mm) | bubbles | found (IoU >= 0.5) | spurious | DDI | prepare s | "
-          "reconstruct s |")
-    print("|---|---|---|---|---|---|---|---|---|", flush=True)
-    for seed in args.inside:
-        r = inside_case(Path(args.out) / f"inside{seed}", seed)
-        print(f"| {seed} | {r['axis_error_px']:+.2f} | {r['contrast']:.4f} | {r['truth']} | {r['found']} | "
-              f"{r['spurious']} | {r['ddi']:.4f} | {r['prepare_s']:.0f} | {r['reconstruct_s']:.0f} |", flush=True)
-    return 0
-
-
-def _print_local_ideal(args):
-    print("| seed | preview radius / field of view's | interior bubbles | found (IoU >= 0.5) | spurious | "
-          "DDI (interior) | bubbles reconstructed | reconstruct s |")
-    print("|---|---|---|---|---|---|---|---|", flush=True)
-    for seed in args.local_ideal:
-        for extend in args.local_extend:
-            r = local_ideal_case(seed, extend)
-            print(f"| {seed} | {extend:g} | {r['truth']} | {r['found']} ({r['found_percent']:.0f} %) | {r['spurious']} "
-                  f"| {r['ddi']:.4f} | {r['reconstructed']} | {r['reconstruct_s']:.0f} |", flush=True)
-    return 0
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m bubsub.bench fov", description=__doc__.splitlines()[0])
     ap.add_argument("--geometry", nargs="+", default=["parallel", "cone"], choices=["parallel", "cone"])
@@ -519,11 +281,11 @@ def main(argv=None):
     if args.column is not None:
         return _print_column(args, extra)
     if args.local:
-        return _print_local(args)
+        return print_local(args)
     if args.local_ideal:
-        return _print_local_ideal(args)
+        return print_local_ideal(args)
     if args.inside:
-        return _print_inside(args)
+        return print_inside(args)
     if extra:
         ap.error(f"unrecognized arguments: {' '.join(extra)}")
     print("| geometry | FOV model | class | bubbles | found | flagged truncated | DDI in FOV (mean) | DDI max | "

@@ -4,9 +4,9 @@ The last selected subscan is reconstructed as a static scan (voxel preview,
 centres, radius estimation, BFGS: :func:`bubsub.clients.pipeline.reconstruct.reconstruct`).
 Every earlier subscan starts from its successor's bubbles, each control mesh
 shrunk toward its centroid and remeshed (:func:`bubsub.core.projection.remesh.warm_start`),
-then BFGS; no voxel preview. After the warm fit, the static pipeline's
-topology rounds look for what the fitted bubbles leave unexplained
-(:mod:`bubsub.clients.pipeline.detect4d`): bubbles the successor lacks are
+then BFGS. After the warm fit, a voxel preview of the data as the cold
+start's and the static pipeline's topology rounds look for what the fitted
+bubbles leave unexplained (:mod:`bubsub.clients.pipeline.detect4d`): bubbles the successor lacks are
 added with new track ids, a bubble that is two here (a coalescence forward in
 time) is split, and slivers that left the field of view are removed. A bubble
 that collapses, leaves the field of view or whose warm start cannot be built

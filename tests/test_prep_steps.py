@@ -4,7 +4,7 @@ Fresnel-propagated phase object, a known rotation axis, flats that drift in time
 import numpy as np
 import pytest
 
-from bubsub.core.prep.centre import center_pair, center_vo, closest_pair
+from bubsub.core.prep.centre import center_pair, center_sharpness, center_vo, closest_pair
 from bubsub.core.prep.flats import FlatModel, find_bad_pixels, repair_pixels
 from bubsub.core.prep.options import parse_quantity, parse_roi, prepare_options
 from bubsub.core.prep.phase import fresnel_propagate, paganin_filter, paganin_transfer, wavelength_mm
@@ -77,6 +77,22 @@ def test_center_vo_finds_a_known_axis():
         s = px * np.cos(th) + py * np.sin(th)
         sino += a * 2 * np.sqrt(np.maximum(r * r - (x[None] - s[:, None]) ** 2, 0))
     assert center_vo(sino) == pytest.approx(axis, abs=0.5)
+
+
+@pytest.mark.parametrize("wide", [False, True])
+@pytest.mark.parametrize("start", [-1.2, 0.9])
+def test_center_sharpness_refines_an_axis_a_pixel_off(start, wide):
+    # analytic chords of gas discs (0.1 deep per unit length) in a liquid disc within the detector, or in one
+    # 1.5 times wider than it (no air at the sides); 60 projections over 180 degrees, the axis between columns
+    cols, axis = 128, 66.3
+    th = np.radians(np.arange(60) * 3.0)
+    x = np.arange(cols) - axis
+    liquid = 1.5 * cols / 2 if wide else 0.45 * cols
+    sino = np.broadcast_to(0.1 * 2 * np.sqrt(np.maximum(liquid ** 2 - x ** 2, 0)), (th.size, cols)).copy()
+    for (px, py, r) in [(10.0, 5.0, 8.0), (-30.0, 12.0, 5.0), (0.0, -40.0, 10.0), (25.0, -20.0, 6.0), (-8.0, 30.0, 7.0)]:
+        s = px * np.cos(th) + py * np.sin(th)
+        sino -= 0.1 * 2 * np.sqrt(np.maximum(r * r - (x[None] - s[:, None]) ** 2, 0))
+    assert center_sharpness(sino, np.degrees(th), axis + start) == pytest.approx(axis, abs=0.15)
 
 
 def test_closest_pair():

@@ -267,16 +267,8 @@ def test_bubsub_help_imports_no_pipeline_and_no_heavy_library(help_modules):
     assert {"bubsub.clients.cli.reconstruct", *START_UP} <= help_modules
 
 
-#: Modules whose function-level imports are not checked yet (edits under way in them).
-PENDING = ("bubsub.clients.pipeline.detect4d",
-           "bubsub.clients.pipeline.dynamic", "bubsub.clients.pipeline.local", "bubsub.clients.pipeline.slabs",
-           "bubsub.clients.pipeline.topology", "bubsub.core.prep.background",
-           "bubsub.core.prep.centre", "bubsub.core.prep.options", "bubsub.core.prep.pipeline",
-           "bubsub.core.prep.readers")
-
-
 def test_bubsub_imports_inside_functions_have_a_reason(help_modules):
-    found = {(n, t) for n, t in lazy_bubsub_imports(IMPORTS, help_modules) if n not in PENDING}
+    found = lazy_bubsub_imports(IMPORTS, help_modules)
     unexpected = sorted(found - set(FUNCTION_LEVEL_ALLOWED))
     assert not unexpected, ("bubsub imports inside functions (move them to the module's top; where that makes a cycle, "
                             "move the shared function down a layer):\n" + "\n".join(map(str, unexpected)))
@@ -305,7 +297,7 @@ def test_third_party_imports_inside_functions_are_optional_extras():
     stdlib = set(sys.stdlib_module_names)
     found = {(name, target.split(".")[0]) for name, target, _, function, _ in IMPORTS
              if function and not _internal(target) and target.split(".")[0] not in stdlib
-             and not _optional(target) and name not in PENDING}
+             and not _optional(target)}
     unexpected = sorted(found - set(THIRD_PARTY_ALLOWED))
     assert not unexpected, ("third-party imports inside functions that are not optional extras (move them to the "
                             "top):\n" + "\n".join(map(str, unexpected)))

@@ -55,11 +55,13 @@ from bubsub.core.projection.mesh import equivalent_radius
 from bubsub.core.voxel.raster import coverage
 
 from bubsub.clients.pipeline.fov import field_of_view, fov_report, preview_extension, truncated_flags
-from bubsub.clients.pipeline.initial import distance_centres, initial_centres, small_centres
-from bubsub.clients.pipeline.local import Footprints, local_refit, scene_residual
-from bubsub.clients.pipeline.preview import preview_voxel_size, voxel_for_bubbles, voxel_preview
-from bubsub.clients.pipeline.resolution import pixels_per_mm
-from bubsub.clients.pipeline.topology import add_at, points_inside, split_step
+from bubsub.clients.pipeline.initial import distance_centres, edge_centres, edge_slices, initial_centres, small_centres
+from bubsub.clients.pipeline.local import Footprints, footprint, local_refit, scene_residual
+from bubsub.clients.pipeline.preview import preview_grid, preview_voxel_size, voxel_for_bubbles, voxel_preview
+from bubsub.clients.pipeline.resolution import levels_by_size, pixels_per_mm
+from bubsub.clients.pipeline.topology import adapt_bubbles, add_at, points_inside, split_step
+from bubsub.core import MeshProjector
+from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 
 __all__ = ["WARM_STEPS", "detect_warm", "data_preview", "preview_changes", "assign_tracks", "overlap_fraction", "edge_side"]
 
@@ -237,9 +239,6 @@ def assign_tracks(ids, before, after, successor_sizes, geometry, next_id):
 
 def _new_bubble(surfaces, geometry, settings):
     """``new_bubble(centre, radius)``: a round bubble with the fitted bubbles' control mesh, subdivided by its size."""
-    from bubsub.core.projection.subdivision import circle_surface, sphere_surface
-    from bubsub.clients.pipeline.resolution import levels_by_size
-
     contrast, k = surfaces[0].attenuation, len(surfaces[0].vertices)
     if surfaces[0].ndim == 2:
         return lambda c, r: circle_surface(c, r, contrast, control=k, levels=surfaces[0].levels)
@@ -273,11 +272,6 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
     list of SubdivisionSurface
         ``surfaces`` and the seeds after them.
     """
-    from bubsub.clients.pipeline.initial import edge_centres, edge_slices
-    from bubsub.clients.pipeline.local import footprint, scene_residual
-    from bubsub.clients.pipeline.preview import preview_grid
-    from bubsub.clients.pipeline.fov import preview_extension
-
     g = projector.geometry
     if g.ndim != 3 or not surfaces or not settings.fov_model:
         return surfaces
@@ -300,7 +294,6 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
             seeds.append(cand)
     if not seeds:
         return surfaces
-    from bubsub.clients.pipeline.local import local_refit
 
     out, _, _ = local_refit(projector, list(surfaces) + seeds, data, range(len(surfaces), len(surfaces) + len(seeds)),
                             iterations=max(10, settings.iterations // 2), touch=radius, residual=residual)
@@ -453,13 +446,6 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
         refit).
     next_id : int
     """
-    from bubsub.core import MeshProjector
-    from bubsub.clients.pipeline.fov import preview_extension
-    from bubsub.clients.pipeline.local import local_refit
-    from bubsub.clients.pipeline.preview import preview_voxel_size, voxel_for_bubbles
-    from bubsub.clients.pipeline.resolution import pixels_per_mm
-    from bubsub.clients.pipeline.topology import adapt_bubbles
-
     surfaces = list(surfaces)
     if not surfaces or settings.topology_rounds < 1:
         return list(ids), surfaces, {"new": {}, "coalescences": [], "removed": {}}, {"rounds": 0, "objective": None}, \

@@ -63,6 +63,8 @@ from bubsub.clients.pipeline.resolution import levels_by_size
 from bubsub.clients.pipeline.slabs import (OBJECTIVE_NOTE, fit_known, known_halo, plan_slabs, reconstruct_slabs,
                                            slab_count, slab_totals)
 from bubsub.clients.pipeline.voxel4d import voxel_baseline
+from bubsub.clients.pipeline.detect4d import detect_warm
+from bubsub.clients.progress import phase
 
 __all__ = ["DynamicSettings", "STATIC_FIELDS", "BubbleState", "SubscanResult", "reconstruct_subscan", "run_chain"]
 
@@ -418,8 +420,6 @@ def _warm(scan, previous, settings):
 def _detect(scan, previous, ids, fitted, settings):
     """:func:`~bubsub.clients.pipeline.detect4d.detect_warm` on the fitted projections (the whole subscan, after
     its slabs too)."""
-    from bubsub.clients.pipeline.detect4d import detect_warm
-
     geometry, data = _split(scan, settings.holdout)[:2]
     sizes = {int(i): abs(float(s.fine().volume if s.ndim == 3 else s.fine().area))
              for i, s in zip(previous.ids, previous.surfaces())}
@@ -522,8 +522,6 @@ def run_chain(get_scan, indices, settings, *, start=None, step=reconstruct_subsc
         included.
     interrupted : bool
     """
-    from bubsub.clients.progress import phase
-
     results = []
     state = start
     # one line per finished subscan in a log (each=True): a run takes hours

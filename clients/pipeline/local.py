@@ -15,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from bubsub.clients.optimise.fit import fit
+from bubsub.clients.progress import phase
+from bubsub.core import MeshProjector, ScanGeometry
 
 __all__ = ["Footprint", "Footprints", "Window", "footprint", "scene_residual", "scene_objective", "others_removed", "local_fits",
            "local_refit", "touching_groups", "LOCAL_RTOL"]
@@ -78,8 +80,6 @@ class Window:
     """
 
     def __init__(self, projector, surfaces, margin=0.3, pad=3):
-        from bubsub.core import MeshProjector
-
         g = projector.geometry
         self.projector, self.starts, self.size, self.full_shape = projector, None, None, g.shape
         col, row, ahead = g.detector_coordinates(np.concatenate([s.fine().vertices for s in surfaces]))
@@ -110,7 +110,6 @@ class Window:
         """The window's part of whole-detector projections."""
         if self.starts is None:
             return projections
-        from bubsub.core import ScanGeometry
 
         return ScanGeometry.window_of(projections, self.starts[0], self.starts[1], self.size[0], self.size[1])
 
@@ -330,7 +329,6 @@ def local_refit(projector, surfaces, data, changed, *, iterations, touch, near=(
         _refit_joint(projector, surfaces, sorted({k for g in groups for k in g}), residual, iterations, penalty,
                      summary, progress=progress, label=label, rtol=rtol)
         return surfaces, residual, summary
-    from bubsub.clients.progress import phase
 
     with phase(label, len(groups), unit="group", enabled=progress and bool(groups)) as bar:
         for group in groups:

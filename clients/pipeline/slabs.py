@@ -80,6 +80,7 @@ from bubsub.clients.pipeline.slab_stitch import (core_preview, fit_known, rows_e
                                                  stitch_previews)
 from bubsub.clients.progress import phase
 from bubsub.clients.remote.jobs import remote_projectors
+from bubsub.clients.pipeline.outputs import json_default
 
 __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
            "auto_slabs", "slab_count", "estimate_halo", "known_halo", "halo_rows", "slab_scan", "slab_bounds", "run_slab", "stitch",
@@ -132,8 +133,6 @@ def slab_key(scan_path, slab, settings):
 
 def write_slab(path, result, key):
     """Write a :class:`SlabResult` atomically (``.npz``: control meshes, levels, report as JSON)."""
-    from bubsub.clients.pipeline.outputs import json_default
-
     surfaces = result.surfaces
     arrays = {
         "key": np.array(key),

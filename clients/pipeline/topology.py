@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 
 from bubsub.core.projection.mesh import bounding_box, equivalent_radius
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
-from bubsub.core.voxel.raster import bubble_mask
+from bubsub.core.voxel.raster import bubble_mask, coverage
 from bubsub.core.voxel.grid import world_to_index
 
 from bubsub.clients.pipeline.blobs import log_blobs
@@ -48,6 +48,8 @@ from bubsub.clients.pipeline.local import (Footprints, footprint, local_fits, lo
                                            scene_objective, scene_residual)
 from bubsub.clients.pipeline.preview import preview_grid, resample_image, voxel_preview
 from bubsub.clients.pipeline.resolution import levels_by_size
+from bubsub.clients.pipeline.fov import field_of_view, fov_report, truncated_flags, unobserved_control
+from bubsub.clients.progress import phase
 
 __all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "points_inside"]
 
@@ -212,16 +214,12 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
 
 def _seen_unknowns(surfaces, geometry):
     """(n,) float: coordinates of each bubble's control vertices that some ray of ``geometry`` sees."""
-    from bubsub.clients.pipeline.fov import unobserved_control
-
     return np.array([s.vertices.shape[1] * float(np.count_nonzero(~unobserved_control(s, geometry)))
                      for s in surfaces])
 
 
 def _at_edge(surfaces, geometry):
     """(n,) bool: the bubbles whose refined surface reaches the edge of the field of view (one pixel's margin)."""
-    from bubsub.clients.pipeline.fov import field_of_view, fov_report, truncated_flags
-
     return [bool(f) for f in truncated_flags([s.fine() for s in surfaces], field_of_view(geometry),
                                              fov_report(geometry)["margin"])]
 
@@ -240,8 +238,6 @@ def points_inside(surface, points):
     number: the split step tests every preview blob against every bubble
     (3600 one-point grids at 60 bubbles, about a second), and few are near.
     """
-    from bubsub.core.voxel.raster import coverage
-
     points = np.asarray(points, dtype=float)
     lo, hi = bounding_box(surface.vertices)
     out = np.all((points >= lo) & (points <= hi), axis=1)
@@ -400,7 +396,6 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     refits = []
     fresh = None  # after the first round: the bubbles the last refit moved (ids)
     residual = None
-    from bubsub.clients.progress import phase
 
     for r in range(rounds):
         n_before = len(changes)

@@ -29,6 +29,9 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from skimage.filters import threshold_otsu
+
+from bubsub.core.voxel.astra2d import AstraProjector2D, reconstruct_2d
 
 __all__ = ["fbp_row", "detector_offsets", "envelope_background", "radial_background", "reproject_background",
            "liquid_and_gas", "noise_level", "sees_air", "chord_background", "NO_AIR_LEVEL"]
@@ -73,8 +76,6 @@ def dense_and_gas_masks(image, mask, *, sigma=2.0, erode=2):
     *unsmoothed* values over each mask is neither biased by the noise (as
     thresholding the noisy values would be) nor by blurred edges.
     """
-    from skimage.filters import threshold_otsu
-
     sm = ndimage.gaussian_filter(np.asarray(image, dtype=np.float32), sigma)
     t = threshold_otsu(sm[mask])
     dense = ndimage.binary_erosion(sm > t, iterations=erode) & mask
@@ -127,8 +128,6 @@ def reproject_background(sinogram, geometry, foam_radius, *, liquid=None, grid=N
 
 def fbp_row(sinogram, geometry, grid=None):
     """FBP of one row over the square the detector spans: ``image, extent, radius of each pixel, pixel size``."""
-    from bubsub.core.voxel.astra2d import reconstruct_2d
-
     cols = geometry.det_count
     pixel = float(np.linalg.norm(geometry.vectors[0, 4:6]))
     n = grid or cols
@@ -140,8 +139,6 @@ def fbp_row(sinogram, geometry, grid=None):
 
 
 def _reproject(image, geometry, extent):
-    from bubsub.core.voxel.astra2d import AstraProjector2D
-
     with AstraProjector2D(geometry, image.shape, extent) as op:
         return op.forward(image.astype(np.float32)).reshape(geometry.shape).astype(np.float32)
 
@@ -309,8 +306,6 @@ def chord_background(sinogram, geometry, *, grid=256, max_angles=128, erode=2):
         liquid, ``mean_attenuation`` (``A`` of the first pass),
         ``gas_fraction`` (``phi``) and ``contrast`` (``C``, 1/mm).
     """
-    from skimage.filters import threshold_otsu
-
     sino = np.asarray(sinogram, dtype=np.float64)
     s = detector_offsets(geometry)
     m = sino.mean(axis=0)

@@ -20,6 +20,10 @@ so the axis of a centred detector is at ``(cols - 1) / 2``.
 from __future__ import annotations
 
 import numpy as np
+from skimage.registration import phase_cross_correlation
+
+from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.voxel.astra2d import reconstruct_2d
 
 __all__ = ["center_vo", "center_pair", "closest_pair", "center_symmetry", "center_seam", "center_sharpness"]
 
@@ -65,8 +69,6 @@ def center_pair(p0, p180):
     float
         Axis column (pixel index units).
     """
-    from skimage.registration import phase_cross_correlation
-
     a, b = np.atleast_2d(np.asarray(p0, dtype=float)), np.atleast_2d(np.asarray(p180, dtype=float))
     if a.shape != b.shape:
         raise ValueError(f"the two projections differ in shape: {a.shape} and {b.shape}")
@@ -212,9 +214,6 @@ def center_sharpness(sinogram, theta_deg, start, *, width=2.0, step=0.25, max_co
     float
         Axis column (pixel index units).
     """
-    from bubsub.core.projection.geometry import ScanGeometry
-    from bubsub.core.voxel.astra2d import reconstruct_2d
-
     sino = np.asarray(sinogram, dtype=np.float32)
     if sino.ndim != 2 or sino.shape[0] < 4 or len(theta_deg) != sino.shape[0]:
         raise ValueError(f"the centre search needs a (n_angles >= 4, cols) sinogram and its angles, got shape "

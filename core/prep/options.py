@@ -13,6 +13,8 @@ import dataclasses
 import numbers
 from pathlib import Path
 
+import numpy as np
+
 from bubsub.core.validate import check_int
 
 __all__ = ["PrepareOptions", "prepare_options", "parse_roi", "parse_projections", "check_against_raw",
@@ -234,8 +236,6 @@ def check_against_raw(options, det_shape, n_projections):
         If the ROI leaves the detector, the binning does not divide the ROI,
         or the projection range selects nothing.
     """
-    import numpy as np
-
     rows, cols = det_shape
     (r0, r1), (c0, c1) = options.roi
     r0, r1 = 0 if r0 is None else r0, rows if r1 is None else r1

@@ -33,7 +33,9 @@ import json
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
+from tqdm.auto import tqdm
 
 from bubsub.core.contrast import contrast_sign_error, signal_masses
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
@@ -123,7 +125,6 @@ def _slabs(n, per):
 def _bar(total, desc, progress):
     if callable(progress):
         return progress(desc, total, unit="projection" if desc.startswith("pass 1") else "row")
-    from tqdm.auto import tqdm
 
     return tqdm(total=total, desc=desc, unit="proj" if desc.startswith("pass 1") else "row", disable=not progress,
                 leave=False)
@@ -210,8 +211,6 @@ def prepare(raw, out, options=None, *, progress=True):
 
     bg_mode = o.background
     with atomic_path(out) as tmp:
-        import h5py
-
         with h5py.File(tmp, "w") as f:
             chunks = (min(index.size, 16), out_cols) if two_d else (min(index.size, 16), min(out_rows, 8), out_cols)
             data_ds, bg_ds = create_scan_datasets(f, geometry, theta, background=bg_mode != "none", chunks=chunks)
@@ -537,8 +536,6 @@ def _row_geometry(geometry):
 
 
 def _background_file(path, geometry):
-    import h5py
-
     try:
         with h5py.File(path, "r") as f:
             name = "exchange/background" if "exchange/background" in f else "exchange/data"

@@ -23,7 +23,9 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import h5py
 import numpy as np
+import tifffile
 
 __all__ = ["RawSource", "open_raw", "UNITS"]
 
@@ -89,12 +91,9 @@ class RawSource:
         """
         rs, cs = slice(*rows), slice(*cols)
         if self.kind == "hdf5":
-            import h5py
-
             name = {"data": "exchange/data", "white": "exchange/data_white", "dark": "exchange/data_dark"}[which]
             with h5py.File(self.path, "r") as f:
                 return np.asarray(f[name][index, rs, cs], dtype=np.float32)
-        import tifffile
 
         pages = self._files[which]
         idx = range(len(pages))[index]
@@ -124,8 +123,6 @@ def open_raw(path):
 
 
 def _open_hdf5(p):
-    import h5py
-
     try:
         f = h5py.File(p, "r")
     except OSError as exc:
@@ -196,8 +193,6 @@ def _units_attr(ds):
 
 
 def _open_tiff(p):
-    import tifffile
-
     def pages(prefix):
         files = sorted(q for q in p.iterdir() if q.name.lower().startswith(prefix)
                        and q.suffix.lower() in (".tif", ".tiff"))

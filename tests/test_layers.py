@@ -68,16 +68,14 @@ FUNCTION_LEVEL_ALLOWED = {
         "a backend loads its compiled kernels (numba, Embree) only when it is selected",
     ("bubsub.core.projection.backends", "bubsub.core.projection.backends.embreex"):
         "a backend loads its compiled kernels (numba, Embree) only when it is selected",
-    ("bubsub.core.io.scanfile", "bubsub.core.prep.flats"): "the cycle io <-> prep (UNIT_CYCLES_ALLOWED)",
 }
 
 
 #: Cycles between units that remain, each with what breaks it.
 UNIT_CYCLES_ALLOWED = [
     ({"bubsub.core.projection", "bubsub.core.voxel"},
-     "projection.validity.overlap_measure samples with voxel.raster.coverage: the mesh-to-mask conversion moves "
-     "into core/projection with the renaming of the two raster.py"),
-    ({"bubsub.core.io", "bubsub.core.prep"}, "io.scanfile converts raw counts with prep.flats' flat-field model"),
+     "projection.validity.overlap_measure samples with voxel.raster.coverage; the mesh-to-mask conversion "
+     "(core/voxel/raster.py) belongs in core/projection, which breaks the cycle"),
 ]
 
 

@@ -32,7 +32,7 @@ fields (``(n_flats, *detector)`` or ``detector`` shaped) and the optional
 their first axis, and the line integrals are
 ``-log((data - dark) / (white - dark))``, with the transmission clamped to
 at least ``1e-6`` (so a zero count gives about 13.8, not inf): the ``mean``
-flat-field correction of ``bubsub prepare`` (:mod:`bubsub.core.prep.flats`),
+flat-field correction of ``bubsub prepare`` (:mod:`bubsub.core.flatfield`),
 which is its one home.
 ``/exchange/background`` is always line integrals.
 
@@ -48,6 +48,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from bubsub.core.flatfield import mean_flat_model, minus_log
 from bubsub.core.io.atomic import atomic_path
 from bubsub.core.io.scan import (RESERVED_ATTRS, Scan, check_contrast, check_finite, expected_shape,
                                  per_projection_array, row_slice, row_window_geometry, theta_from_geometry)
@@ -441,7 +442,5 @@ def _counts_to_line_integrals(f, counts, geometry, p, rows=None):
             f"{p.name}: '/exchange/data_white' must exceed '/exchange/data_dark' at every detector pixel "
             f"({int((span <= 0).sum())} pixels do not)"
         )
-    from bubsub.core.prep.flats import mean_flat_model, minus_log  # the one flat-field correction (bubsub prepare's)
-
     trans, _ = mean_flat_model(white, dark).transmission(counts, None)
     return minus_log(trans, MIN_TRANSMISSION).astype(np.float32, copy=False)

@@ -21,8 +21,6 @@ import os
 import sys
 import time
 
-from tqdm.auto import tqdm
-
 __all__ = ["phase", "Phase"]
 
 
@@ -43,6 +41,8 @@ class Phase:
     """
 
     def __init__(self, desc, total, unit, enabled, stream, each=False):
+        from tqdm.auto import tqdm
+
         self.desc, self.total, self.unit = desc, total, unit
         self.enabled, self.stream, self.each = enabled, stream, each
         self.n = 0

@@ -49,6 +49,9 @@ OPTIONAL = {
     "scipy.optimize": "heavy: not loaded by `import bubsub.core` nor `bubsub --help`",
     "scipy.sparse.linalg": "heavy: not loaded by `import bubsub.core` nor `bubsub --help`",
     "scipy.sparse.csgraph": "heavy (loads scipy.sparse.linalg): not loaded by `import bubsub.core`",
+    "h5py": "heavy: a scan file's functions load it, so that `import bubsub.core` and `bubsub --help` do not",
+    "skimage.filters": "heavy: Otsu's threshold loads it, so that `import bubsub.core` does not",
+    "tqdm": "loads asyncio: a progress phase loads it, so that `bubsub --help` does not",
 }
 
 #: ``(importing module, third-party package)`` imported inside a function for a reason of their own.
@@ -260,7 +263,7 @@ def test_bubsub_help_imports_no_pipeline_and_no_heavy_library(help_modules):
     # the reason the command line imports inside functions (lazy_bubsub_imports): this stays true
     heavy = {"bubsub.clients.pipeline.reconstruct", "bubsub.clients.pipeline.reconstruct4d",
              "bubsub.clients.optimise.fit", "bubsub.core.prep.pipeline", "bubsub.core.foam.column", "scipy.optimize",
-             "numba", "matplotlib", "trimesh", "dask", "fastapi", "algotom"}
+             "numba", "matplotlib", "trimesh", "dask", "fastapi", "algotom", "h5py", "tqdm", "asyncio"}
     assert not heavy & help_modules, sorted(heavy & help_modules)
     assert {"bubsub.clients.cli.reconstruct", *START_UP} <= help_modules
 

@@ -45,7 +45,6 @@ from __future__ import annotations
 import numbers
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from bubsub.core.flatfield import mean_flat_model, minus_log
@@ -88,6 +87,8 @@ def write_scan(path, scan, *, compression=None):
     pathlib.Path
         The destination (``scan.path`` is set to it as well).
     """
+    import h5py
+
     if not isinstance(scan, Scan):
         raise ValueError(f"scan must be a Scan, got {type(scan).__name__}")
     if compression not in (None, "gzip", "lzf"):
@@ -212,6 +213,8 @@ def read_scan(path, *, bubble_contrast=None, rows=None):
         negative, the flat field does not exceed the dark field, or the
         geometry kind is unknown.
     """
+    import h5py
+
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"scan file {str(p)!r} does not exist")
@@ -278,6 +281,8 @@ def read_geometry(path):
     FileNotFoundError, ValueError
         As :func:`read_scan` for the file and its ``/geometry/vectors``.
     """
+    import h5py
+
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"scan file {str(p)!r} does not exist")
@@ -344,6 +349,8 @@ def _attr_int(attrs, key, where):
 
 
 def _read_geometry(f, p):
+    import h5py
+
     if "geometry/vectors" not in f or not isinstance(f["geometry/vectors"], h5py.Dataset):
         raise ValueError(f"{p.name}: missing dataset '/geometry/vectors' (the ASTRA vector geometry)")
     ds = f["geometry/vectors"]

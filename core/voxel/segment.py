@@ -19,7 +19,6 @@ import numbers
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
-from skimage.filters import threshold_otsu
 
 from bubsub.core.validate import check_int
 from bubsub.core.voxel.grid import index_to_world, voxel_sizes
@@ -62,6 +61,8 @@ def otsu_threshold(image, roi=None, nbins=256):
     -------
     float
     """
+    from skimage.filters import threshold_otsu
+
     a = _image(image)
     r = _roi(roi, a.shape)
     vals = a[r] if r is not None else a.ravel()

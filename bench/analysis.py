@@ -67,14 +67,14 @@ from scipy.spatial import cKDTree
 from bubsub.bench.analysis_truth import column_truth, load_column, shape_table
 from bubsub.core.projection.mesh import equivalent_radius
 from bubsub.clients.analysis import analyse, default_contact_gap, read_reconstruction
-from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 from bubsub.core.analysis.regions import Domain
 from bubsub.core.analysis.snapshot import analyse_meshes
 from bubsub.core.foam.column import column_phantom, simulate_column, write_column
 from bubsub.core.foam.ellipsoids import ellipsoid_labels, ellipsoid_mesh
 from bubsub.core.io.scanfile import read_scan
-from bubsub.core.voxel.raster import pixel_centres
+from bubsub.core.projection.masks import pixel_centres
 from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 
 __all__ = ["score", "foamquant_route", "label_contacts", "compare", "cost_table", "main"]

@@ -25,12 +25,12 @@ import numpy as np
 from scipy import ndimage
 
 from bubsub.clients.experiments.runner import EXPERIMENTS, case_config, simulate_case
-from bubsub.clients.pipeline.initial import initial_centres
-from bubsub.clients.pipeline.preview import voxel_preview
+from bubsub.clients.pipeline.static.initial import initial_centres
+from bubsub.clients.pipeline.static.preview import voxel_preview
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 from bubsub.core.metrics import dice_dissimilarity
 from bubsub.core.voxel.grid import world_to_index
-from bubsub.core.voxel.raster import label_image
+from bubsub.core.projection.masks import label_image
 
 __all__ = ["main", "count_centres", "per_bubble", "setting_value"]
 

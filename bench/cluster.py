@@ -26,7 +26,7 @@ from pathlib import Path
 
 from bubsub.bench.reconstruct import cli_command
 from bubsub.clients.cluster.engine import local, open_client, run_tasks
-from bubsub.clients.pipeline.dynamic import DynamicSettings
+from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings
 from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
 from bubsub.core.io.scanfile import read_scan
 

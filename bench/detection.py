@@ -50,7 +50,7 @@ from bubsub.bench.bubbles import setting_value
 from bubsub.bench.fov import voxel_route
 from bubsub.bench.matching import column_truth, match, mesh_labels, truth_labels
 from bubsub.bench.scale import table
-from bubsub.clients.pipeline.fov import fov_mask
+from bubsub.clients.pipeline.inputs.fov import fov_mask
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, initial_bubbles, reconstruct
 from bubsub.core import MeshProjector
 from bubsub.core.foam.column import TRUTH_COLUMN_INFO, column_phantom, simulate_column, truth_grid, write_column

@@ -51,7 +51,7 @@ from bubsub.bench.matching import mesh_labels, overlaps
 from bubsub.bench.fov import voxel_route
 from bubsub.bench.reconstruct import cli_command
 from bubsub.bench.scale import run_tree, table
-from bubsub.clients.pipeline.fov import fov_mask
+from bubsub.clients.pipeline.inputs.fov import fov_mask
 from bubsub.core.foam.flowing import FLOWING_DEFAULTS as D
 from bubsub.core.io.meshio import read_ply
 from bubsub.core.io.scanfile import read_scan, write_scan

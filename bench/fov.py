@@ -58,7 +58,7 @@ from bubsub.bench.fov_local import print_inside, print_local, print_local_ideal
 from bubsub.bench.matching import column_truth, mesh_labels, truth_labels
 from bubsub.bench.reconstruct import cli_command as _cli
 from bubsub.bench.scale import run_tree, simulate_case, table
-from bubsub.clients.pipeline.fov import field_of_view, fov_mask, truncated_flags
+from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_mask, truncated_flags
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 from bubsub.core import MeshProjector
 from bubsub.core.foam.containers import sphere_mesh
@@ -68,7 +68,7 @@ from bubsub.core.matching import match
 from bubsub.core.metrics import bubble_mask, dice_dissimilarity
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh
-from bubsub.core.voxel.raster import pixel_centres
+from bubsub.core.projection.masks import pixel_centres
 from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 from bubsub.core.voxel.segment import binarise
 

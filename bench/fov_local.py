@@ -37,10 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bubsub.clients.pipeline import fov as fovmod
-from bubsub.clients.pipeline.evaluate import evaluate_dir
-from bubsub.clients.pipeline.fov import field_of_view
-from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.inputs import fov as fovmod
+from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
+from bubsub.clients.pipeline.inputs.fov import field_of_view
+from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 from bubsub.core import MeshProjector
 from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
@@ -51,7 +51,7 @@ from bubsub.core.metrics import dice_dissimilarity
 from bubsub.core.prep import prepare, prepare_options
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Polygon
-from bubsub.core.voxel.raster import label_image
+from bubsub.core.projection.masks import label_image
 
 __all__ = ["LOCAL_SCAN", "INSIDE_SCAN", "INSIDE_MARGIN", "inside_case", "local_case", "local_ideal_case",
            "interior_scores", "print_local", "print_inside", "print_local_ideal"]
@@ -81,7 +81,7 @@ def inside_case(out, seed):
     phase retrieval spreads its edge into the outermost columns. Through
     ``bubsub prepare --bin 2 --delta-beta 1450 --center auto --background
     auto`` and ``bubsub reconstruct`` with its defaults, scored by
-    ``bubsub evaluate`` (:func:`bubsub.clients.pipeline.evaluate.evaluate_dir`).
+    ``bubsub evaluate`` (:func:`bubsub.clients.pipeline.evaluation.evaluate.evaluate_dir`).
 
     Returns
     -------
@@ -153,7 +153,7 @@ def local_ideal_case(seed, extend):
     bubbles (:func:`bubsub.core.foam.raw.disc_foam`), projected exactly
     (Gaussian noise 0.003), reconstructed with its defaults but the preview
     out to ``extend`` times the field of view's radius for a foam wider than
-    the detector (:data:`bubsub.clients.pipeline.fov.LOCAL_EXTEND`): the
+    the detector (:data:`bubsub.clients.pipeline.inputs.fov.LOCAL_EXTEND`): the
     reconstruction side alone, without the raw scan's preparation.
 
     Returns

@@ -34,9 +34,9 @@ from threadpoolctl import threadpool_limits
 
 from bubsub.clients.optimise import levels
 from bubsub.clients.optimise.levels import bin_factors
-from bubsub.clients.pipeline.initial import default_detector
+from bubsub.clients.pipeline.static.initial import default_detector
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, coarse_radii, settings_initial, settings_preview
-from bubsub.clients.pipeline.resolution import levels_by_size
+from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.core import MeshProjector
 from bubsub.core.io.scanfile import read_scan
 

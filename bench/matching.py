@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from bubsub.core.matching import MIN_IOU, match, overlaps
-from bubsub.clients.pipeline.fov import fov_mask
+from bubsub.clients.pipeline.inputs.fov import fov_mask
 from bubsub.core.foam.ellipsoids import ellipsoid_labels
 from bubsub.core.metrics import label_image
 

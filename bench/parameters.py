@@ -30,7 +30,7 @@ from pathlib import Path
 
 from bubsub.bench.reconstruct import cli_command
 from bubsub.clients import version
-from bubsub.clients.pipeline.evaluate import evaluate_dir
+from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
 
 #: (simulate arguments, the cases: reconstruct arguments) per dimension; every case adds --quiet.
 CASES = {

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bubsub.clients.pipeline.evaluate import evaluate_dir
+from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
 
 PHASES = ("preview", "initial_bubbles", "radius_estimation", "fit", "topology", "validity", "refine", "edge_slivers")
 

@@ -47,8 +47,8 @@ from bubsub.bench.reconstruct import PHASES
 from bubsub.bench.reconstruct import cli_command as _cli
 from bubsub.core.foam.column import COLUMN_PRESETS
 from bubsub.bench.matching import column_truth, match, mesh_labels, truth_labels
-from bubsub.clients.pipeline.evaluate import evaluate_dir
-from bubsub.clients.pipeline.slabs import halo_rows
+from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
+from bubsub.clients.pipeline.regions.slabs import halo_rows
 from bubsub.core.io.meshio import read_ply
 
 __all__ = ["main", "run_tree", "simulate_case", "score_case", "project", "table", "TOMO_00080"]
@@ -211,7 +211,7 @@ def project(report, shape, bubbles, tomo=TOMO_00080, tomo_bubbles=None, workers=
 
 def truth_halo(sim_dir):
     """Halo rows the slabs of a simulated column would read: the rule of
-    :func:`bubsub.clients.pipeline.slabs.estimate_halo` on the 95th percentile of its true bubbles' radii."""
+    :func:`bubsub.clients.pipeline.regions.slabs.estimate_halo` on the 95th percentile of its true bubbles' radii."""
     meta = json.loads((Path(sim_dir) / "phantom.json").read_text())
     table = np.genfromtxt(Path(sim_dir) / "truth.csv", delimiter=",", names=True)
     radius = 0.5 * float(np.percentile(np.atleast_1d(table["equivalent_diameter_mm"]), 95))

@@ -37,7 +37,7 @@ from bubsub.core.io.tables import write_csv
 from bubsub.core.metrics import dice_dissimilarity, projection_mse, shapes_dice_dissimilarity
 from bubsub.core.foam.containers import liquid_box, liquid_square, sphere_mesh
 from bubsub.core.foam.phantoms import BENCHMARK_SEED, FoamPhantom, foam2d, foam3d, foam3d_benchmark
-from bubsub.core.voxel.raster import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
+from bubsub.core.projection.masks import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
 from bubsub.core.io.scanfile import Scan, read_scan, theta_from_geometry, write_scan
 from bubsub.core.foam.simulate import (add_poisson_noise, default_geometry_2d, default_geometry_3d, project_image,
                                        simulate_2d, simulate_3d)

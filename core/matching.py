@@ -6,7 +6,7 @@ is **merged** when its best reconstructed bubble is also the best of
 another truth bubble, **found** when it is not merged and their IoU
 (intersection over union) is at least :data:`MIN_IOU`, and **missed**
 otherwise; a reconstructed bubble that is no truth bubble's best is
-**spurious**. ``bubsub evaluate`` (:mod:`bubsub.clients.pipeline.evaluate`)
+**spurious**. ``bubsub evaluate`` (:mod:`bubsub.clients.pipeline.evaluation.evaluate`)
 and the benchmarks (:mod:`bubsub.bench.matching`) score with it.
 """
 

@@ -7,7 +7,7 @@
 * :func:`projection_mse`: mean squared difference of two projection arrays
   (cross-validation on held-out projections).
 
-Rasterisation is :mod:`bubsub.core.voxel.raster`'s (the same code that makes the
+Rasterisation is :mod:`bubsub.core.projection.masks`'s (the same code that makes the
 phantoms' ground truth); :func:`bubble_mask`, :func:`label_image` and
 :func:`rasterize` are re-exported here for convenience.
 """
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bubsub.core.voxel.raster import bubble_mask, label_image, pixel_centres, rasterize
+from bubsub.core.projection.masks import bubble_mask, label_image, pixel_centres, rasterize
 
 __all__ = [
     "dice_dissimilarity",
@@ -65,7 +65,7 @@ def shapes_dice_dissimilarity(reconstruction, truth, shape, extent):
     reconstruction, truth : sequence of Polygon (2D) or Mesh (3D) or SubdivisionSurface
     shape : (rows, cols) or (slices, rows, cols)
     extent : (xmin, xmax, ymin, ymax[, zmin, zmax])
-        mm; grid convention of :mod:`bubsub.core.voxel.raster`.
+        mm; grid convention of :mod:`bubsub.core.projection.masks`.
 
     Returns
     -------

@@ -11,7 +11,7 @@ bubsub simulate --phantom expanding2d --bubbles 6 --det-count 240 --subscans 4 -
 bubsub reconstruct4d "$dir/sim/scan.h5" --out "$dir/rec" --holdout odd --iterations 30 --chunks 2 --quiet
 python - "$dir" <<'PY'
 import json, sys
-from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
+from bubsub.clients.pipeline.evaluation.evaluate4d import evaluate_dynamic
 d = sys.argv[1]
 r = json.load(open(f"{d}/rec/report.json"))
 s = evaluate_dynamic(f"{d}/rec", f"{d}/sim")

@@ -8,9 +8,9 @@ import pytest
 from trimesh.triangles import closest_point
 
 from bubsub.clients.cli.main import main
-from bubsub.clients.pipeline import dynamic_outputs
-from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
-from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.dynamic4d import outputs4d
+from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, SubscanResult
+from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import Reconstruction
 from bubsub.core.io.atomic import atomic_write_text
 from bubsub.core.io.meshio import read_ply
@@ -108,9 +108,9 @@ def write_rec4d(folder, cold_voxel=None):
         if cold_voxel and k == len(times) - 1:
             report["preview"] = {"voxel_mm": cold_voxel, "shape": [8, 8, 8], "finer_for_bubbles": True}
         result = SubscanResult(k, t, state, (), report)
-        dynamic_outputs.write_subscan(folder, result, 3)
+        outputs4d.write_subscan(folder, result, 3)
         results.append(result)
-    dynamic_outputs.write_tracks(folder / "tracks.csv", results, "s")
+    outputs4d.write_tracks(folder / "tracks.csv", results, "s")
     atomic_write_text(folder / "report.json", json.dumps({"time_unit": "s"}))
 
 
@@ -204,8 +204,8 @@ def test_a_2d_reconstruct4d_folder_is_refused_as_2d(tmp_path, capsys):
         surfaces = [circle_surface((-0.6, 0.0), 0.4, C), circle_surface((0.6, 0.1 * k), 0.35, C)]
         state = BubbleState.from_surfaces([0, 1], surfaces)
         results.append(SubscanResult(k, float(k), state, (), {"subscan": k, "time": float(k), "bubbles": 2}))
-        dynamic_outputs.write_subscan(rec, results[-1], 2)
-    dynamic_outputs.write_tracks(rec / "tracks.csv", results, "s")
+        outputs4d.write_subscan(rec, results[-1], 2)
+    outputs4d.write_tracks(rec / "tracks.csv", results, "s")
     assert main(["analyse", str(rec), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert "2D reconstruct4d folder" in err and "not analysed" in err and "no complete" not in err
@@ -224,8 +224,8 @@ def test_a_4d_folder_is_analysed_on_one_grid_for_all_subscans(tmp_path):
                                                              for i, c in enumerate(centres)])
         results.append(SubscanResult(k, float(k), state, (), {"subscan": k, "time": float(k), "bubbles": 4,
                                                               "field_of_view_mm": FOV}))
-        dynamic_outputs.write_subscan(rec, results[-1], 3)
-    dynamic_outputs.write_tracks(rec / "tracks.csv", results, "s")
+        outputs4d.write_subscan(rec, results[-1], 3)
+    outputs4d.write_tracks(rec / "tracks.csv", results, "s")
     result = analyse(rec, contact_gap=0.03)
     cells = {}
     for row in result.tables["grid"]:

@@ -7,7 +7,7 @@ import pytest
 
 from bubsub.clients.analysis.domain import parse_domain
 from bubsub.clients.cli.main import main
-from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import Reconstruction
 from bubsub.core.analysis.regions import Domain
 from bubsub.core.projection.subdivision import sphere_surface

@@ -8,8 +8,8 @@ import h5py
 import pytest
 
 from bubsub.clients.cli import main
-from bubsub.clients.pipeline.checks import check_bubble_signal, check_settings
-from bubsub.clients.pipeline.outputs import MANIFEST, OutputFolderError, check_output_folder, finish_outputs
+from bubsub.clients.pipeline.inputs.checks import check_bubble_signal, check_settings
+from bubsub.clients.pipeline.results.outputs import MANIFEST, OutputFolderError, check_output_folder, finish_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings
 from bubsub.core.io.scanfile import read_scan
 

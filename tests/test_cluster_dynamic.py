@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from bubsub.clients.cli.main import main
-from bubsub.clients.cluster.dynamic import chunk_bounds, link_ids
+from bubsub.clients.cluster.chunks import chunk_bounds, link_ids
 from bubsub.clients.cluster.engine import local, open_client
-from bubsub.clients.pipeline.dynamic import BubbleState, DynamicSettings
+from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings
 from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
-from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
+from bubsub.clients.pipeline.evaluation.evaluate4d import evaluate_dynamic
 from bubsub.core import circle_surface
 from bubsub.core.io.scanfile import read_scan
 

@@ -141,7 +141,7 @@ def test_scan_noise_and_background(small):
 
 def test_simulation_folder_is_read_by_reconstruct_and_evaluate(tmp_path):
     from bubsub.clients.cli.main import main
-    from bubsub.clients.pipeline.evaluate import evaluate_dir
+    from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
     from bubsub.core.io.meshio import read_ply, write_ply
     from bubsub.core.io.scanfile import read_scan
 

@@ -12,9 +12,9 @@ import trimesh
 from bubsub.core import MeshProjector, ScanGeometry, SubdivisionSurface, sphere_surface
 from bubsub.core.io.scanfile import Scan
 from bubsub.core.projection.mesh import Mesh
-from bubsub.clients.pipeline.detect4d import detect_warm
-from bubsub.clients.pipeline.dynamic import BubbleState, DynamicSettings, SubscanResult, reconstruct_subscan
-from bubsub.clients.pipeline.lineage import lineage_rows
+from bubsub.clients.pipeline.dynamic4d.detect import detect_warm
+from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings, SubscanResult, reconstruct_subscan
+from bubsub.clients.pipeline.dynamic4d.lineage import lineage_rows
 
 CONTRAST = -0.1
 GEOMETRY = ScanGeometry.parallel(np.linspace(0, np.pi, 24, endpoint=False), pixel_size=0.05, cols=64, rows=32)

@@ -14,7 +14,7 @@ import pytest
 from bubsub.clients.cli import main
 # imported before any test patches bubsub.clients.optimise.fit.fit: its module-level `fit` must stay the real one
 from bubsub.clients.pipeline import reconstruct as _static_pipeline  # noqa: F401
-from bubsub.clients.pipeline.dynamic import BubbleState, DynamicSettings, reconstruct_subscan
+from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings, reconstruct_subscan
 from bubsub.core import Mesh, ScanGeometry, circle_surface, sphere_surface
 from bubsub.core.foam.expanding import expanding2d
 from bubsub.core.io.meshio import read_polygons_json
@@ -257,7 +257,7 @@ def test_reconstruct4d_outputs_and_tracks(sim, rec):
     for name in ("growth.png", "mse.png"):
         assert (rec / name).read_bytes()[:4] == b"\x89PNG"
     # each track follows one true bubble: nearest truth centroid at every subscan is the same
-    from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
+    from bubsub.clients.pipeline.evaluation.evaluate4d import evaluate_dynamic
 
     score = evaluate_dynamic(rec, sim)
     assert score["right_track_fraction"] == 1.0
@@ -312,8 +312,8 @@ def three():
 
 def test_a_diverged_subscan_is_kept_flagged_and_the_chain_goes_on(three, tmp_path, monkeypatch):
     from bubsub.clients.optimise import levels
-    from bubsub.clients.pipeline import dynamic_outputs
-    from bubsub.clients.pipeline.dynamic import run_chain
+    from bubsub.clients.pipeline.dynamic4d import outputs4d
+    from bubsub.clients.pipeline.dynamic4d.chain import run_chain
 
     scan, starts = three
     layout = subscan_layout(scan)
@@ -330,7 +330,7 @@ def test_a_diverged_subscan_is_kept_flagged_and_the_chain_goes_on(three, tmp_pat
     settings = DynamicSettings(iterations=15, progress=False, holdout="odd")
     results, interrupted = run_chain(
         lambda k: subscan(scan, layout, k), [2, 1, 0], settings, start=BubbleState.from_surfaces([7, 3, 5], starts),
-        on_result=lambda r: dynamic_outputs.write_subscan(tmp_path, r, 2))
+        on_result=lambda r: outputs4d.write_subscan(tmp_path, r, 2))
     assert not interrupted and [r.index for r in results] == [2, 1, 0] and len(calls) == 3
     r2, r1, r0 = results
     assert not r2.report["diverged"] and not r0.report["diverged"]
@@ -338,8 +338,8 @@ def test_a_diverged_subscan_is_kept_flagged_and_the_chain_goes_on(three, tmp_pat
     assert r1.state is r2.state and r1.ended == ()  # kept: the last good state, ids and all
     assert r0.state.ids == (7, 3, 5) and np.isfinite(r0.report["objective"])
     assert r0.report["objective"] < r0.report["initial_objective"]  # the chain went on from subscan 2's bubbles
-    assert sorted(dynamic_outputs.complete_subscans(tmp_path)) == [0, 1, 2]
-    report = dynamic_outputs.write_summary(tmp_path, results, layout=layout, time_unit="s", settings=settings)
+    assert sorted(outputs4d.complete_subscans(tmp_path)) == [0, 1, 2]
+    report = outputs4d.write_summary(tmp_path, results, layout=layout, time_unit="s", settings=settings)
     assert report["totals"]["subscans_diverged"] == 1 and report["totals"]["tracks"] == 3
     assert [p["diverged"] for p in json.loads((tmp_path / "report.json").read_text())["subscans"]] == [
         False, True, False]
@@ -418,7 +418,7 @@ def test_pgd_bb_reaches_the_nonnegative_least_squares_solution():
 
 
 def test_track_check_catches_swapped_ids(sim, rec, tmp_path):
-    from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
+    from bubsub.clients.pipeline.evaluation.evaluate4d import evaluate_dynamic
 
     out = tmp_path / "swapped"
     shutil.copytree(rec, out)
@@ -468,7 +468,7 @@ def test_a_warm_fit_stops_at_the_objective_plateau(small):
 def test_dynamic_settings_hold_every_static_setting():
     import dataclasses
 
-    from bubsub.clients.pipeline.dynamic import _static_settings
+    from bubsub.clients.pipeline.dynamic4d.chain import _static_settings
     from bubsub.clients.pipeline.reconstruct import ReconstructionSettings
 
     settings = DynamicSettings(iterations=7, separation=0.5, topology_rounds=1, shrink=0.9)

@@ -12,8 +12,8 @@ import trimesh
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
 from bubsub.core.io.scanfile import Scan
 from bubsub.core.projection.mesh import Mesh, Polygon
-from bubsub.clients.pipeline.dynamic import BubbleState, DynamicSettings, SubscanResult, reconstruct_subscan
-from bubsub.clients.pipeline.lineage import lineage_rows
+from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings, SubscanResult, reconstruct_subscan
+from bubsub.clients.pipeline.dynamic4d.lineage import lineage_rows
 
 CONTRAST = -0.1
 
@@ -148,7 +148,7 @@ def test_analysis_takes_coalescences_and_appearances_from_the_lineage():
 
 def test_ids_of_new_bubbles_stay_unique_across_chunks():
     """Each chunk numbers its new bubbles from its own cold start; the linker gives them fresh ids."""
-    from bubsub.clients.cluster.dynamic import run_chunks
+    from bubsub.clients.cluster.chunks import run_chunks
 
     def scripted(scan, previous, settings, index=0, time=0.0):
         if previous is None:  # the same two bubbles wherever a chunk starts cold

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bubsub.clients.cli import main
-from bubsub.clients.pipeline.dynamic import BubbleState, DynamicSettings, reconstruct_subscan
+from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings, reconstruct_subscan
 from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
 from bubsub.core.io.scanfile import Scan, read_scan, write_scan
 from bubsub.core.io.subscans import subscan, subscan_layout

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from bubsub.clients.cli import main
-from bubsub.clients.pipeline.evaluate import evaluate_dir
-from bubsub.clients.pipeline.outputs import MANIFEST, earlier_outputs
+from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
+from bubsub.clients.pipeline.results.outputs import MANIFEST, earlier_outputs
 from bubsub.core import Mesh, Polygon
 from bubsub.core.io.meshio import read_ply, read_polygons_json, write_ply, write_polygons_json
 

@@ -98,7 +98,7 @@ def test_ctrl_c_inside_a_fit_stops_the_experiment_and_keeps_the_finished_runs(tm
 
 
 def test_experiment_folders_follow_the_output_folder_policy(tmp_path, capsys):
-    from bubsub.clients.pipeline.outputs import MANIFEST
+    from bubsub.clients.pipeline.results.outputs import MANIFEST
 
     _fake_runs(tmp_path / "fig5.csv", True)
     args = ["experiment", "fig5", "--quick", "--values", "1.0", "--out", str(tmp_path), "--quiet"]

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from bubsub.clients.pipeline.figures import mesh_section, write_mesh_view, write_overlay, write_size_histogram
-from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.results.figures import mesh_section, write_mesh_view, write_overlay, write_size_histogram
+from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import Reconstruction
 from bubsub.core import sphere_surface
 from bubsub.core import sphere_mesh
@@ -77,8 +77,8 @@ def test_pictures_leave_pyplot_alone(tmp_path):
 import sys, numpy as np
 from pathlib import Path
 from bubsub.core import sphere_mesh
-from bubsub.clients.pipeline.figures import write_overlay, write_size_histogram, write_mesh_view
-from bubsub.clients.pipeline.dynamic_outputs import plot_growth, plot_mse, time_column
+from bubsub.clients.pipeline.results.figures import write_overlay, write_size_histogram, write_mesh_view
+from bubsub.clients.pipeline.dynamic4d.outputs4d import plot_growth, plot_mse, time_column
 out = Path({str(tmp_path)!r})
 m = sphere_mesh((0, 0, 0), 1.0, 0.5, subdivisions=2)
 write_overlay(out / "o.png", np.ones((8, 8, 8), np.float32), (-2, 2, -2, 2, -2, 2), [m])

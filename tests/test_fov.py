@@ -13,10 +13,10 @@ from bubsub.core.metrics import bubble_mask, dice_dissimilarity
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Polygon
 from bubsub.clients.optimise.fit import fit
-from bubsub.clients.pipeline.fov import (field_of_view, fov_mask, seen_by, size_inside_fov, unobserved_control)
-from bubsub.clients.pipeline.initial import initial_surfaces
-from bubsub.clients.pipeline.outputs import write_outputs
-from bubsub.clients.pipeline.preview import voxel_preview
+from bubsub.clients.pipeline.inputs.fov import (field_of_view, fov_mask, seen_by, size_inside_fov, unobserved_control)
+from bubsub.clients.pipeline.static.initial import initial_surfaces
+from bubsub.clients.pipeline.results.outputs import write_outputs
+from bubsub.clients.pipeline.static.preview import voxel_preview
 from bubsub.clients.pipeline.reconstruct import Reconstruction
 
 C = -0.1

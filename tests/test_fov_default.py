@@ -14,9 +14,9 @@ from bubsub.core.metrics import shapes_dice_dissimilarity
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh
 from bubsub.clients.cli.main import build_parser
-from bubsub.clients.pipeline.sides import check_lateral_truncation
-from bubsub.clients.pipeline.evaluate import evaluate_dir
-from bubsub.clients.pipeline.fov import field_of_view, size_inside_fov
+from bubsub.clients.pipeline.inputs.sides import check_lateral_truncation
+from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
+from bubsub.clients.pipeline.inputs.fov import field_of_view, size_inside_fov
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 
 C = -0.1
@@ -28,7 +28,7 @@ def _cap(r, h):
 
 
 def test_the_model_is_the_default_and_a_flag_switches_it_off_also_in_4d(tmp_path):
-    from bubsub.clients.pipeline.dynamic import DynamicSettings, _static_settings
+    from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings, _static_settings
 
     assert ReconstructionSettings().fov_model is True
     scan = tmp_path / "s.h5"
@@ -111,7 +111,7 @@ def test_evaluate_scores_only_the_truth_grids_voxels_inside_the_field_of_view(tm
 @pytest.mark.parametrize("factor", [0.3, 2.0])
 def test_an_unseen_cap_that_collapsed_or_swelled_is_continued_as_the_sphere_the_seen_part_lies_on(factor):
     from bubsub.core import sphere_surface
-    from bubsub.clients.pipeline.repair import continued
+    from bubsub.clients.pipeline.static.repair import continued
 
     centre, r = np.array([0.1, -0.2, 0.3]), 0.4
     ball = sphere_surface(centre, r, C)
@@ -131,8 +131,8 @@ def test_an_unseen_cap_that_collapsed_or_swelled_is_continued_as_the_sphere_the_
 
 def test_a_cap_thinner_than_the_previews_voxels_is_seeded_from_the_detectors_edge_row():
     from bubsub.core import MeshProjector
-    from bubsub.clients.pipeline.initial import choose_initial, edge_slices
-    from bubsub.clients.pipeline.preview import voxel_preview
+    from bubsub.clients.pipeline.static.initial import choose_initial, edge_slices
+    from bubsub.clients.pipeline.static.preview import voxel_preview
 
     # 20 parallel views of a 64 x 24 detector of 25 um pixels: field of view radius 0.8 mm, half height 0.3 mm
     g = ScanGeometry.parallel(np.linspace(0, np.pi, 20, endpoint=False), pixel_size=0.025, cols=64, rows=24)
@@ -163,7 +163,7 @@ def test_a_cap_thinner_than_the_previews_voxels_is_seeded_from_the_detectors_edg
 
 def test_topology_never_merges_a_bubble_that_reaches_the_edge_of_the_field_of_view():
     from bubsub.core import MeshProjector, sphere_surface
-    from bubsub.clients.pipeline.topology import adapt_topology
+    from bubsub.clients.pipeline.static.topology import adapt_topology
 
     g = ScanGeometry.parallel(np.linspace(0, np.pi, 16, endpoint=False), pixel_size=0.05, cols=40, rows=16)
     # one ball of 0.3 mm started as two halves side by side: inside the field of view (z = 0) the merge wins;

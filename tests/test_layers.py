@@ -61,7 +61,7 @@ THIRD_PARTY_ALLOWED = {
 
 #: Modules that ``bubsub --help`` imports for their catalogues (the experiments, the phantoms); what they run they
 #: import when it runs.
-START_UP = ("bubsub.clients.experiments.runner", "bubsub.clients.experiments.fig6", "bubsub.clients.pipeline.simulation")
+START_UP = ("bubsub.clients.experiments.runner", "bubsub.clients.experiments.fig6", "bubsub.clients.pipeline.evaluation.simulation")
 
 #: ``(importing module, imported bubsub module)`` pairs imported inside a function, each with its reason.
 FUNCTION_LEVEL_ALLOWED = {
@@ -75,11 +75,7 @@ FUNCTION_LEVEL_ALLOWED = {
 
 
 #: Cycles between units that remain, each with what breaks it.
-UNIT_CYCLES_ALLOWED = [
-    ({"bubsub.core.projection", "bubsub.core.voxel"},
-     "projection.validity.overlap_measure samples with voxel.raster.coverage; the mesh-to-mask conversion "
-     "(core/voxel/raster.py) belongs in core/projection, which breaks the cycle"),
-]
+UNIT_CYCLES_ALLOWED = []
 
 
 def _optional(target):
@@ -282,16 +278,16 @@ def test_the_reasons_for_imports_inside_functions_are_narrow():
     fake = [("bubsub.core.voxel.splat", "numba", 3, None, False),
             ("bubsub.core.voxel.projector3d", "bubsub.core.voxel.splat", 9, "forward", False),
             ("bubsub.core.voxel.projector3d", "bubsub.core.voxel.grid", 12, "forward", False),
-            ("bubsub.clients.cli.reconstruct", "bubsub.clients.pipeline.slabs", 20, "cmd_reconstruct", False),
-            ("bubsub.clients.cli.reconstruct", "bubsub.clients.pipeline.outputs", 40, "_finish", False),
-            ("bubsub.clients.pipeline.slabs", "bubsub.clients.pipeline.outputs", 50, "cmd_x", False)]
-    fake += [("bubsub.clients.pipeline.simulation", "bubsub.core.foam.column", 60, "simulate", False),
-             ("bubsub.clients.pipeline.simulation", "bubsub.core.io.scanfile", 70, "simulate", False)]
+            ("bubsub.clients.cli.reconstruct", "bubsub.clients.pipeline.regions.slabs", 20, "cmd_reconstruct", False),
+            ("bubsub.clients.cli.reconstruct", "bubsub.clients.pipeline.results.outputs", 40, "_finish", False),
+            ("bubsub.clients.pipeline.regions.slabs", "bubsub.clients.pipeline.results.outputs", 50, "cmd_x", False)]
+    fake += [("bubsub.clients.pipeline.evaluation.simulation", "bubsub.core.foam.column", 60, "simulate", False),
+             ("bubsub.clients.pipeline.evaluation.simulation", "bubsub.core.io.scanfile", 70, "simulate", False)]
     assert optional_modules(fake) == {"bubsub.core.voxel.splat"}
     assert lazy_bubsub_imports(fake, {"bubsub.core.io.scanfile"}) == {
         ("bubsub.core.voxel.projector3d", "bubsub.core.voxel.grid"),
-        ("bubsub.clients.pipeline.slabs", "bubsub.clients.pipeline.outputs"),
-        ("bubsub.clients.pipeline.simulation", "bubsub.core.io.scanfile")}
+        ("bubsub.clients.pipeline.regions.slabs", "bubsub.clients.pipeline.results.outputs"),
+        ("bubsub.clients.pipeline.evaluation.simulation", "bubsub.core.io.scanfile")}
 
 
 def test_third_party_imports_inside_functions_are_optional_extras():

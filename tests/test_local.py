@@ -3,7 +3,7 @@
 import numpy as np
 
 from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
-from bubsub.clients.pipeline.local import local_refit, touching_groups
+from bubsub.clients.pipeline.regions.local import local_refit, touching_groups
 
 CENTRES = ((-1.2, -1.2, 0.0), (1.2, -1.2, 0.1), (-1.2, 1.2, -0.1), (1.2, 1.2, 0.0), (0.0, 0.0, 0.9))
 

@@ -142,7 +142,7 @@ def test_prepare_finds_the_liquid_of_a_sample_wider_than_the_detector(prepared):
 
 def test_a_prepared_local_scan_is_named_local_tomography_in_one_line(prepared, caplog):
     from bubsub.core.io.scanfile import read_scan
-    from bubsub.clients.pipeline.sides import check_lateral_truncation
+    from bubsub.clients.pipeline.inputs.sides import check_lateral_truncation
 
     scan = read_scan(prepared[0] / "scan.h5")
     with caplog.at_level(logging.WARNING, logger="bubsub"):

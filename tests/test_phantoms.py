@@ -10,7 +10,7 @@ from matplotlib.path import Path as MplPath
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.foam.containers import liquid_box, liquid_square, sphere_mesh
 from bubsub.core.foam.phantoms import BENCHMARK_SEED, FoamPhantom, foam2d, foam3d, foam3d_benchmark
-from bubsub.core.voxel.raster import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
+from bubsub.core.projection.masks import bubble_mask, check_grid, coverage, label_image, pixel_centres, rasterize
 
 
 def regular_polygon(centre, radius, n=256, attenuation=1.0):

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from bubsub.clients.cli import main
-from bubsub.clients.pipeline.checks import check_bubble_signal
-from bubsub.clients.pipeline.physics import check_physical_signal, liquid_attenuation, longest_path
+from bubsub.clients.pipeline.inputs.checks import check_bubble_signal
+from bubsub.clients.pipeline.inputs.physics import check_physical_signal, liquid_attenuation, longest_path
 from bubsub.core import ScanGeometry
 from bubsub.core.io.scanfile import read_scan
 

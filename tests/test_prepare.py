@@ -204,7 +204,7 @@ def test_tiff_folder_gives_the_same_scan(raw, tmp_path):
 
 
 def test_bubbles_at_the_edge_of_the_field_of_view_are_flagged():
-    from bubsub.clients.pipeline.fov import field_of_view, truncated_flags
+    from bubsub.clients.pipeline.inputs.fov import field_of_view, truncated_flags
     from bubsub.core import circle_surface
     from bubsub.core.projection.geometry import ScanGeometry
     from bubsub.core.prep.pipeline import scan_geometry

@@ -7,10 +7,10 @@ import h5py
 import numpy as np
 import pytest
 
-from bubsub.clients.pipeline.evaluate import evaluate_dir
-from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
+from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
-from bubsub.clients.pipeline.simulation import simulate_raw_to_dir
+from bubsub.clients.pipeline.evaluation.simulation import simulate_raw_to_dir
 from bubsub.core.io.scanfile import read_scan
 from bubsub.core.prep import prepare, prepare_options
 

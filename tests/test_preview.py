@@ -7,9 +7,8 @@ from bubsub.core.foam.ellipsoids import project_ellipsoids
 from bubsub.core.io.scanfile import Scan
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.subdivision import sphere_surface
-from bubsub.clients.pipeline import preview
-from bubsub.clients.pipeline.preview import (BUBBLE_VOXELS, preview_grid, preview_voxel_size,
-                                             voxel_for_bubbles)
+from bubsub.clients.pipeline.static import preview
+from bubsub.clients.pipeline.static.preview import (BUBBLE_VOXELS, preview_grid, preview_voxel_size, voxel_for_bubbles)
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 
 C = -0.1

@@ -80,7 +80,7 @@ def test_redirected_reconstruct_prints_one_line_per_phase(tmp_path, capsys, monk
     assert names[0].startswith("voxel preview (2D") and names[1:4] == [
         "radius estimation (LoG centres)", "radius estimation (distance-transform centres)", "BubSub fit"]
     # then the topology rounds (each timed whole, its refit a phase of its own) and the coarse-to-fine trial
-    # (clients/pipeline/refine.py), when it runs
+    # (clients/pipeline/static/refine.py), when it runs
     assert names[4] == "topology round 1"
     assert all(n.startswith("topology round") or n == "refined fit" for n in names[4:-1]) and names[-1] == "pictures"
     assert "\r" not in "\n".join(err) and "callback" not in "\n".join(err)
@@ -98,7 +98,7 @@ def _seconds(line):
 def test_a_topology_round_is_one_phase_timed_from_its_start(disc_scene, capsys, monkeypatch):
     import time
 
-    from bubsub.clients.pipeline.topology import adapt_topology
+    from bubsub.clients.pipeline.static.topology import adapt_topology
 
     monkeypatch.delenv("BUBSUB_PROGRESS", raising=False)
     P, data = disc_scene
@@ -120,7 +120,7 @@ def test_a_topology_round_is_one_phase_timed_from_its_start(disc_scene, capsys, 
 def test_redirected_subscans_print_one_plain_line_each(capsys, monkeypatch):
     from types import SimpleNamespace
 
-    from bubsub.clients.pipeline.dynamic import run_chain
+    from bubsub.clients.pipeline.dynamic4d.chain import run_chain
 
     monkeypatch.delenv("BUBSUB_PROGRESS", raising=False)
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bubsub.clients.cli import main
-from bubsub.clients.pipeline.evaluate import evaluate_dir
+from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
 from bubsub.core import MeshProjector
 from bubsub.core.io.meshio import read_polygons_json
 
@@ -147,7 +147,7 @@ def test_reconstruct_against_a_projector_server(sim, rec, tmp_path):
 
 
 def test_ctrl_c_in_the_topology_rounds_stops_them_and_writes_the_first_fit(sim, tmp_path, monkeypatch):
-    from bubsub.clients.pipeline import topology
+    from bubsub.clients.pipeline.static import topology
 
     def ctrl_c(*args, **kwargs):
         raise KeyboardInterrupt
@@ -165,7 +165,7 @@ def test_ctrl_c_in_the_topology_rounds_stops_them_and_writes_the_first_fit(sim, 
 def test_resample_image_reproduces_a_linear_field_between_grids():
     """Trilinear resampling (the coarse-to-fine 3D preview) is exact for a linear field inside the old grid;
     axes follow the grid convention (x columns, y rows downwards, z slices)."""
-    from bubsub.clients.pipeline.preview import resample_image
+    from bubsub.clients.pipeline.static.preview import resample_image
     from bubsub.core.voxel.grid import index_to_world
 
     def field(shape, extent):

@@ -4,8 +4,8 @@ import dataclasses
 
 import pytest
 
-from bubsub.clients.pipeline.checks import check_settings
-from bubsub.clients.pipeline.dynamic import DynamicSettings
+from bubsub.clients.pipeline.inputs.checks import check_settings
+from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings
 
 

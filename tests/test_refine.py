@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bubsub.clients.optimise.criteria import akaike_score
-from bubsub.clients.pipeline.refine import TRIAL_FAILED, can_refine, refine_and_fit
+from bubsub.clients.pipeline.static.refine import TRIAL_FAILED, can_refine, refine_and_fit
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
 from bubsub.core.projection.mesh import Polygon
 from bubsub.core.projection.subdivision import refine_control
@@ -87,7 +87,7 @@ def test_akaike_score_charges_two_per_unknown():
 
 
 def test_a_repair_that_costs_the_refinement_its_advantage_keeps_the_coarse_bubbles():
-    from bubsub.clients.pipeline.refine import refine_and_check
+    from bubsub.clients.pipeline.static.refine import refine_and_check
 
     centres = ([-1.2, 0.0], [1.1, 0.3])
     projector, data = _scan([_rounded_square(c, 0.9, 0.15) for c in centres])
@@ -110,7 +110,7 @@ def test_a_repair_that_costs_the_refinement_its_advantage_keeps_the_coarse_bubbl
 
 def test_an_unfinished_coarse_fit_does_not_pass_its_own_progress_off_as_the_refinement_s():
     from bubsub.clients.optimise.fit import fit
-    from bubsub.clients.pipeline.refine import coarse_rate
+    from bubsub.clients.pipeline.static.refine import coarse_rate
 
     truth = [circle_surface([-1.0, 0.2], 0.7, MU, control=64, levels=3), circle_surface([1.0, -0.3], 0.8, MU,
                                                                                         control=64, levels=3)]
@@ -128,7 +128,7 @@ def test_an_unfinished_coarse_fit_does_not_pass_its_own_progress_off_as_the_refi
 
 
 def test_a_trial_stops_once_its_bar_is_out_of_reach_at_its_best_pace():
-    from bubsub.clients.pipeline.refine import out_of_reach
+    from bubsub.clients.pipeline.static.refine import out_of_reach
 
     # best drop 3: 12 below the bar takes more than 3 x 3 iterations at that pace, 8 does not
     assert out_of_reach([100.0, 97.0, 95.0, 94.0], 82.0, 3)
@@ -148,8 +148,8 @@ def test_a_hopeless_refinement_stops_at_half_its_trial():
 
 
 def test_a_repairs_rise_in_the_objective_is_not_passed_off_as_the_refinements_gain():
-    from bubsub.clients.pipeline.local import scene_objective
-    from bubsub.clients.pipeline.repair import shrunk
+    from bubsub.clients.pipeline.regions.local import scene_objective
+    from bubsub.clients.pipeline.static.repair import shrunk
 
     projector, data, coarse = _round_bubbles()
     reached = scene_objective(projector, coarse, data)

@@ -14,7 +14,7 @@ import pytest
 
 from bubsub.clients.cli.reconstruct import summary_line
 from bubsub.clients.experiments.runner import EXPERIMENTS, case_config, simulate_case
-from bubsub.clients.pipeline.outputs import write_outputs
+from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, load_initial, reconstruct
 from bubsub.core import MeshProjector
 

@@ -1,13 +1,13 @@
-"""Each bubble subdivided by its size on the detector (clients/pipeline/resolution.py)."""
+"""Each bubble subdivided by its size on the detector (clients/pipeline/static/resolution.py)."""
 
 import numpy as np
 import pytest
 
 from bubsub.core import ScanGeometry, circle_surface, sphere_surface
-from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
-from bubsub.clients.pipeline.dynamic_outputs import read_subscan_result, write_subscan
-from bubsub.clients.pipeline.resolution import (FACET_PIXELS, facet_depth, level_counts, levels_by_size,
-                                                pixels_per_mm)
+from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, SubscanResult
+from bubsub.clients.pipeline.dynamic4d.outputs4d import read_subscan_result, write_subscan
+from bubsub.clients.pipeline.static.resolution import (FACET_PIXELS, facet_depth, level_counts, levels_by_size,
+                                                       pixels_per_mm)
 
 PIXEL = 0.012
 ANGLES = np.linspace(0, np.pi, 12, endpoint=False)

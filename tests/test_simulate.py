@@ -8,7 +8,7 @@ from bubsub.core.projection.mesh import Polygon
 from bubsub.core.foam.containers import liquid_box
 from bubsub.core.foam.phantoms import foam2d, foam3d
 from bubsub.core.projection.projector import MeshProjector
-from bubsub.core.voxel.raster import rasterize
+from bubsub.core.projection.masks import rasterize
 from bubsub.core.foam.simulate import (
     add_poisson_noise,
     default_geometry_2d,

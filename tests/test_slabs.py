@@ -78,7 +78,7 @@ def test_translated_geometry_sees_the_moved_scene(cone):
 
 
 def test_plan_slabs_partitions_the_rows_and_clips_the_halos():
-    from bubsub.clients.pipeline.slabs import plan_slabs
+    from bubsub.clients.pipeline.regions.slabs import plan_slabs
 
     plan = plan_slabs(100, 3, 10)
     assert [s.core for s in plan] == [(0, 33), (33, 67), (67, 100)]
@@ -92,7 +92,7 @@ def test_plan_slabs_partitions_the_rows_and_clips_the_halos():
 
 def test_auto_keeps_a_tomography_size_column_whole_and_spreads_it_over_workers():
     from bubsub.clients.pipeline.reconstruct import ReconstructionSettings
-    from bubsub.clients.pipeline.slabs import SLAB_PIXELS, WHOLE_SCAN_SLABS, slab_count
+    from bubsub.clients.pipeline.regions.slabs import SLAB_PIXELS, WHOLE_SCAN_SLABS, slab_count
 
     settings = ReconstructionSettings()
     column = _parallel(rows=256, cols=768, n=40)  # 7.9 million pixels: the ~600-bubble column's detector
@@ -115,7 +115,7 @@ def test_auto_keeps_a_tomography_size_column_whole_and_spreads_it_over_workers()
 
 
 def test_cone_beam_slabs_are_refused():
-    from bubsub.clients.pipeline.slabs import check_slab_geometry
+    from bubsub.clients.pipeline.regions.slabs import check_slab_geometry
 
     g = ScanGeometry.cone(np.linspace(0, 2 * np.pi, 4, endpoint=False), source_origin=30.0, origin_detector=10.0,
                           pixel_size=0.1, cols=8, rows=8)
@@ -126,13 +126,13 @@ def test_cone_beam_slabs_are_refused():
 
 # -- ownership and stitching -----------------------------------------------------------------------
 def _result(index, core, read, centres, n_rows=40, radius=0.2):
-    from bubsub.clients.pipeline.slabs import Slab, SlabResult
+    from bubsub.clients.pipeline.regions.slabs import Slab, SlabResult
 
     return SlabResult(Slab(index, core, read, n_rows), [sphere_surface(c, radius, -0.1) for c in centres], {})
 
 
 def test_stitch_keeps_every_bubble_once():
-    from bubsub.clients.pipeline.slabs import stitch
+    from bubsub.clients.pipeline.regions.slabs import stitch
 
     g = _parallel(rows=40, cols=32)  # rows 0..40 span z = -2..2 mm; the seam at row 20 is z = 0
     lower = _result(0, (0, 20), (0, 28), [(0, 0, -1.0),      # owned by the lower slab
@@ -149,7 +149,7 @@ def test_stitch_keeps_every_bubble_once():
 
 
 def test_stitch_counts_a_bubble_cut_by_a_seam():
-    from bubsub.clients.pipeline.slabs import stitch
+    from bubsub.clients.pipeline.regions.slabs import stitch
 
     g = _parallel(rows=40, cols=32)
     lower = _result(0, (0, 20), (0, 22), [(0, 0, -0.1)], radius=0.4)  # reaches z = 0.3 but rows read end at 0.2
@@ -192,7 +192,7 @@ def test_a_bubble_across_the_seam_comes_out_once_as_in_the_whole_scan(seam_scan,
     from bubsub.core.io.scanfile import read_scan
     from bubsub.core.metrics import bubble_mask, dice_dissimilarity
     from bubsub.clients.pipeline.reconstruct import reconstruct
-    from bubsub.clients.pipeline.slabs import reconstruct_slabs
+    from bubsub.clients.pipeline.regions.slabs import reconstruct_slabs
 
     rec = reconstruct_slabs(seam_scan, _quick(), slabs=2, halo=10, out=tmp_path)
     assert rec.report["stitch"]["seam_cut"] == 0 and len(rec.report["slabs"]) == 2
@@ -213,7 +213,7 @@ def test_a_bubble_across_the_seam_comes_out_once_as_in_the_whole_scan(seam_scan,
 
 
 def test_resume_reuses_finished_slabs_and_computes_the_rest(seam_scan, tmp_path, monkeypatch):
-    from bubsub.clients.pipeline import slabs
+    from bubsub.clients.pipeline.regions import slabs
 
     real, calls = slabs.run_slab, []
 
@@ -245,7 +245,7 @@ def test_resume_reuses_finished_slabs_and_computes_the_rest(seam_scan, tmp_path,
 def test_slabs_on_a_local_dask_cluster_match_the_in_process_run(seam_scan):
     pytest.importorskip("dask.distributed")
     from bubsub.clients.cluster.engine import local, open_client
-    from bubsub.clients.pipeline.slabs import reconstruct_slabs
+    from bubsub.clients.pipeline.regions.slabs import reconstruct_slabs
 
     here = reconstruct_slabs(seam_scan, _quick(), slabs=2, halo=10)
     with open_client(local(2)) as client:
@@ -258,7 +258,7 @@ def test_slabs_on_a_local_dask_cluster_match_the_in_process_run(seam_scan):
 def test_each_slab_is_a_fitting_job_on_the_projector_server(seam_scan):
     from service_support import ServerThread
 
-    from bubsub.clients.pipeline.slabs import reconstruct_slabs
+    from bubsub.clients.pipeline.regions.slabs import reconstruct_slabs
 
     here = reconstruct_slabs(seam_scan, _quick(), slabs=2, halo=10)
     with ServerThread() as server:

@@ -9,7 +9,7 @@ from bubsub.core.foam.ellipsoids import ellipsoid_labels, project_cylinder, proj
 from bubsub.core.io.scanfile import Scan
 from bubsub.core.metrics import label_image
 from bubsub.core.projection.geometry import ScanGeometry
-from bubsub.clients.pipeline.fov import field_of_view
+from bubsub.clients.pipeline.inputs.fov import field_of_view
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 
 C = -0.1

@@ -54,7 +54,7 @@ def test_the_docs_list_every_column_of_the_analysis_and_track_tables():
     from pathlib import Path
 
     from bubsub.clients.analysis.folders import TABLE_FILES
-    from bubsub.clients.pipeline.dynamic_outputs import tracks_info
+    from bubsub.clients.pipeline.dynamic4d.outputs4d import tracks_info
     from bubsub.core.analysis.columns import describe, dynamics_columns
     from bubsub.core.analysis.snapshot import SNAPSHOT_TABLES
     from bubsub.core.io.tables import markdown_columns

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from bubsub.clients.pipeline.blobs import log_blobs
-from bubsub.clients.pipeline.preview import voxel_preview
-from bubsub.clients.pipeline.topology import adapt_topology
+from bubsub.clients.pipeline.static.blobs import log_blobs
+from bubsub.clients.pipeline.static.preview import voxel_preview
+from bubsub.clients.pipeline.static.topology import adapt_topology
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface
 from bubsub.core.foam.dense import dense_foam2d, dense_foam3d
 from bubsub.core.projection.validity import check_bubbles
-from bubsub.core.voxel.raster import rasterize
+from bubsub.core.projection.masks import rasterize
 
 MU = -0.1
 
@@ -38,7 +38,7 @@ def test_parallel_scale_space_finds_exactly_scikit_images_blobs(ndim):
     # log_blobs computes blob_log's scale space itself, one scale per thread: same scales, same peaks
     from skimage.feature import blob_log
 
-    from bubsub.clients.pipeline.blobs import _blob_log
+    from bubsub.clients.pipeline.static.blobs import _blob_log
 
     rng = np.random.default_rng(4)
     shape = (40, 48, 44)[:ndim]
@@ -141,8 +141,8 @@ def test_topology_merges_two_halves_of_one_bubble_and_leaves_a_good_fit_alone():
 def test_a_merge_and_a_split_keep_the_residual_and_the_footprints_of_the_new_bubbles():
     """merge_step and split_step add the new bubbles' own projections (on windows around them) to the
     residual: afterwards it is the new scene's Proj - d, and each kept footprint the new bubble's own."""
-    from bubsub.clients.pipeline.local import Footprints, scene_residual
-    from bubsub.clients.pipeline.topology import merge_step, split_step
+    from bubsub.clients.pipeline.regions.local import Footprints, scene_residual
+    from bubsub.clients.pipeline.static.topology import merge_step, split_step
 
     truth = [circle_surface([0.0, 0.0], 0.8, MU, control=32, levels=3),
              circle_surface([-1.5, -1.6], 0.4, MU, control=32, levels=3),
@@ -190,7 +190,7 @@ def test_dense_foam_is_dense_disjoint_and_keeps_its_films(make, ndim):
 
 
 def test_footprint_matches_the_dense_projection_it_replaces():
-    from bubsub.clients.pipeline.local import Footprint, others_removed
+    from bubsub.clients.pipeline.regions.local import Footprint, others_removed
 
     rng = np.random.default_rng(3)
     p = np.zeros((5, 7, 9), np.float32)
@@ -215,7 +215,7 @@ def test_window_footprints_and_local_fits_match_the_whole_detector(ndim):
     """A bubble's own projection through a detector window around its shadow is its whole-detector
     projection; local fits on one window rank candidates as the whole detector does."""
     from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
-    from bubsub.clients.pipeline.local import Footprint, Window, local_fits
+    from bubsub.clients.pipeline.regions.local import Footprint, Window, local_fits
 
     angles = np.linspace(0, np.pi, 6, endpoint=False)
     if ndim == 3:
@@ -242,7 +242,7 @@ def test_window_footprints_and_local_fits_match_the_whole_detector(ndim):
 
 
 def test_auto_initialisation_keeps_the_candidate_set_that_fits_the_data_best():
-    from bubsub.clients.pipeline.initial import choose_initial
+    from bubsub.clients.pipeline.static.initial import choose_initial
 
     centres = np.array([[-0.65, 0.0], [0.67, 0.0], [0.2, 1.8]])
     truth = [circle_surface(c, r, MU, control=32, levels=3) for c, r in zip(centres, [0.65, 0.65, 0.5])]
@@ -268,7 +268,7 @@ def test_bubble_diagnosis_counts_centres_and_finds_merged_bubbles():
 
     extent = (-3.0, 3.0, -3.0, 3.0)
     truth = [circle_surface(c, 0.5, MU, control=32, levels=3).fine() for c in ([-1.5, 0], [-0.4, 0], [1.5, 1.5])]
-    from bubsub.core.voxel.raster import label_image
+    from bubsub.core.projection.masks import label_image
 
     labels = label_image(truth, (96, 96), extent)
     centres = [[-1.5, 0.0], [1.4, 1.5], [1.6, 1.5], [2.5, -2.5]]  # one in 1, none in 2, two in 3, one in liquid
@@ -284,9 +284,9 @@ def test_bubble_diagnosis_counts_centres_and_finds_merged_bubbles():
 def test_inside_matches_the_winding_number_of_every_point(ndim):
     """The split step's point test: points outside the bounding box are skipped, and the answer is
     still the one-point coverage of every point (near the surface, inside, far away)."""
-    from bubsub.clients.pipeline.topology import points_inside
+    from bubsub.clients.pipeline.static.topology import points_inside
     from bubsub.core import sphere_surface
-    from bubsub.core.voxel.raster import coverage
+    from bubsub.core.projection.masks import coverage
 
     centre = np.array([0.3, -0.2, 0.1][:ndim])
     s = (circle_surface(centre, 1.0, 0.1) if ndim == 2 else sphere_surface(centre, 1.0, 0.1)).fine()
@@ -303,7 +303,7 @@ def test_inside_matches_the_winding_number_of_every_point(ndim):
 
 
 def test_a_later_round_tries_removals_only_among_the_bubbles_the_last_refit_moved(monkeypatch):
-    from bubsub.clients.pipeline import topology
+    from bubsub.clients.pipeline.static import topology
 
     # two far-apart good bubbles and a spurious one: round 1 removes it and refits no one (nothing touches it);
     # a missed bubble is added, refitted, and round 2 weighs the removal of that one only

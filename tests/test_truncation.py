@@ -14,9 +14,9 @@ from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
 from bubsub.core.io.scanfile import Scan, read_scan
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Polygon
-from bubsub.clients.pipeline.sides import (LOCAL_VIEWS, TRUNCATED_VIEWS, check_lateral_truncation,
-                                           side_bubble_signal, side_signal)
-from bubsub.clients.pipeline.fov import field_of_view
+from bubsub.clients.pipeline.inputs.sides import (LOCAL_VIEWS, TRUNCATED_VIEWS, check_lateral_truncation,
+                                                  side_bubble_signal, side_signal)
+from bubsub.clients.pipeline.inputs.fov import field_of_view
 
 C = -0.1
 
@@ -49,8 +49,8 @@ def raw_scan(tmp_path_factory):
 
 
 def test_a_raw_scan_whose_liquid_blurs_into_the_sides_passes_and_reconstructs(raw_scan):
-    from bubsub.clients.pipeline.evaluate import evaluate_dir
-    from bubsub.clients.pipeline.outputs import write_outputs
+    from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
+    from bubsub.clients.pipeline.results.outputs import write_outputs
     from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 
     out, report, s = raw_scan

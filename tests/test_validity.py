@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from bubsub.clients.pipeline.repair import check_and_repair, repair_bubbles, separate
+from bubsub.clients.pipeline.static.repair import check_and_repair, repair_bubbles, separate
 from bubsub.core import MeshProjector, ScanGeometry, circle_surface, sphere_surface
 from bubsub.core.projection.mesh import Polygon
 from bubsub.core.projection.validity import (check_bubbles, crossings_between, overlap_measure, self_crossing_vertices,
-                                            self_crossings)
+                                             self_crossings)
 
 MU = -0.1
 
@@ -111,7 +111,7 @@ def test_check_and_repair_with_a_refit_returns_valid_bubbles_closer_to_the_data(
 
 @pytest.mark.parametrize("ndim", [2, 3])
 def test_untangling_keeps_a_folded_bubble_in_place_and_of_its_size(ndim):
-    from bubsub.clients.pipeline.repair import untangled
+    from bubsub.clients.pipeline.static.repair import untangled
 
     s = circle_surface([0.3, -0.2], 1.0, MU) if ndim == 2 else sphere_surface([0.3, -0.2, 0.1], 1.0, MU)
     v = s.vertices.copy()
@@ -139,7 +139,7 @@ def test_crossing_vertices_are_the_ends_of_the_crossing_edges():
 
 
 def test_unfolding_a_local_fold_leaves_the_far_control_vertices_where_they_were():
-    from bubsub.clients.pipeline.repair import untangled
+    from bubsub.clients.pipeline.static.repair import untangled
 
     s = sphere_surface([0.3, -0.2, 0.1], 1.0, MU, control=162)
     v = s.vertices.copy()
@@ -158,7 +158,7 @@ def test_unfolding_a_local_fold_leaves_the_far_control_vertices_where_they_were(
 
 
 def test_merged_validity_keeps_both_checks_and_the_second_ones_remainder():
-    from bubsub.clients.pipeline.repair import merged_validity
+    from bubsub.clients.pipeline.static.repair import merged_validity
 
     first = {"violations_found": [{"kind": "overlap"}], "actions": [{"action": "separated"}],
              "violations_remaining": [{"kind": "overlap"}], "dropped": 1, "repaired": True}
@@ -185,7 +185,7 @@ def test_check_of_a_few_bubbles_finds_what_the_whole_check_finds_of_them():
 
 @pytest.mark.parametrize("ndim", [2, 3])
 def test_a_pair_still_sharing_gas_loses_a_few_per_cent_of_the_smaller_bubble_not_the_bubble(ndim):
-    from bubsub.clients.pipeline.repair import shrink_overlaps
+    from bubsub.clients.pipeline.static.repair import shrink_overlaps
 
     make = sphere_surface if ndim == 3 else circle_surface
     big, small, far = make([0.0] * ndim, 1.0, -0.1), make([1.7] + [0.0] * (ndim - 1), 0.8, -0.1), \

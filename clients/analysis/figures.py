@@ -1,7 +1,7 @@
 """Pictures of an analysis (PNG, off-screen): sizes, sphericity, coordination, liquid fraction, growth law, T1 map.
 
 Every picture is drawn from the analysis' own tables, on a bare matplotlib
-Figure (:func:`bubsub.clients.pipeline.figures.subplots`), with units on its
+Figure (:func:`bubsub.clients.pipeline.results.figures.subplots`), with units on its
 axes; bubbles cut by the field of view are left out, as in the statistics.
 A 4D analysis draws up to four subscans side by side in the histograms and
 profiles, and adds the growth law and the T1 map.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from bubsub.core.io.atomic import atomic_path
-from bubsub.clients.pipeline.figures import subplots
+from bubsub.clients.pipeline.results.figures import subplots
 
 __all__ = ["write_figures", "FIGURES"]
 

@@ -5,7 +5,7 @@
 (``tracks.csv`` and ``subscan_NNNN/``, each a reconstruct folder) and returns
 an :class:`Analysis`: every table as a list of rows with its column
 descriptions, and a summary. :meth:`Analysis.write` writes them
-(:mod:`bubsub.clients.pipeline.outputs` policy) with the pictures of
+(:mod:`bubsub.clients.pipeline.results.outputs` policy) with the pictures of
 :mod:`bubsub.clients.analysis.figures`.
 
 Default contact gap
@@ -36,7 +36,7 @@ from bubsub.core.analysis.regions import Domain
 from bubsub.core.analysis.snapshot import SNAPSHOT_TABLES, analyse_meshes, default_regions
 from bubsub.clients.analysis.domain import analysed_domain
 from bubsub.clients.analysis.figures import write_figures
-from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs, json_default
+from bubsub.clients.pipeline.results.outputs import check_output_folder, finish_outputs, json_default
 from bubsub.core.io.atomic import atomic_write_text
 from bubsub.core.io.meshio import read_ply
 from bubsub.core.io.tables import csv_metadata_path, write_csv

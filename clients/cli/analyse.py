@@ -39,7 +39,7 @@ def _same_folder(rec, out):
 
 def cmd_analyse(args):
     from bubsub.clients.analysis.folders import analyse, reconstruction_kind
-    from bubsub.clients.pipeline.outputs import check_output_folder
+    from bubsub.clients.pipeline.results.outputs import check_output_folder
 
     if _same_folder(args.rec, args.out):
         raise ValueError("--out must be a folder of its own, not the reconstruction's folder (its results would be "

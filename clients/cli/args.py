@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 
 from bubsub.clients.cluster.engine import spec_from_options
-from bubsub.clients.pipeline.outputs import folder_problem
+from bubsub.clients.pipeline.results.outputs import folder_problem
 
 __all__ = ["positive_int", "non_negative_int", "int_at_least", "positive_float", "non_negative_float",
            "existing_file", "output_folder", "add_output_arguments", "add_fit_arguments", "slabs_argument",
@@ -79,7 +79,7 @@ def existing_file(text):
 
 def output_folder(text):
     """A folder to write into: refused when it names a file or lies under one (the policy on earlier
-    results is :func:`bubsub.clients.pipeline.outputs.check_output_folder`)."""
+    results is :func:`bubsub.clients.pipeline.results.outputs.check_output_folder`)."""
     problem = folder_problem(text)
     if problem:
         raise argparse.ArgumentTypeError(problem)
@@ -88,7 +88,7 @@ def output_folder(text):
 
 def add_output_arguments(parser, what="results", default=None):
     """``--out`` (required unless ``default``) and ``--overwrite``, following
-    :mod:`bubsub.clients.pipeline.outputs`."""
+    :mod:`bubsub.clients.pipeline.results.outputs`."""
     note = f"; default {default}" if default else ""
     parser.add_argument("--out", required=default is None, default=default, type=output_folder, metavar="FOLDER",
                         help=f"folder for the {what} (created if missing; a folder holding earlier bubsub "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from bubsub.clients.pipeline.evaluate import evaluate_dir
+from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
 
 DDI_TEXT = ("DDI (Dice dissimilarity) = 1 - 2 |R n T| / (|R| + |T|) of the reconstructed bubbles R and the true "
             "bubbles T on the truth's grid, counting only its voxels inside the field of view (the region the data "

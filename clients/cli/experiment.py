@@ -77,7 +77,7 @@ def _fig6(args):
 
 def cmd_demo(args):
     from bubsub.clients.experiments.demo import demo
-    from bubsub.clients.pipeline.outputs import check_output_folder
+    from bubsub.clients.pipeline.results.outputs import check_output_folder
 
     demo(check_output_folder(args.out, overwrite=args.overwrite), progress=not args.quiet)
     return 0

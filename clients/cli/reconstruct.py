@@ -7,7 +7,7 @@ import sys
 
 from bubsub.clients.cli.args import (add_cluster_arguments, add_fit_arguments, add_output_arguments,
                                      add_slab_arguments, existing_file, positive_float, positive_int, spec_from_args)
-from bubsub.clients.pipeline.outputs import check_output_folder, write_outputs
+from bubsub.clients.pipeline.results.outputs import check_output_folder, write_outputs
 from bubsub.clients.remote.jobs import remote_projectors
 
 _EPILOG = """\
@@ -28,9 +28,9 @@ def cmd_reconstruct(args):
     from bubsub.core.io.scanfile import read_geometry, read_scan
 
     from bubsub.clients.cluster.engine import open_client
-    from bubsub.clients.pipeline.checks import check_bubble_signal
+    from bubsub.clients.pipeline.inputs.checks import check_bubble_signal
     from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, load_initial, reconstruct
-    from bubsub.clients.pipeline.slabs import slab_count
+    from bubsub.clients.pipeline.regions.slabs import slab_count
 
     # --resume continues the slabs of an earlier run in --out, so the folder may hold its results
     out = check_output_folder(args.out, overwrite=args.overwrite or args.resume)
@@ -59,7 +59,7 @@ def cmd_reconstruct(args):
     if slabs > 1 or not spec.in_process:
         if args.init:
             raise ValueError("--init needs the scan reconstructed whole (--slabs 1)")
-        from bubsub.clients.pipeline.slabs import reconstruct_slabs
+        from bubsub.clients.pipeline.regions.slabs import reconstruct_slabs
 
         if args.server:
             from bubsub.clients.remote.client import connect  # the 'client' extra
@@ -81,7 +81,7 @@ def cmd_reconstruct(args):
         rec = reconstruct(scan, settings, init=init, projector_factory=factory)
     if args.holdout and not rec.report["interrupted"]:
         # the paper's voxel reference on the same projections: 30 BB iterations, x >= 0
-        from bubsub.clients.pipeline.voxel4d import voxel_baseline
+        from bubsub.clients.pipeline.evaluation.voxel_baseline import voxel_baseline
 
         ref = voxel_baseline(scan, args.holdout)
         rec.report["holdout_mse_voxel_bb"] = ref["holdout_mse"]

@@ -12,9 +12,9 @@ def cmd_reconstruct4d(args):
     from bubsub.core.io.scanfile import read_scan
 
     from bubsub.clients.cluster.engine import open_client
-    from bubsub.clients.pipeline.dynamic import DynamicSettings
+    from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings
     from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
-    from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs
+    from bubsub.clients.pipeline.results.outputs import check_output_folder, finish_outputs
 
     # --resume continues the run in --out, so the folder is expected to hold results
     out = Path(args.out) if args.resume else check_output_folder(args.out, overwrite=args.overwrite)

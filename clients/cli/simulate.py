@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from bubsub.clients.cli.args import add_output_arguments, int_at_least, non_negative_int, positive_float, positive_int
-from bubsub.clients.pipeline.outputs import check_output_folder, finish_outputs
-from bubsub.clients.pipeline.simulation import (DYNAMIC_PHANTOMS, PHANTOMS, simulate_dynamic_to_dir,
-                                                simulate_flowing_to_dir, simulate_raw_to_dir, simulate_to_dir)
+from bubsub.clients.pipeline.results.outputs import check_output_folder, finish_outputs
+from bubsub.clients.pipeline.evaluation.simulation import (DYNAMIC_PHANTOMS, PHANTOMS, simulate_dynamic_to_dir,
+                                                           simulate_flowing_to_dir, simulate_raw_to_dir,
+                                                           simulate_to_dir)
 
 
 def cmd_simulate(args):

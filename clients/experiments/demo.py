@@ -9,11 +9,11 @@ import numpy as np
 from bubsub.clients.experiments.runner import run_case
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.metrics import dice_dissimilarity
-from bubsub.core.voxel.raster import bubble_mask
-from bubsub.clients.pipeline.figures import subplots
-from bubsub.clients.pipeline.outputs import finish_outputs, write_outputs
+from bubsub.core.projection.masks import bubble_mask
+from bubsub.clients.pipeline.results.figures import subplots
+from bubsub.clients.pipeline.results.outputs import finish_outputs, write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
-from bubsub.clients.pipeline.simulation import simulate_to_dir
+from bubsub.clients.pipeline.evaluation.simulation import simulate_to_dir
 from bubsub.core.foam.phantoms import foam2d
 from bubsub.core.io.scanfile import read_scan
 

@@ -28,14 +28,14 @@ import numpy as np
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.clients.experiments.folders import check_experiment_folder, finish_experiment
 from bubsub.clients.experiments.runner import baseline_mask
-from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
-from bubsub.clients.pipeline.figures import subplots
-from bubsub.clients.pipeline.simulation import simulate_dynamic_to_dir
+from bubsub.clients.pipeline.evaluation.evaluate4d import evaluate_dynamic
+from bubsub.clients.pipeline.results.figures import subplots
+from bubsub.clients.pipeline.evaluation.simulation import simulate_dynamic_to_dir
 from bubsub.core.io.meshio import read_ply, read_polygons_json
 from bubsub.core.io.scanfile import read_scan
 from bubsub.core.io.tables import write_table
 from bubsub.core.metrics import dice_dissimilarity
-from bubsub.core.voxel.raster import bubble_mask, check_grid
+from bubsub.core.projection.masks import bubble_mask, check_grid
 from bubsub.core.voxel.segment import binarise
 
 __all__ = ["FIG6_CONFIGS", "FIG6_COLUMN_INFO", "run_fig6"]
@@ -83,7 +83,7 @@ def _score_subscan(sim_dir, rec_dir, k, shape, extent, report_k):
     """Rows (BubSub, BB, and in 2D SIRT) of subscan ``k`` and its fig. 7 images; runs in a worker process."""
     from bubsub.core.io.subscans import subscan, subscan_layout
 
-    from bubsub.clients.pipeline.voxel4d import BB_ITERATIONS, voxel_baseline
+    from bubsub.clients.pipeline.evaluation.voxel_baseline import BB_ITERATIONS, voxel_baseline
 
     scan = read_scan(Path(sim_dir) / "scan.h5")
     ndim = scan.ndim
@@ -136,7 +136,7 @@ def run_fig6(out, *, ndim=2, quick=False, seed=0, photons=1e4, progress=True, co
     ``out/bubsub`` (``resume`` continues them), nothing is scored, and the
     summary is ``{"interrupted": True, "subscans": [...]}``.
     """
-    from bubsub.clients.pipeline.dynamic import DynamicSettings
+    from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings
     from bubsub.clients.pipeline.reconstruct4d import reconstruct_dynamic
 
 

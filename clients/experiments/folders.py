@@ -1,4 +1,4 @@
-"""Experiment folders: the output-folder policy (:mod:`bubsub.clients.pipeline.outputs`) for experiments.
+"""Experiment folders: the output-folder policy (:mod:`bubsub.clients.pipeline.results.outputs`) for experiments.
 
 One folder may collect several experiments (``docs/results`` holds fig1a,
 fig1b, fig5, ... side by side), so the policy applies per experiment:
@@ -13,7 +13,7 @@ fig1b, fig5, ... side by side), so the policy applies per experiment:
 3. :func:`finish_experiment` removes the files of this experiment's earlier
    run that the new run did not write again, keeps the other experiments'
    files, and writes the folder's manifest
-   (:data:`~bubsub.clients.pipeline.outputs.MANIFEST`, command
+   (:data:`~bubsub.clients.pipeline.results.outputs.MANIFEST`, command
    ``"experiment"``, with the files of each experiment under
    ``"experiments"``).
 """
@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bubsub.clients.pipeline.outputs import (
+from bubsub.clients.pipeline.results.outputs import (
     MANIFEST,
     OutputFolderError,
     check_output_folder,

@@ -29,11 +29,11 @@ import numpy as np
 
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.metrics import dice_dissimilarity
-from bubsub.core.voxel.raster import bubble_mask
+from bubsub.core.projection.masks import bubble_mask
 
 from bubsub.clients.experiments.folders import check_experiment_folder, finish_experiment
 from bubsub.clients.cluster.engine import run_tasks
-from bubsub.clients.pipeline.figures import subplots
+from bubsub.clients.pipeline.results.figures import subplots
 from bubsub.clients.progress import phase
 from bubsub.core import ScanGeometry
 from bubsub.core.foam import phantoms, simulate

@@ -26,8 +26,8 @@ clock, the report so far) with its options as keywords:
 5. Outputs, each written atomically: ``bubbles.ply`` (3D) or ``bubbles.json``
    (2D), ``bubbles.csv`` (+ ``bubbles.csv-metadata.json``), ``report.json``,
    ``overlay.png``, ``sizes.png`` and (3D) ``meshes.png``
-   (:func:`bubsub.clients.pipeline.outputs.write_outputs`, pictures by
-   :mod:`bubsub.clients.pipeline.figures`).
+   (:func:`bubsub.clients.pipeline.results.outputs.write_outputs`, pictures by
+   :mod:`bubsub.clients.pipeline.results.figures`).
 """
 
 from __future__ import annotations
@@ -46,17 +46,17 @@ from bubsub.core.projection.subdivision import SubdivisionSurface
 
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.optimise.separation import separation_penalty, separation_weight
-from bubsub.clients.pipeline.checks import check_bubble_signal, check_setting_values, check_settings
-from bubsub.clients.pipeline.fov import field_of_view, fov_report, inside_fov, size_inside_fov, unobserved_control
-from bubsub.clients.pipeline.initial import default_detector
-from bubsub.clients.pipeline.local import scene_objective
+from bubsub.clients.pipeline.inputs.checks import check_bubble_signal, check_setting_values, check_settings
+from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, inside_fov, size_inside_fov, unobserved_control
+from bubsub.clients.pipeline.static.initial import default_detector
+from bubsub.clients.pipeline.regions.local import scene_objective
 from bubsub.clients.pipeline.phase_report import PhaseClock, REMOTE_PHASES, merged_projector_report, projector_report
-from bubsub.clients.pipeline.refine import can_refine, coarse_rate, control_counts, refine_and_check
-from bubsub.clients.pipeline.repair import check_and_repair, merged_validity
-from bubsub.clients.pipeline.resolution import level_counts, levels_by_size
-from bubsub.clients.pipeline.seeding import (coarse_radii, coarse_radii_with, finer_voxel, initial_bubbles,
+from bubsub.clients.pipeline.static.refine import can_refine, coarse_rate, control_counts, refine_and_check
+from bubsub.clients.pipeline.static.repair import check_and_repair, merged_validity
+from bubsub.clients.pipeline.static.resolution import level_counts, levels_by_size
+from bubsub.clients.pipeline.static.seeding import (coarse_radii, coarse_radii_with, finer_voxel, initial_bubbles,
                                              settings_initial, settings_preview)
-from bubsub.clients.pipeline.topology import adapt_bubbles
+from bubsub.clients.pipeline.static.topology import adapt_bubbles
 
 __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "PhaseContext", "PhaseClock", "Preview",
            "seed_phase", "radius_phase", "fit_phase", "topology_phase", "repair_phase", "refine_phase", "edge_phase",
@@ -68,8 +68,8 @@ __all__ = ["ReconstructionSettings", "Reconstruction", "reconstruct", "PhaseCont
 @dataclass(frozen=True)
 class ReconstructionSettings:
     """What ``bubsub reconstruct`` can be told (defaults follow the paper); refused when made with a value no
-    scan accepts (:func:`~bubsub.clients.pipeline.checks.check_setting_values`, ``ValueError`` naming the
-    option), the rest when a scan's dimension is known (:func:`~bubsub.clients.pipeline.checks.check_settings`)."""
+    scan accepts (:func:`~bubsub.clients.pipeline.inputs.checks.check_setting_values`, ``ValueError`` naming the
+    option), the rest when a scan's dimension is known (:func:`~bubsub.clients.pipeline.inputs.checks.check_settings`)."""
 
     iterations: int = 80  # the full detector's cap, 3x on binned levels (.optimise.levels); a level ends earlier on convergence
     data_levels: int | None = None  # fit on 2^(k-1)-binned, ..., full pixels; default 2 for 3D detectors >= 96 px
@@ -158,8 +158,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signa
     """Reconstruct the bubbles of a scan: its phases, one after another.
 
     The scan's signal and the settings against its dimension are checked here, once per scan
-    (:func:`~bubsub.clients.pipeline.checks.check_bubble_signal` unless ``signal_checked``,
-    :func:`~bubsub.clients.pipeline.checks.check_settings`); the settings' values were checked when they
+    (:func:`~bubsub.clients.pipeline.inputs.checks.check_bubble_signal` unless ``signal_checked``,
+    :func:`~bubsub.clients.pipeline.inputs.checks.check_settings`); the settings' values were checked when they
     were made.
 
     Parameters
@@ -311,7 +311,7 @@ def seed_phase(run, contrast, settings, *, init=None):
 def radius_phase(run, surfaces, *, estimate, data_levels, levels, facet_pixels, progress=False):
     """Phase ``radius_estimation``: the radius-only pre-fit on the fit's coarsest data level when
     ``estimate`` (:func:`coarse_radii`), then each bubble subdivided as finely as its size needs, at most
-    ``levels`` (3D; :func:`~bubsub.clients.pipeline.resolution.levels_by_size`)."""
+    ``levels`` (3D; :func:`~bubsub.clients.pipeline.static.resolution.levels_by_size`)."""
     g = run.projector.geometry
     if estimate:
         surfaces = coarse_radii_with(surfaces, g, run.data, bin_factors(g, data_levels)[0],
@@ -354,7 +354,7 @@ def fit_phase(run, surfaces, *, factory=None, data_levels=None, iterations=80, r
 
 def topology_phase(run, surfaces, contrast, preview, *, rounds, enabled=True, **options):
     """Phase ``topology``: ``rounds`` rounds of adding, removing, merging and splitting bubbles
-    (:func:`~bubsub.clients.pipeline.topology.adapt_bubbles` with ``options``, on ``preview``'s grid); none when
+    (:func:`~bubsub.clients.pipeline.static.topology.adapt_bubbles` with ``options``, on ``preview``'s grid); none when
     ``rounds`` is 0, not ``enabled`` or there are no bubbles. Records ``topology`` (None when none ran)."""
     summary = None
     if enabled and rounds > 0 and surfaces:
@@ -366,7 +366,7 @@ def topology_phase(run, surfaces, contrast, preview, *, rounds, enabled=True, **
 
 
 def repair_phase(run, surfaces, repair):
-    """Phase ``validity``: ``repair(surfaces)`` (:func:`~bubsub.clients.pipeline.repair.check_and_repair` with
+    """Phase ``validity``: ``repair(surfaces)`` (:func:`~bubsub.clients.pipeline.static.repair.check_and_repair` with
     the pipeline's options) checks the bubbles and repairs them. Records ``validity``."""
     surfaces, run.report["validity"] = repair(surfaces)
     run.clock.mark("validity")
@@ -376,7 +376,7 @@ def repair_phase(run, surfaces, repair):
 def refine_phase(run, surfaces, repair, *, enabled=True, **options):
     """Phase ``refine``: one coarse-to-fine step in the control meshes, refitted, checked and repaired again
     by ``repair``, kept when the Akaike score improves
-    (:func:`~bubsub.clients.pipeline.refine.refine_and_check` with ``options``); none unless ``enabled``
+    (:func:`~bubsub.clients.pipeline.static.refine.refine_and_check` with ``options``); none unless ``enabled``
     and the bubbles can be refined. Records ``refinement`` and merges the second check into ``validity``."""
     refinement = None
     if enabled and can_refine(surfaces):

@@ -2,11 +2,11 @@
 
 :func:`reconstruct_dynamic` cuts the scan into subscans
 (:mod:`bubsub.core.io.subscans`), runs the chain here
-(:func:`bubsub.clients.pipeline.dynamic.run_chain`) or in chunks on a Dask
-cluster (:func:`bubsub.clients.cluster.dynamic.run_chunks`), writes each
+(:func:`bubsub.clients.pipeline.dynamic4d.chain.run_chain`) or in chunks on a Dask
+cluster (:func:`bubsub.clients.cluster.chunks.run_chunks`), writes each
 subscan's folder as soon as it is done, keeps the complete ones of an earlier
 run for ``--resume`` (``run.json`` records the settings they were made with)
-and ends with the summary files (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
+and ends with the summary files (:mod:`bubsub.clients.pipeline.dynamic4d.outputs4d`).
 """
 
 from __future__ import annotations
@@ -18,11 +18,11 @@ from pathlib import Path
 from bubsub.core.io.atomic import atomic_write_text
 from bubsub.core.io.subscans import subscan, subscan_layout, subscan_times
 
-from bubsub.clients.cluster.dynamic import ScanFileSubscans, run_chunks
+from bubsub.clients.cluster.chunks import ScanFileSubscans, run_chunks
 from bubsub.clients.cluster.engine import workers_of
-from bubsub.clients.pipeline import dynamic_outputs as outputs
-from bubsub.clients.pipeline.checks import check_bubble_signal
-from bubsub.clients.pipeline.dynamic import DynamicSettings, reconstruct_subscan, run_chain
+from bubsub.clients.pipeline.dynamic4d import outputs4d as outputs
+from bubsub.clients.pipeline.inputs.checks import check_bubble_signal
+from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings, reconstruct_subscan, run_chain
 
 __all__ = ["reconstruct_dynamic"]
 
@@ -46,7 +46,7 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
         The dynamic scan (all projections in acquisition order).
     out : path
         Output folder: ``subscan_NNNN/``, ``tracks.csv``, ``report.json``,
-        ``growth.png``, ``mse.png``, ``lineage.csv`` (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
+        ``growth.png``, ``mse.png``, ``lineage.csv`` (:mod:`bubsub.clients.pipeline.dynamic4d.outputs4d`).
     settings : DynamicSettings, optional
     projections_per_subscan : int, optional
         If the scan file lacks the attribute (see :func:`bubsub.core.io.subscans.subscan_layout`).
@@ -60,11 +60,11 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
         are replaced as the new ones complete).
     client : dask.distributed.Client, optional
         Run one task per subscan on this cluster
-        (:func:`bubsub.clients.cluster.dynamic.run_chunks`); None: here.
+        (:func:`bubsub.clients.cluster.chunks.run_chunks`); None: here.
     chunks : int
         Cut the chain into this many chunks run in parallel, each cold-started
         at its last subscan, ids linked where they overlap (see
-        :mod:`bubsub.clients.cluster.dynamic`); 1: one chain, as the paper.
+        :mod:`bubsub.clients.cluster.chunks`); 1: one chain, as the paper.
 
     Returns
     -------

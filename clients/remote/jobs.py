@@ -4,7 +4,7 @@
 ...     rec = reconstruct(scan, settings, projector_factory=factory)
 
 ``bubsub reconstruct --server`` and each slab of a scan reconstructed in slabs
-(:func:`bubsub.clients.pipeline.slabs.run_slab`) run their fit this way: the
+(:func:`bubsub.clients.pipeline.regions.slabs.run_slab`) run their fit this way: the
 jobs hold the server's memory until they expire, so they are deleted as soon as
 the reconstruction ends, also when it ends with an error or Ctrl-C.
 """

@@ -35,7 +35,7 @@ import numpy as np
 from bubsub.core.foam.checks import unit_icosphere
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Mesh
-from bubsub.core.voxel.raster import pixel_centres
+from bubsub.core.projection.masks import pixel_centres
 
 __all__ = ["shape_matrices", "contact_function", "ellipsoid_chords", "cylinder_chords", "project_ellipsoids",
            "project_cylinder", "ellipsoid_mesh", "fraction_below", "ellipsoid_volumes", "ellipsoid_labels"]
@@ -396,7 +396,7 @@ def ellipsoid_labels(centres, axes, rotations, shape, extent):
     rotations : (n, 3, 3) float
     shape : (slices, rows, cols)
     extent : (xmin, xmax, ymin, ymax, zmin, zmax)
-        The grid convention of :mod:`bubsub.core.voxel.raster` (``vol[z, y, x]``, y decreasing with the row).
+        The grid convention of :mod:`bubsub.core.projection.masks` (``vol[z, y, x]``, y decreasing with the row).
 
     Returns
     -------

@@ -25,11 +25,12 @@ import numbers
 
 import numpy as np
 
-from bubsub.core.foam.checks import unit_icosphere, rng_from_seed, count, finite, positive, nonneg, fraction, value_range, size_vector, frozen
+from bubsub.core.foam.checks import (unit_icosphere, rng_from_seed, count, finite, positive, nonneg, fraction,
+                                     value_range, size_vector, frozen)
 from bubsub.core.foam.containers import liquid_box, liquid_square
 from bubsub.core.foam.packing import fourier_perturbation, smooth_sphere_perturbation, place
 from bubsub.core.projection.mesh import Mesh, Polygon
-from bubsub.core.voxel.raster import bubble_mask, label_image, rasterize
+from bubsub.core.projection.masks import bubble_mask, label_image, rasterize
 
 __all__ = [
     "FoamPhantom",
@@ -154,7 +155,7 @@ class FoamPhantom:
         Returns
         -------
         ndarray, shape ``shape``
-            1/mm; row 0 at y max (see :mod:`bubsub.core.voxel.raster`).
+            1/mm; row 0 at y max (see :mod:`bubsub.core.projection.masks`).
         """
         shp, ext = self.grid(shape, extent)
         return rasterize(self.items, shp, ext, supersample=supersample, dtype=dtype)

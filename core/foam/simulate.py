@@ -25,7 +25,7 @@ import numpy as np
 
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.foam.phantoms import FoamPhantom
-from bubsub.core.voxel.raster import check_grid
+from bubsub.core.projection.masks import check_grid
 from bubsub.core.io.scanfile import Scan
 from bubsub.core.validate import check_int
 from bubsub.core.projection.projector import MeshProjector

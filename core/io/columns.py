@@ -53,7 +53,7 @@ BUBBLE_COLUMN_INFO = {
 }
 
 #: ``column name: (unit, meaning)`` of the field-of-view columns of ``bubbles.csv`` (and ``tracks.csv``), which
-#: ``bubsub.clients.pipeline.fov.fov_columns`` adds and ``bubsub analyse`` carries over.
+#: ``bubsub.clients.pipeline.inputs.fov.fov_columns`` adds and ``bubsub analyse`` carries over.
 FOV_COLUMN_INFO = {
     "truncated": ("1", "1 if the bubble reaches the edge of the field of view (the disc every projection sees, or "
                        "the detector's top or bottom): its whole-size and shape columns are empty (not measured) and "

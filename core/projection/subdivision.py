@@ -363,7 +363,7 @@ class SubdivisionSurface:
         With ``keep_size`` the control vertices are scaled about their centroid so that the fine mesh
         keeps its mean distance from its centroid: a convex mesh shrinks with each level (a sphere's by
         1.7 % in radius from one level to two at 42 control vertices), and a bubble given the levels of
-        its size (:func:`bubsub.clients.pipeline.resolution.levels_by_size`) keeps the size it was seeded with.
+        its size (:func:`bubsub.clients.pipeline.static.resolution.levels_by_size`) keeps the size it was seeded with.
         """
         if levels == self.levels:
             return self

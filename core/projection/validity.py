@@ -14,7 +14,7 @@ surfaces of :class:`~bubsub.core.projection.subdivision.SubdivisionSurface`.
   mesh with itself, intersect exactly when an edge of one crosses a triangle
   of the other that it does not share a vertex with.
 * Overlap area / volume: pixel centres of a small grid over the two bounding
-  boxes' intersection tested inside both with :func:`bubsub.core.voxel.raster.coverage`
+  boxes' intersection tested inside both with :func:`bubsub.core.projection.masks.coverage`
   (winding numbers), so also a bubble wholly inside another is found.
 """
 
@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from bubsub.core.projection.mesh import Mesh, Polygon, bounding_box
-from bubsub.core.voxel.raster import coverage
+from bubsub.core.projection.masks import coverage
 
 __all__ = ["Violation", "segment_crossings", "self_crossings", "self_crossing_vertices",
            "crossings_between", "overlap_measure",

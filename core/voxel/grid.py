@@ -1,6 +1,6 @@
 """Voxel grids: world <-> index conversion for images and volumes.
 
-A grid is ``(shape, extent)``, the convention of :mod:`bubsub.core.voxel.raster`:
+A grid is ``(shape, extent)``, the convention of :mod:`bubsub.core.projection.masks`:
 
 * 2D: ``img[row, col]``, ``shape = (rows, cols)``, ``extent = (xmin, xmax,
   ymin, ymax)``; pixel centre ``x = xmin + (col + 0.5) * dx``,
@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from bubsub.core.voxel.raster import check_grid
+from bubsub.core.projection.masks import check_grid
 
 __all__ = ["VoxelGrid", "grid_extent", "resolve_grid", "voxel_sizes", "world_to_index", "index_to_world"]
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bubsub.clients.pipeline.fov import fov_mask
+from bubsub.clients.pipeline.inputs.fov import fov_mask
 from bubsub.core.io.meshio import read_ply, read_polygons_json
 from bubsub.core.matching import MIN_IOU, match
 from bubsub.core.metrics import label_image
@@ -104,9 +104,9 @@ def score_bubbles(rec, rec_ids, truth, truth_ids, shape, extent, fov=None):
         Their ids (as in their files).
     shape : (rows, cols) or (slices, rows, cols)
     extent : (xmin, xmax, ymin, ymax[, zmin, zmax])
-        mm; the grid convention of :mod:`bubsub.core.voxel.raster`.
+        mm; the grid convention of :mod:`bubsub.core.projection.masks`.
     fov : (radius, half_height), optional
-        mm; only the grid's voxels inside it count (:func:`bubsub.clients.pipeline.fov.fov_mask`).
+        mm; only the grid's voxels inside it count (:func:`bubsub.clients.pipeline.inputs.fov.fov_mask`).
 
     Returns
     -------

@@ -66,21 +66,21 @@ from bubsub.core.projection.mesh import Mesh
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
 from bubsub.clients.cluster.engine import run_tasks
-from bubsub.clients.pipeline.checks import check_settings
-from bubsub.clients.pipeline.fov import fov_report
+from bubsub.clients.pipeline.inputs.checks import check_settings
+from bubsub.clients.pipeline.inputs.fov import fov_report
 from bubsub.clients.pipeline.phase_report import merged_projector_report
 from bubsub.clients.pipeline.reconstruct import Reconstruction, ReconstructionSettings, reconstruct
-from bubsub.clients.pipeline.resolution import level_counts
+from bubsub.clients.pipeline.static.resolution import level_counts
 # the slabs' layout and stitching, named here too: this module is where the other modules find the slabs
-from bubsub.clients.pipeline.slab_layout import (SLAB_PIXELS, WHOLE_SCAN_SLABS, Slab, SlabResult, auto_slabs,
-                                                 check_slab_geometry, default_slab_rows, estimate_halo, halo_rows,
-                                                 is_scan, known_halo, moved, plan_slabs, scan_geometry, slab_bounds,
-                                                 slab_count, slab_origin, slab_scan)
-from bubsub.clients.pipeline.slab_stitch import (core_preview, fit_known, rows_entry, slab_totals, stitch,
-                                                 stitch_previews)
+from bubsub.clients.pipeline.regions.slab_layout import (SLAB_PIXELS, WHOLE_SCAN_SLABS, Slab, SlabResult, auto_slabs,
+                                                         check_slab_geometry, default_slab_rows, estimate_halo,
+                                                         halo_rows, is_scan, known_halo, moved, plan_slabs,
+                                                         scan_geometry, slab_bounds, slab_count, slab_origin, slab_scan)
+from bubsub.clients.pipeline.regions.slab_stitch import (core_preview, fit_known, rows_entry, slab_totals, stitch,
+                                                         stitch_previews)
 from bubsub.clients.progress import phase
 from bubsub.clients.remote.jobs import remote_projectors
-from bubsub.clients.pipeline.outputs import json_default
+from bubsub.clients.pipeline.results.outputs import json_default
 
 __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
            "auto_slabs", "slab_count", "estimate_halo", "known_halo", "halo_rows", "slab_scan", "slab_bounds", "run_slab", "stitch",

@@ -17,8 +17,8 @@ import numpy as np
 from bubsub.core.io.scanfile import Scan, read_geometry, read_scan
 from bubsub.core.projection.mesh import equivalent_radius
 
-from bubsub.clients.pipeline.initial import initial_centres
-from bubsub.clients.pipeline.preview import voxel_preview
+from bubsub.clients.pipeline.static.initial import initial_centres
+from bubsub.clients.pipeline.static.preview import voxel_preview
 
 __all__ = ["Slab", "SlabResult", "plan_slabs", "check_slab_geometry", "slab_origin", "default_slab_rows",
            "auto_slabs", "slab_count", "estimate_halo", "known_halo", "halo_rows", "slab_scan", "slab_bounds",

@@ -6,21 +6,21 @@ Every earlier subscan starts from its successor's bubbles, each control mesh
 shrunk toward its centroid and remeshed (:func:`bubsub.core.projection.remesh.warm_start`),
 then BFGS. After the warm fit, a voxel preview of the data as the cold
 start's and the static pipeline's topology rounds look for what the fitted
-bubbles leave unexplained (:mod:`bubsub.clients.pipeline.detect4d`): bubbles the successor lacks are
+bubbles leave unexplained (:mod:`bubsub.clients.pipeline.dynamic4d.detect`): bubbles the successor lacks are
 added with new track ids, a bubble that is two here (a coalescence forward in
 time) is split, and slivers that left the field of view are removed. A bubble
 that collapses, leaves the field of view or whose warm start cannot be built
 ends its track; the others keep their ids. Each subscan's report holds its
 lineage (``new``, ``coalescences``, ``ended``), which
-:func:`bubsub.clients.pipeline.dynamic_outputs.write_lineage` writes as
+:func:`bubsub.clients.pipeline.dynamic4d.outputs4d.write_lineage` writes as
 ``lineage.csv`` in forward time.
 
 A large parallel-beam subscan goes through slabs of detector rows with the
-rules of ``bubsub reconstruct`` (:mod:`bubsub.clients.pipeline.slabs`: one
+rules of ``bubsub reconstruct`` (:mod:`bubsub.clients.pipeline.regions.slabs`: one
 slab per about 8 million pixels read by default; cone-beam and 2D subscans,
 and ``holdout``, whole), one slab after another in this process: the cold
 start is reconstructed slab by slab and stitched, the warm starts are fitted
-slab by slab (:func:`~bubsub.clients.pipeline.slabs.fit_known`), each bubble
+slab by slab (:func:`~bubsub.clients.pipeline.regions.slabs.fit_known`), each bubble
 kept, with its track id, from the slab whose core holds its warm start's
 centroid.
 
@@ -33,11 +33,11 @@ Two layers, so that another engine can run the same step on workers:
   from the previous result, with progress over subscans and Ctrl-C handling;
   :func:`bubsub.clients.pipeline.reconstruct4d.reconstruct_dynamic` adds the
   output folder, ``--resume``, the cluster engine and the summary files
-  (:mod:`bubsub.clients.pipeline.dynamic_outputs`).
+  (:mod:`bubsub.clients.pipeline.dynamic4d.outputs4d`).
 
 It is one module on purpose: the settings, the chain's state (track ids, the next new id) and the result are
 the step's own inputs and output, and a reader follows a subscan's step from its settings to its result here;
-the warm detection (:mod:`bubsub.clients.pipeline.detect4d`) and the files live apart.
+the warm detection (:mod:`bubsub.clients.pipeline.dynamic4d.detect`) and the files live apart.
 """
 
 from __future__ import annotations
@@ -55,15 +55,15 @@ from bubsub.core.projection.remesh import SHRINK, warm_start
 from bubsub.core.validate import check_int
 
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
-from bubsub.clients.pipeline.fov import field_of_view, fov_report, seen_by
-from bubsub.clients.pipeline.local import scene_objective
-from bubsub.clients.pipeline.preview import preview_voxel_size
+from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, seen_by
+from bubsub.clients.pipeline.regions.local import scene_objective
+from bubsub.clients.pipeline.static.preview import preview_voxel_size
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
-from bubsub.clients.pipeline.resolution import levels_by_size
-from bubsub.clients.pipeline.slabs import (OBJECTIVE_NOTE, fit_known, known_halo, plan_slabs, reconstruct_slabs,
-                                           slab_count, slab_totals)
-from bubsub.clients.pipeline.voxel4d import voxel_baseline
-from bubsub.clients.pipeline.detect4d import detect_warm
+from bubsub.clients.pipeline.static.resolution import levels_by_size
+from bubsub.clients.pipeline.regions.slabs import (OBJECTIVE_NOTE, fit_known, known_halo, plan_slabs, reconstruct_slabs,
+                                                   slab_count, slab_totals)
+from bubsub.clients.pipeline.evaluation.voxel_baseline import voxel_baseline
+from bubsub.clients.pipeline.dynamic4d.detect import detect_warm
 from bubsub.clients.progress import phase
 
 __all__ = ["DynamicSettings", "STATIC_FIELDS", "BubbleState", "SubscanResult", "reconstruct_subscan", "run_chain"]
@@ -102,7 +102,7 @@ class DynamicSettings:
         on each subscan and record its held-out MSE.
     detect : bool
         After each warm fit, look for bubbles the successor lacks and for coalescences
-        (:mod:`~bubsub.clients.pipeline.detect4d`; ``--no-detect``: only refit the successor's bubbles).
+        (:mod:`~bubsub.clients.pipeline.dynamic4d.detect`; ``--no-detect``: only refit the successor's bubbles).
     warm_rtol, warm_window : float, int
         A warm-started fit stops early once ``warm_window`` iterations have
         lowered the objective by less than ``warm_rtol`` of its value (it
@@ -110,11 +110,11 @@ class DynamicSettings:
         the noise); ``warm_rtol=0`` always runs ``iterations``.
     slabs : int, optional
         Slabs of detector rows per subscan (``--slabs``); None: as ``bubsub
-        reconstruct`` chooses (:func:`~bubsub.clients.pipeline.slabs.slab_count`).
+        reconstruct`` chooses (:func:`~bubsub.clients.pipeline.regions.slabs.slab_count`).
     slab_halo : int, optional
         Halo rows of the slabs (``--slab-halo``); None: the cold start's
-        :func:`~bubsub.clients.pipeline.slabs.estimate_halo`, a warm start's
-        :func:`~bubsub.clients.pipeline.slabs.known_halo` of its successor's bubbles.
+        :func:`~bubsub.clients.pipeline.regions.slabs.estimate_halo`, a warm start's
+        :func:`~bubsub.clients.pipeline.regions.slabs.known_halo` of its successor's bubbles.
     """
 
     static: ReconstructionSettings
@@ -273,7 +273,7 @@ def _split(scan, holdout):
 
 def _slab_count(scan, settings, halo=None):
     """Slabs and halo rows of a subscan, by the rules of ``bubsub reconstruct``; ``halo``: the default halo when
-    ``settings.slab_halo`` is None (None: :func:`~bubsub.clients.pipeline.slabs.estimate_halo`)."""
+    ``settings.slab_halo`` is None (None: :func:`~bubsub.clients.pipeline.regions.slabs.estimate_halo`)."""
     halo = settings.slab_halo if settings.slab_halo is not None else halo
     return slab_count(scan, scan.geometry, _static_settings(settings), settings.slabs, halo,
                       whole_needed=settings.holdout is not None)
@@ -355,7 +355,7 @@ def _warm_slabs(scan, previous, settings):
 
 
 def _fit_slabs(scan, starts, settings, slabs, halo):
-    """The warm starts fitted slab by slab (ownership: :func:`~bubsub.clients.pipeline.slabs.fit_known`), and the
+    """The warm starts fitted slab by slab (ownership: :func:`~bubsub.clients.pipeline.regions.slabs.fit_known`), and the
     fit's report fields: totals over the slabs, each slab's entry and the ownership summary."""
     plan = plan_slabs(scan.geometry.det_rows, slabs, halo)
     fitted, entries, summary = fit_known(scan, starts, lambda g, d, s: _warm_fit(g, d, s, settings), plan)
@@ -418,7 +418,7 @@ def _warm(scan, previous, settings):
 
 
 def _detect(scan, previous, ids, fitted, settings):
-    """:func:`~bubsub.clients.pipeline.detect4d.detect_warm` on the fitted projections (the whole subscan, after
+    """:func:`~bubsub.clients.pipeline.dynamic4d.detect.detect_warm` on the fitted projections (the whole subscan, after
     its slabs too)."""
     geometry, data = _split(scan, settings.holdout)[:2]
     sizes = {int(i): abs(float(s.fine().volume if s.ndim == 3 else s.fine().area))

@@ -12,7 +12,7 @@ improves:
   than ``f`` (collapsed or spurious bubbles), greedily, best first;
 * **add**: the residual ``d - Proj`` is reconstructed on the preview grid
   (unexplained gas shows as bright blobs) and blobs found by
-  :func:`bubsub.clients.pipeline.blobs.log_blobs` outside the existing
+  :func:`bubsub.clients.pipeline.static.blobs.log_blobs` outside the existing
   bubbles become round bubbles, each kept when ``0.5 ||r + p_new||^2 < f``;
 * **merge**: two touching bubbles are replaced by one round bubble of their
   joint size, fitted alone against the data minus the other bubbles, and
@@ -25,11 +25,16 @@ improves:
 
 Then the bubbles the round changed, and their neighbours, are refitted on
 detector windows with the rest of the scene held fixed
-(:func:`bubsub.clients.pipeline.local.local_refit`: the cost of a round
+(:func:`bubsub.clients.pipeline.regions.local.local_refit`: the cost of a round
 follows what it changed, not the scan's size), and the next round starts;
 it tries removals, merges and splits among the refitted bubbles only (the
 rest of the scene is as the round before left it, which tried them). Every
 accepted change is recorded with its objective before and after.
+
+The module is one on purpose: the four steps and the round that drives them
+share one residual and one set of bubble footprints, updated in place by
+every accepted change; apart, each step would need that bookkeeping's
+internals as public names.
 """
 
 from __future__ import annotations
@@ -39,16 +44,16 @@ from scipy.spatial import cKDTree
 
 from bubsub.core.projection.mesh import bounding_box, equivalent_radius
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
-from bubsub.core.voxel.raster import bubble_mask, coverage
+from bubsub.core.projection.masks import bubble_mask, coverage
 from bubsub.core.voxel.grid import world_to_index
 
-from bubsub.clients.pipeline.blobs import log_blobs
-from bubsub.clients.pipeline.fov import preview_extension
-from bubsub.clients.pipeline.local import (Footprints, footprint, local_fits, local_refit, others_removed,
-                                           scene_objective, scene_residual)
-from bubsub.clients.pipeline.preview import preview_grid, resample_image, voxel_preview
-from bubsub.clients.pipeline.resolution import levels_by_size
-from bubsub.clients.pipeline.fov import field_of_view, fov_report, truncated_flags, unobserved_control
+from bubsub.clients.pipeline.static.blobs import log_blobs
+from bubsub.clients.pipeline.inputs.fov import preview_extension
+from bubsub.clients.pipeline.regions.local import (Footprints, footprint, local_fits, local_refit, others_removed,
+                                                   scene_objective, scene_residual)
+from bubsub.clients.pipeline.static.preview import preview_grid, resample_image, voxel_preview
+from bubsub.clients.pipeline.static.resolution import levels_by_size
+from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, truncated_flags, unobserved_control
 from bubsub.clients.progress import phase
 
 __all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "points_inside"]
@@ -336,7 +341,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         Projections, ``projector.geometry.shape``.
     preview : callable(projections) -> (image, extent)
         Voxel reconstruction of a projection array (bubbles positive), e.g.
-        :func:`bubsub.clients.pipeline.preview.voxel_preview` with the
+        :func:`bubsub.clients.pipeline.static.preview.voxel_preview` with the
         scan's geometry and contrast.
     new_bubble : callable(centre, radius) -> SubdivisionSurface
         A round bubble with the fit's topology.
@@ -370,7 +375,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     penalty : callable, optional
         Added to the objective of the joint fits (:func:`bubsub.clients.optimise.fit`).
     fov_edge : bool
-        Respect the edge of the field of view (:mod:`bubsub.clients.pipeline.fov`): a
+        Respect the edge of the field of view (:mod:`bubsub.clients.pipeline.inputs.fov`): a
         bubble that reaches it is never merged, and its removal is weighed
         against the unknowns the data see (its control vertices that some ray
         sees), not all of them, so that a cut bubble whose visible part is small
@@ -467,7 +472,7 @@ def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterati
         Topology rounds; the fit's iteration cap (each refit of a round runs ``max(10, iterations // 2)``).
     levels, facet_pixels
         The most subdivision levels of a new bubble, in 3D as few as keep its faces within ``facet_pixels``
-        (:func:`~bubsub.clients.pipeline.resolution.levels_by_size`); in 2D the fitted bubbles' levels.
+        (:func:`~bubsub.clients.pipeline.static.resolution.levels_by_size`); in 2D the fitted bubbles' levels.
     voxel_size, method, fov_model
         The preview's options (``--voxel-size``, its 2D residual preview's voxel; ``--preview``; the field of
         view model, which :func:`adapt_topology` then respects, ``fov_edge``).

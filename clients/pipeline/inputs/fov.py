@@ -14,11 +14,11 @@ Real scans cut bubbles: the detector's top and bottom, and the cylinder
   switches it off).
 
 The model's other parts live where they act: the edge rows' seeds
-(:func:`bubsub.clients.pipeline.initial.edge_slices`), the topology rules at
-the edge (:mod:`bubsub.clients.pipeline.topology`), the unseen parts'
-continuation (:func:`bubsub.clients.pipeline.repair.continued`) and the
+(:func:`bubsub.clients.pipeline.static.initial.edge_slices`), the topology rules at
+the edge (:mod:`bubsub.clients.pipeline.static.topology`), the unseen parts'
+continuation (:func:`bubsub.clients.pipeline.static.repair.continued`) and the
 check of what the detector's sides show
-(:func:`bubsub.clients.pipeline.sides.check_lateral_truncation`: a foam
+(:func:`bubsub.clients.pipeline.inputs.sides.check_lateral_truncation`: a foam
 wider than the detector, local tomography, is reconstructed with a note).
 Measured with and without the model: docs/prepare.md, ``python -m
 bubsub.bench fov``; local tomography: ``python -m bubsub.bench fov --local``.
@@ -33,9 +33,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from bubsub.clients.pipeline.sides import LOCAL_VIEWS, side_bubble_signal, side_signal
+from bubsub.clients.pipeline.inputs.sides import LOCAL_VIEWS, side_bubble_signal, side_signal
 from bubsub.core.io.tables import FOV_COLUMN_INFO
-from bubsub.core.voxel.raster import coverage, pixel_centres
+from bubsub.core.projection.masks import coverage, pixel_centres
 
 __all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
            "FOV_EXTEND", "LOCAL_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns",
@@ -45,7 +45,7 @@ __all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "
 #: at 1.25 times the radius of a 180-degree parallel scan is still seen by 59 % of the projections.
 FOV_EXTEND = 1.25
 #: The same for local tomography (the bubbles' signal at a detector side in most projections,
-#: :func:`bubsub.clients.pipeline.sides.check_lateral_truncation`): against 1.6 (every bubble of a foam 1.5
+#: :func:`bubsub.clients.pipeline.inputs.sides.check_lateral_truncation`): against 1.6 (every bubble of a foam 1.5
 #: times the field of view's radius modelled) it finds the same interior bubbles at nearly the same DDI for
 #: less work (``python -m bubsub.bench fov --local-ideal 0 --local-extend 1.25 1.6``, docs/prepare.md).
 LOCAL_EXTEND = FOV_EXTEND
@@ -58,7 +58,7 @@ def preview_extension(fov_model, data=None, contrast=None):
     than the detector), 1 without it, and 1 as well when
     ``data`` show that nothing lies outside the field of view's cylinder: in
     every projection both sides of the detector see no bubble signal
-    (:func:`bubsub.clients.pipeline.sides.side_signal`), so each view's
+    (:func:`bubsub.clients.pipeline.inputs.sides.side_signal`), so each view's
     shadow of the sample lies within the detector and the sample within the
     cylinder (the common case of a column narrower than the detector; the
     wider grid would only add 56 % to the preview's voxels).
@@ -201,7 +201,7 @@ def unobserved_control(surface, geometry):
     their differences, so the fit leaves these vertices exactly where they
     started: the unseen part of a bubble keeps its initial (spherical)
     shape instead of drifting, and the validity step then continues it from
-    the fitted visible part (:func:`bubsub.clients.pipeline.repair.continued`).
+    the fitted visible part (:func:`bubsub.clients.pipeline.static.repair.continued`).
     They are reported, not measured.
 
     Parameters
@@ -258,7 +258,7 @@ def fov_mask(shape, extent, fov):
     ----------
     shape : (rows, cols) or (slices, rows, cols)
     extent : (xmin, xmax, ymin, ymax[, zmin, zmax])
-        mm (grid convention of :mod:`bubsub.core.voxel.raster`).
+        mm (grid convention of :mod:`bubsub.core.projection.masks`).
     fov : (r_xy, half_z)
 
     Returns

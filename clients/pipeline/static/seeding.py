@@ -15,9 +15,9 @@ from bubsub.core import MeshProjector, ScanGeometry
 
 from bubsub.clients.optimise.fit import estimate_radii
 from bubsub.clients.optimise.levels import coarse_surfaces
-from bubsub.clients.pipeline.fov import preview_extension
-from bubsub.clients.pipeline.initial import choose_initial, default_detector
-from bubsub.clients.pipeline.preview import preview_voxel_size, voxel_for_bubbles, voxel_preview
+from bubsub.clients.pipeline.inputs.fov import preview_extension
+from bubsub.clients.pipeline.static.initial import choose_initial, default_detector
+from bubsub.clients.pipeline.static.preview import preview_voxel_size, voxel_for_bubbles, voxel_preview
 
 __all__ = ["initial_bubbles", "settings_preview", "settings_initial", "coarse_radii", "coarse_radii_with",
            "finer_voxel"]

@@ -130,7 +130,7 @@ def write_overlay(path, image, extent, fine_items, ids=None, title="BubSub recon
     ----------
     path : str or os.PathLike
     image : ndarray, ``(rows, cols)`` or ``(slices, rows, cols)``
-        :func:`bubsub.clients.pipeline.preview.voxel_preview`.
+        :func:`bubsub.clients.pipeline.static.preview.voxel_preview`.
     extent : tuple
         ``(xmin, xmax, ymin, ymax[, zmin, zmax])``, mm.
     fine_items : list of Polygon or Mesh

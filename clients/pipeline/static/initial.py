@@ -3,7 +3,7 @@
 Two detectors, each right where the other fails (docs/robustness.md):
 
 * ``"log"``: scale-normalised Laplacian-of-Gaussian blobs
-  (:func:`bubsub.clients.pipeline.blobs.log_blobs`). At few views the preview
+  (:func:`bubsub.clients.pipeline.static.blobs.log_blobs`). At few views the preview
   blurs neighbouring round bubbles together; LoG still responds to each at its
   own scale (fig1a, 10 views: 35 of 40 bubbles found with no spurious ones,
   against 31 and 5 spurious).
@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from bubsub.core import circle_surface, sphere_surface
 from bubsub.clients.optimise.criteria import akaike_score
 from bubsub.clients.optimise.fit import estimate_radii
-from bubsub.clients.pipeline.blobs import log_blobs, small_blobs
+from bubsub.clients.pipeline.static.blobs import log_blobs, small_blobs
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.voxel.astra2d import reconstruct_2d
 from bubsub.core.voxel.segment import binarise, bubble_centres, mask_distance
@@ -48,7 +48,7 @@ def initial_centres(image, extent, *, detector="dt", min_distance=None, contrast
     """Bubble centres and radii (mm) in a voxel preview.
 
     ``"log"``: scale-normalised Laplacian-of-Gaussian blobs
-    (:func:`bubsub.clients.pipeline.blobs.log_blobs`, radii 2 voxels to 1/8
+    (:func:`bubsub.clients.pipeline.static.blobs.log_blobs`, radii 2 voxels to 1/8
     of the field of view), which responds to each round bright region at its
     own scale, touching or not. ``"dt"``: local maxima of the distance
     transform of the preview's Otsu mask, which merges bubbles whose blurred
@@ -110,7 +110,7 @@ def distance_centres(image, extent, *, min_distance=None, border_is_background=T
 def small_centres(image, extent, contrast, mask):
     """Bubbles a few voxels across that the ``"dt"`` detector's opening erased, as centres and radii (mm).
 
-    :func:`bubsub.clients.pipeline.blobs.small_blobs` outside ``mask``
+    :func:`bubsub.clients.pipeline.static.blobs.small_blobs` outside ``mask``
     (:func:`distance_centres`' opened mask), at :data:`LOG_THRESHOLD`. On the
     small-bubble column of ``bubsub bench detection`` (``--seed 1
     --small-share 0.5 --small-range 4 9``, preview voxels of 2.4 pixels) the

@@ -38,8 +38,8 @@ from bubsub.core.io.meshio import write_ply, write_polygons_json
 from bubsub.core.io.tables import BUBBLE_COLUMN_INFO, BUBBLE_COLUMNS_2D, BUBBLE_COLUMNS_3D, csv_metadata_path, write_csv
 from bubsub.core.analysis.shape import bubble_table
 
-from bubsub.clients.pipeline.figures import write_figures
-from bubsub.clients.pipeline.fov import FOV_COLUMN_INFO, fov_columns
+from bubsub.clients.pipeline.results.figures import write_figures
+from bubsub.clients.pipeline.inputs.fov import FOV_COLUMN_INFO, fov_columns
 from bubsub.clients import version
 
 __all__ = ["write_outputs", "json_default", "MANIFEST", "RESULT_NAMES", "OutputFolderError", "folder_problem",

@@ -3,7 +3,7 @@ than the detector (local tomography).
 
 Judged from the bubbles' signal ``data - background`` at the outermost columns (the liquid, held by the
 background, is harmless); it warns or notes and never refuses: the field-of-view model
-(:mod:`bubsub.clients.pipeline.fov`) reconstructs such scans.
+(:mod:`bubsub.clients.pipeline.inputs.fov`) reconstructs such scans.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def check_lateral_truncation(scan):
 
     The pipeline models what the data see: bubbles within 1.25 times the
     radius of the cylinder every projection sees
-    (:data:`bubsub.clients.pipeline.fov.FOV_EXTEND`) and, through
+    (:data:`bubsub.clients.pipeline.inputs.fov.FOV_EXTEND`) and, through
     ``/exchange/background``, everything else (the liquid, the container).
     What can harm is gas the model does not hold: the bubbles' signal
     ``sign(contrast) * (data - background)`` (:attr:`Scan.bubble_data`,

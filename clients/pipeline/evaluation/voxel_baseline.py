@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from bubsub.core.metrics import projection_mse
-from bubsub.clients.pipeline.preview import preview_grid
+from bubsub.clients.pipeline.static.preview import preview_grid
 from bubsub.clients.pipeline.reconstruct import split_holdout
 from bubsub.core.voxel import solvers
 from bubsub.core.voxel.astra2d import AstraProjector2D, have_astra

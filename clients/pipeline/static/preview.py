@@ -19,8 +19,8 @@ from bubsub.core.voxel.astra2d import reconstruct_2d
 from bubsub.core.voxel.grid import VoxelGrid, index_to_world, world_to_index
 from bubsub.core.voxel.reconstruct3d import reconstruct_3d
 
-from bubsub.clients.pipeline.fov import field_of_view
-from bubsub.clients.pipeline.resolution import pixels_per_mm
+from bubsub.clients.pipeline.inputs.fov import field_of_view
+from bubsub.clients.pipeline.static.resolution import pixels_per_mm
 from bubsub.clients.progress import phase
 
 __all__ = ["PREVIEW_FINE_ITERATIONS_3D", "BUBBLE_VOXELS", "MIN_BUBBLE_VOXELS", "MAX_PREVIEW_VOXELS",
@@ -34,7 +34,7 @@ def preview_voxel_size(geometry):
 
 def preview_grid(geometry, voxel_size=None, extend=1.0):
     """The voxel preview's grid: the field of view at ``voxel_size`` (default :func:`preview_voxel_size`),
-    its radius times ``extend`` (:func:`bubsub.clients.pipeline.fov.preview_extension`).
+    its radius times ``extend`` (:func:`bubsub.clients.pipeline.inputs.fov.preview_extension`).
 
     Returns
     -------
@@ -119,7 +119,7 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
     views: 37 of 40 bubbles found instead of 28; docs/robustness.md).
     ``method="sirt"``: SIRT with ``x >= 0`` only (100 iterations in 2D, 15 in 3D).
     ``extend`` widens the grid beyond the field of view's radius by that
-    factor (:func:`bubsub.clients.pipeline.fov.preview_extension`), so that
+    factor (:func:`bubsub.clients.pipeline.inputs.fov.preview_extension`), so that
     bubbles partly outside the reconstructable cylinder, which some
     projections see, have voxels to go to.
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from bubsub.clients.pipeline.fov import FOV_EXTEND
-from bubsub.clients.pipeline.sides import LOCAL_VIEWS, side_hits
+from bubsub.clients.pipeline.inputs.fov import FOV_EXTEND
+from bubsub.clients.pipeline.inputs.sides import LOCAL_VIEWS, side_hits
 from bubsub.core.prep.background import noise_level
 
 __all__ = ["check_physical_signal", "longest_path", "liquid_attenuation", "away_from", "IMPOSSIBLE_FRACTION",
@@ -24,9 +24,9 @@ IMPOSSIBLE_FRACTION = 0.002
 def longest_path(geometry):
     """The longest path (mm) a ray of ``geometry`` can take through the region the pipeline models.
 
-    That region is the cylinder of :data:`bubsub.clients.pipeline.fov.FOV_EXTEND` times the detector's half-width in the object
+    That region is the cylinder of :data:`bubsub.clients.pipeline.inputs.fov.FOV_EXTEND` times the detector's half-width in the object
     plane (the largest over the projections; for a centred detector the preview's region,
-    :data:`bubsub.clients.pipeline.fov.FOV_EXTEND` times the field of view's radius): a ray crosses it over
+    :data:`bubsub.clients.pipeline.inputs.fov.FOV_EXTEND` times the field of view's radius): a ray crosses it over
     at most its diameter divided by the cosine of the ray's tilt out of the x-y plane (0 in 2D and for a
     parallel beam perpendicular to the axis; largest at the middle of a cone beam's top and bottom rows).
 

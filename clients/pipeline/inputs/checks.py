@@ -1,7 +1,7 @@
 """Checks run before a reconstruction computes anything: settings and the scan's bubble signal.
 
-The scan's physics (:mod:`bubsub.clients.pipeline.physics`) and its detector's sides
-(:mod:`bubsub.clients.pipeline.sides`) each have a module of their own.
+The scan's physics (:mod:`bubsub.clients.pipeline.inputs.physics`) and its detector's sides
+(:mod:`bubsub.clients.pipeline.inputs.sides`) each have a module of their own.
 
 Each takes well under a second and raises ``ValueError`` with one line that
 names the problem and the fix, so that a mistake costs seconds, not a fit,
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bubsub.clients.pipeline.physics import check_physical_signal
-from bubsub.clients.pipeline.sides import check_lateral_truncation
+from bubsub.clients.pipeline.inputs.physics import check_physical_signal
+from bubsub.clients.pipeline.inputs.sides import check_lateral_truncation
 from bubsub.core.contrast import signal_masses
 from bubsub.core.validate import check_int
 

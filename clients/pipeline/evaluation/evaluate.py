@@ -24,7 +24,7 @@ neither gives one). On those voxels:
 With ``write``, ``evaluation.json`` (the same dictionary) and
 ``evaluation.png`` (truth against reconstruction; a 4D folder adds its DDI per
 subscan) go into the reconstruction folder, each atomically, and are added
-to its manifest (:func:`bubsub.clients.pipeline.outputs.add_outputs`), so
+to its manifest (:func:`bubsub.clients.pipeline.results.outputs.add_outputs`), so
 that a later ``--overwrite`` run into that folder removes them with the rest.
 """
 
@@ -35,10 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bubsub.clients.pipeline.evaluate4d import evaluate_dynamic
-from bubsub.clients.pipeline.scoring import json_scores, score_folder, simulation_meta
-from bubsub.clients.pipeline.figures import subplots
-from bubsub.clients.pipeline.outputs import add_outputs, folder_problem, json_default
+from bubsub.clients.pipeline.evaluation.evaluate4d import evaluate_dynamic
+from bubsub.clients.pipeline.evaluation.scoring import json_scores, score_folder, simulation_meta
+from bubsub.clients.pipeline.results.figures import subplots
+from bubsub.clients.pipeline.results.outputs import add_outputs, folder_problem, json_default
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 
 __all__ = ["evaluate_dir", "write_evaluation", "write_picture", "EVALUATION", "PICTURE"]
@@ -57,7 +57,7 @@ def evaluate_dir(recon_dir, truth_dir, write=False):
     ----------
     recon_dir : str or os.PathLike
         A ``bubsub reconstruct`` folder, a ``subscan_NNNN`` folder of ``bubsub reconstruct4d``, or a
-        ``reconstruct4d`` folder (scored per subscan, :func:`bubsub.clients.pipeline.evaluate4d.evaluate_dynamic`).
+        ``reconstruct4d`` folder (scored per subscan, :func:`bubsub.clients.pipeline.evaluation.evaluate4d.evaluate_dynamic`).
     truth_dir : str or os.PathLike
         The ``bubsub simulate`` folder.
     write : bool
@@ -117,7 +117,7 @@ def write_evaluation(folder, result, images):
     result : dict
         :func:`evaluate_dir`'s (JSON-able).
     images : dict
-        The label images of the picture: :func:`bubsub.clients.pipeline.scoring.score_bubbles`'s result (a static or subscan folder),
+        The label images of the picture: :func:`bubsub.clients.pipeline.evaluation.scoring.score_bubbles`'s result (a static or subscan folder),
         or for a 4D folder the subscan it shows (``_subscans``: each subscan's DDI).
 
     Returns
@@ -160,7 +160,7 @@ def _rgb(t_lab, r_lab):
 
 def _views(t_lab, r_lab, extent):
     """``[(title, rgb image, imshow extent, origin, axis names)]``: the whole 2D grid, or the three middle
-    slices of a 3D one (row 0 at y max, as :mod:`bubsub.core.voxel.raster`)."""
+    slices of a 3D one (row 0 at y max, as :mod:`bubsub.core.projection.masks`)."""
     if t_lab.ndim == 2:
         return [("", _rgb(t_lab, r_lab), extent, "upper", "xy")]
     nz, ny, nx = t_lab.shape

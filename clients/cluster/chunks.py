@@ -37,7 +37,7 @@ from bubsub.clients.cluster.engine import distributed
 from bubsub.clients.progress import phase
 from bubsub.core.io.scanfile import read_scan
 from bubsub.core.io.subscans import subscan, subscan_layout
-from bubsub.core.voxel.raster import label_image
+from bubsub.core.projection.masks import label_image
 
 __all__ = ["chunk_bounds", "link_ids", "relabel", "run_subscan", "run_chunks", "ScanFileSubscans"]
 
@@ -70,7 +70,7 @@ def run_subscan(step, source, index, previous, settings, time):
     Parameters
     ----------
     step : callable(scan, state, settings, index, time) -> SubscanResult
-        Module-level (picklable): :func:`bubsub.clients.pipeline.dynamic.reconstruct_subscan`.
+        Module-level (picklable): :func:`bubsub.clients.pipeline.dynamic4d.chain.reconstruct_subscan`.
     source : ScanFileSubscans or Scan
         The scan file to read from, or the subscan itself.
     index : int
@@ -262,7 +262,7 @@ def run_chunks(client, source, order, settings, *, step, chunks=1, start=None, t
     settings : DynamicSettings
     step : callable(scan, state, settings, index, time) -> SubscanResult
         One subscan, module-level (picklable):
-        :func:`bubsub.clients.pipeline.dynamic.reconstruct_subscan`.
+        :func:`bubsub.clients.pipeline.dynamic4d.chain.reconstruct_subscan`.
     chunks : int
     start : BubbleState, optional
         State the latest chunk starts from (a resumed run); others start cold.

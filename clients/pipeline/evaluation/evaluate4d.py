@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bubsub.clients.pipeline.scoring import json_scores, read_bubbles, score_folder, simulation_meta
+from bubsub.clients.pipeline.evaluation.scoring import json_scores, read_bubbles, score_folder, simulation_meta
 
 __all__ = ["evaluate_dynamic", "match_to_truth"]
 
@@ -39,7 +39,7 @@ def evaluate_dynamic(recon_dir, truth_dir, grid=None, matches=False):
 
     Each ``subscan_NNNN`` folder is scored against the simulation's truth of
     that subscan as ``bubsub evaluate`` scores a reconstruct folder
-    (:func:`bubsub.clients.pipeline.scoring.score_folder`: the grid's voxels
+    (:func:`bubsub.clients.pipeline.evaluation.scoring.score_folder`: the grid's voxels
     inside the field of view of its ``report.json``). A track's identity is
     the truth bubble its first reconstruction (the cold, latest subscan) lies
     in; a row is on the right track when the bubble lies in that same truth
@@ -54,7 +54,7 @@ def evaluate_dynamic(recon_dir, truth_dir, grid=None, matches=False):
     matches : bool
         Keep each subscan's per-bubble ``matches``, ``spurious_ids`` and report entries, and return under
         ``_images`` the label images of the subscan with the highest DDI (for
-        :func:`bubsub.clients.pipeline.evaluate.write_picture`).
+        :func:`bubsub.clients.pipeline.evaluation.evaluate.write_picture`).
 
     Returns
     -------

@@ -2,7 +2,7 @@
 
 ``bubsub reconstruct4d`` goes backwards in time; each warm subscan's report
 says what happened between it and its successor
-(:mod:`bubsub.clients.pipeline.detect4d`): ``new`` (bubbles found without a
+(:mod:`bubsub.clients.pipeline.dynamic4d.detect`): ``new`` (bubbles found without a
 warm start), ``coalescences`` (one bubble in the successor, two here) and
 ``ended`` (the successor's tracks with no bubble here). :func:`lineage_rows`
 turns them into events in forward time:

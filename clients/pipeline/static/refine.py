@@ -33,7 +33,7 @@ from bubsub.core.projection.subdivision import refine_control
 
 from bubsub.clients.optimise.criteria import akaike_score
 from bubsub.clients.optimise.fit import fit
-from bubsub.clients.pipeline.local import scene_objective
+from bubsub.clients.pipeline.regions.local import scene_objective
 
 __all__ = ["refine_and_fit", "refine_and_check", "can_refine", "refinable", "coarse_rate", "out_of_reach",
            "penalised_objective", "control_counts"]

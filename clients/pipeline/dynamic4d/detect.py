@@ -18,7 +18,7 @@ same grid, its distance-transform centres) and lets its centres decide
 
 Then caps at the detector's top and bottom rows are seeded
 (:func:`edge_seeds`), and the static pipeline's topology rounds
-(:func:`bubsub.clients.pipeline.topology.adapt_bubbles`) run on the
+(:func:`bubsub.clients.pipeline.static.topology.adapt_bubbles`) run on the
 bubbles, with the preview and the steps :data:`WARM_STEPS`:
 
 * **add**: the residual ``data - Proj(fit)`` is reconstructed on a coarse
@@ -52,14 +52,15 @@ import time
 import numpy as np
 
 from bubsub.core.projection.mesh import equivalent_radius
-from bubsub.core.voxel.raster import coverage
+from bubsub.core.projection.masks import coverage
 
-from bubsub.clients.pipeline.fov import field_of_view, fov_report, preview_extension, truncated_flags
-from bubsub.clients.pipeline.initial import distance_centres, edge_centres, edge_slices, initial_centres, small_centres
-from bubsub.clients.pipeline.local import Footprints, footprint, local_refit, scene_residual
-from bubsub.clients.pipeline.preview import preview_grid, preview_voxel_size, voxel_for_bubbles, voxel_preview
-from bubsub.clients.pipeline.resolution import levels_by_size, pixels_per_mm
-from bubsub.clients.pipeline.topology import adapt_bubbles, add_at, points_inside, split_step
+from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, preview_extension, truncated_flags
+from bubsub.clients.pipeline.static.initial import (distance_centres, edge_centres, edge_slices, initial_centres,
+                                                    small_centres)
+from bubsub.clients.pipeline.regions.local import Footprints, footprint, local_refit, scene_residual
+from bubsub.clients.pipeline.static.preview import preview_grid, preview_voxel_size, voxel_for_bubbles, voxel_preview
+from bubsub.clients.pipeline.static.resolution import levels_by_size, pixels_per_mm
+from bubsub.clients.pipeline.static.topology import adapt_bubbles, add_at, points_inside, split_step
 from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 
@@ -251,9 +252,9 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
     """Bubbles cut by the detector's top or bottom row that no fitted bubble explains, seeded and fitted.
 
     The unexplained part of the residual (the bubbles' sign of ``data - Proj(fit)``) is reconstructed on the
-    first and last rows' slices (:func:`~bubsub.clients.pipeline.initial.edge_slices`); each disc no fitted
+    first and last rows' slices (:func:`~bubsub.clients.pipeline.static.initial.edge_slices`); each disc no fitted
     bubble accounts for becomes a sphere of the fitted bubbles' median radius beyond the edge plane with that
-    disc as its section (:func:`~bubsub.clients.pipeline.initial.edge_centres`: a bubble that leaves through
+    disc as its section (:func:`~bubsub.clients.pipeline.static.initial.edge_centres`: a bubble that leaves through
     the edge later shows only a cap), kept when it lowers the objective, then refitted with its neighbours free
     on a detector window. Parallel-beam 3D scans only (rows are slices there).
 
@@ -303,11 +304,11 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
 def data_preview(geometry, data, contrast, settings, surfaces):
     """The voxel preview of a warm subscan's data, as the cold start makes it, and the bubble centres in it.
 
-    The grid is the cold start's (:func:`~bubsub.clients.pipeline.preview.preview_grid` at ``settings.voxel_size``,
-    the default voxel, made finer by :func:`~bubsub.clients.pipeline.preview.voxel_for_bubbles` when the fitted
+    The grid is the cold start's (:func:`~bubsub.clients.pipeline.static.preview.preview_grid` at ``settings.voxel_size``,
+    the default voxel, made finer by :func:`~bubsub.clients.pipeline.static.preview.voxel_for_bubbles` when the fitted
     bubbles are few voxels across, never finer than a detector pixel at the axis; widened by the field-of-view model, so that caps at the detector's edge
     show); the centres are the cold start's ``"dt"`` detector (the distance transform's maxima of the Otsu mask)
-    and, in 3D, the small bubbles its opening erased (:func:`~bubsub.clients.pipeline.initial.small_centres`).
+    and, in 3D, the small bubbles its opening erased (:func:`~bubsub.clients.pipeline.static.initial.small_centres`).
 
     Parameters
     ----------
@@ -356,10 +357,10 @@ def preview_changes(projector, surfaces, data, centres, radii, settings, *, min_
     * **split**: a fitted bubble that holds two or more centres (a neighbour whose warm fit grew over a bubble
       the successor lacks, or one bubble in the successor that is two here) is replaced by two round bubbles at
       its two largest centres, fitted locally, kept when the objective drops by more than the unknowns the
-      second bubble adds (:func:`~bubsub.clients.pipeline.topology.split_step`);
+      second bubble adds (:func:`~bubsub.clients.pipeline.static.topology.split_step`);
     * **add**: a round bubble at each centre that no bubble holds, its radius cut to the gap to its neighbours,
       kept when the objective drops by more than its unknowns cost
-      (:func:`~bubsub.clients.pipeline.topology.add_at`).
+      (:func:`~bubsub.clients.pipeline.static.topology.add_at`).
 
     The bubbles changed are then refitted on detector windows with their neighbours (within their own size)
     free and the rest of the scene fixed: a neighbour whose warm fit took a new bubble's space gives it back.
@@ -381,7 +382,7 @@ def preview_changes(projector, surfaces, data, centres, radii, settings, *, min_
     -------
     surfaces : list of SubdivisionSurface
     changes : list of dict
-        As :func:`~bubsub.clients.pipeline.topology.adapt_topology`'s, kinds ``preview_split`` and ``preview_add``.
+        As :func:`~bubsub.clients.pipeline.static.topology.adapt_topology`'s, kinds ``preview_split`` and ``preview_add``.
     """
     surfaces = list(surfaces)
     if not surfaces or not len(centres):
@@ -457,7 +458,7 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
         voxel = voxel_for_bubbles(radii, geometry, voxel,
                                   preview_extension(settings.fov_model, data, contrast)) or voxel
         # no finer than a detector pixel at the axis: the residual is reconstructed on twice this voxel
-        # (:func:`~bubsub.clients.pipeline.topology.adapt_bubbles`), and a bubble added is at least 3 voxels in
+        # (:func:`~bubsub.clients.pipeline.static.topology.adapt_bubbles`), and a bubble added is at least 3 voxels in
         # radius; a finer grid costs a warm subscan more than its fit
         voxel = max(voxel, 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0]))
     projector = MeshProjector(geometry, supersampling=settings.supersampling)

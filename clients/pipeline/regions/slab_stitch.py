@@ -1,5 +1,5 @@
 """Which slab keeps which bubble: the slabs' bubbles stitched into one list, and bubbles of known identity
-fitted slab by slab (the rules are in :mod:`bubsub.clients.pipeline.slabs`' docstring).
+fitted slab by slab (the rules are in :mod:`bubsub.clients.pipeline.regions.slabs`' docstring).
 """
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import time
 
 import numpy as np
 
-from bubsub.clients.pipeline.slab_layout import (bubble_heights, edge_height, moved, row_axis, row_pitch, scan_geometry,
-                                                 slab_bounds, slab_scan)
+from bubsub.clients.pipeline.regions.slab_layout import (bubble_heights, edge_height, moved, row_axis, row_pitch,
+                                                         scan_geometry, slab_bounds, slab_scan)
 
 __all__ = ["stitch", "stitch_previews", "core_preview", "fit_known", "rows_entry", "slab_totals"]
 

@@ -30,9 +30,9 @@ volume_in_fov_mm3
 
 The last two columns are there when the subscans' reports have their field
 of view (every ``bubsub reconstruct4d`` run writes it); see
-:func:`bubsub.clients.pipeline.fov.fov_columns`.
+:func:`bubsub.clients.pipeline.inputs.fov.fov_columns`.
 
-``lineage.csv`` (:func:`bubsub.clients.pipeline.lineage.write_lineage`, with
+``lineage.csv`` (:func:`bubsub.clients.pipeline.dynamic4d.lineage.write_lineage`, with
 its CSVW sidecar) lists the tracks' births, ends and coalescences in forward
 time.
 """
@@ -52,11 +52,11 @@ from bubsub.core.io.tables import BUBBLE_COLUMN_INFO, unit_column, write_table
 from bubsub.core.analysis.shape import bubble_table
 from bubsub.core.projection.subdivision import SubdivisionSurface
 
-from bubsub.clients.pipeline.dynamic import BubbleState, SubscanResult
-from bubsub.clients.pipeline.lineage import write_lineage
-from bubsub.clients.pipeline.outputs import json_default, write_outputs
-from bubsub.clients.pipeline.figures import subplots
-from bubsub.clients.pipeline.fov import FOV_COLUMN_INFO, fov_columns
+from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, SubscanResult
+from bubsub.clients.pipeline.dynamic4d.lineage import write_lineage
+from bubsub.clients.pipeline.results.outputs import json_default, write_outputs
+from bubsub.clients.pipeline.results.figures import subplots
+from bubsub.clients.pipeline.inputs.fov import FOV_COLUMN_INFO, fov_columns
 from bubsub.clients.pipeline.reconstruct import Reconstruction
 
 __all__ = ["subscan_dir", "write_subscan", "read_subscan_result", "complete_subscans", "track_rows",
@@ -91,7 +91,7 @@ def write_subscan(out, result, ndim, scan_path=None):
 
 
 def read_subscan_result(out, index, attenuation):
-    """A completed subscan folder back as a :class:`~bubsub.clients.pipeline.dynamic.SubscanResult`."""
+    """A completed subscan folder back as a :class:`~bubsub.clients.pipeline.dynamic4d.chain.SubscanResult`."""
     d = subscan_dir(out, index)
     report = json.loads((d / "report.json").read_text())
     if report["dimension"] == 3:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bubsub.clients.pipeline.outputs import finish_outputs
+from bubsub.clients.pipeline.results.outputs import finish_outputs
 from bubsub.core import ScanGeometry
 from bubsub.core.foam import phantoms
 from bubsub.core.foam.simulate import simulate_2d, simulate_3d
@@ -74,7 +74,7 @@ def simulate_to_dir(out, phantom_name="foam2d", *, angles=25, photons=1e4, seed=
     """Simulate a scan and write ``scan.h5``, ``truth.json|ply`` and ``phantom.json`` to ``out``.
 
     The files of an earlier run in ``out`` that are not replaced are removed
-    (:func:`bubsub.clients.pipeline.outputs.finish_outputs`); ``bubsub
+    (:func:`bubsub.clients.pipeline.results.outputs.finish_outputs`); ``bubsub
     simulate`` first refuses a folder with earlier results unless ``--overwrite``.
     """
 

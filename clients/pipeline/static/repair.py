@@ -22,7 +22,7 @@ and acts:
 
 Before the check, the part of each bubble that no ray sees (beyond the
 detector's top or bottom row: control vertices whose refined neighbourhood
-no projection sees, :func:`bubsub.clients.pipeline.fov.unobserved_control`)
+no projection sees, :func:`bubsub.clients.pipeline.inputs.fov.unobserved_control`)
 is continued from the part the data determine (:func:`continued`): the fit
 leaves those vertices where the bubble started, so when the visible part
 has moved or grown they would fold into it (collapse) or stand off it
@@ -46,8 +46,8 @@ from scipy.sparse.linalg import spsolve
 
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.core.projection.validity import check_bubbles, self_crossing_vertices, self_crossings
-from bubsub.clients.pipeline.fov import unobserved_control
-from bubsub.clients.pipeline.local import local_refit, scene_objective
+from bubsub.clients.pipeline.inputs.fov import unobserved_control
+from bubsub.clients.pipeline.regions.local import local_refit, scene_objective
 
 __all__ = ["check_and_repair", "merged_validity", "repair_bubbles", "rounded", "untangled", "separate", "continued",
            "shrunk", "shrink_overlaps",
@@ -107,7 +107,7 @@ def continued(surface, unseen):
     ----------
     surface : SubdivisionSurface
     unseen : (n_control,) bool
-        Control vertices no ray sees (:func:`bubsub.clients.pipeline.fov.unobserved_control`).
+        Control vertices no ray sees (:func:`bubsub.clients.pipeline.inputs.fov.unobserved_control`).
 
     Returns
     -------
@@ -209,7 +209,7 @@ def untangled(surface, steps=12, weight=0.5):
     keeping the bubble's size and position, and mostly its shape (a dense
     foam's flattened faces). It first smooths only the control vertices
     around the crossings (a local fold, e.g. at a Plateau border of a control
-    mesh refined by :mod:`bubsub.clients.pipeline.refine`, is undone without
+    mesh refined by :mod:`bubsub.clients.pipeline.static.refine`, is undone without
     rounding the rest of the bubble: ``"unfolded"``), then all of them
     (``"smoothed"``); rounding is the fallback.
 

@@ -7,11 +7,11 @@ bubbles. A scale-normalised Laplacian of Gaussian (scikit-image's
 ``blob_log``) responds to each roughly round bright region at its own scale,
 touching or not, and gives a radius with it (``sqrt(ndim) * sigma``).
 
-Used for the initial bubbles (:func:`bubsub.clients.pipeline.initial.initial_surfaces`
+Used for the initial bubbles (:func:`bubsub.clients.pipeline.static.initial.initial_surfaces`
 with ``detector="log"``), for the small bubbles that the distance-transform
 detector's morphological opening erases (:func:`small_blobs`) and, on a
 back-projected residual, for bubbles added during the fit
-(:mod:`bubsub.clients.pipeline.topology`).
+(:mod:`bubsub.clients.pipeline.static.topology`).
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ def log_blobs(image, extent, contrast, *, min_radius, max_radius, threshold=0.1,
 
 
 #: Radii (in voxels of the image) that :func:`small_blobs` searches: a bubble narrower than the opening's ball
-#: of 2 voxels' radius (:func:`bubsub.clients.pipeline.initial.initial_centres`) is gone from the opened mask.
+#: of 2 voxels' radius (:func:`bubsub.clients.pipeline.static.initial.initial_centres`) is gone from the opened mask.
 SMALL_BLOB_VOXELS = (1.5, 4.0)
 
 

@@ -37,12 +37,14 @@ bubbles, with the preview and the steps :data:`WARM_STEPS`:
 
 :func:`assign_tracks` then gives every bubble after the rounds its track:
 a bubble that lies mostly inside one fitted bubble continues its id; a
-fitted bubble that became two is a coalescence (forward in time) when the
-two together hold about the successor's bubble's size, both with new ids and
-the lineage ``children -> parent``; otherwise (one of the two is the bubble,
-the other a bubble whose space its warm fit took) the larger keeps the id.
-Bubbles inside none are new tracks. Ids come from ``next_id`` upward and are
-never reused in a run.
+fitted bubble that became two is a coalescence (forward in time) when the two
+look like one (:func:`coalesces`: both wholly in the field of view, of
+comparable size, together nearer the successor's bubble's size than the
+larger alone), both with new ids and the lineage ``children -> parent``;
+otherwise (one of the two is the bubble, the other a bubble whose space its
+warm fit took, or a cap beside a neighbour cut by the same detector edge) the
+larger keeps the id. Bubbles inside none are new tracks. Ids come from
+``next_id`` upward and are never reused in a run.
 """
 
 from __future__ import annotations
@@ -64,7 +66,8 @@ from bubsub.clients.pipeline.static.topology import adapt_bubbles, add_at, point
 from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 
-__all__ = ["WARM_STEPS", "detect_warm", "data_preview", "preview_changes", "assign_tracks", "overlap_fraction", "edge_side"]
+__all__ = ["WARM_STEPS", "COALESCENCE_SHARE", "detect_warm", "data_preview", "preview_changes", "assign_tracks",
+           "coalesces", "overlap_fraction", "edge_side"]
 
 #: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
 #: forward in time, keeps the successor's two warm starts).
@@ -72,6 +75,10 @@ WARM_STEPS = ("remove", "add", "split")
 
 #: A bubble after the rounds continues the fitted bubble that holds at least this fraction of it.
 CONTINUES = 0.5
+
+#: A coalescence's smaller child holds at least this share of the two children's size (a bubble of 0.56 times the
+#: other's radius): a cap or a sliver beside a neighbour is not the other half of a coalescence.
+COALESCENCE_SHARE = 0.15
 
 #: Cells along the longest side of the grid on which two bubbles' overlap is measured.
 OVERLAP_CELLS = 20
@@ -160,8 +167,43 @@ def _parents(before, after):
     return out
 
 
+def coalesces(sizes, sides, known):
+    """Whether a fitted bubble that became two is one bubble in the successor too: a coalescence forward in time.
+
+    A coalescence as the chain sees it going backwards: two bubbles of comparable size, each a real share of
+    the pair (:data:`COALESCENCE_SHARE`), both wholly in the field of view, that together hold about the
+    successor's bubble's size (nearer it than the larger alone). Otherwise the larger continues the track and
+    the other is a bubble the warm fit covered: a cap that leaves through the detector's edge later beside a
+    neighbour cut by the same edge (the visible parts' sizes say nothing of the bubbles'), or a small bubble
+    beside a neighbour that swelled into its space in the successor.
+
+    Parameters
+    ----------
+    sizes : sequence of float
+        The children's areas (2D) or volumes (3D), largest first, at least two.
+    sides : sequence of str or None
+        :func:`edge_side` of each child.
+    known : float or None
+        The size of the successor's bubble (None: unknown, never a coalescence).
+
+    Returns
+    -------
+    bool
+    """
+    if known is None or len(sizes) < 2:
+        return False
+    big, small = float(sizes[0]), float(sizes[1])
+    return (sides[0] is None and sides[1] is None and small >= COALESCENCE_SHARE * (big + small)
+            and abs(known - big - small) < abs(known - big))
+
+
 def assign_tracks(ids, before, after, successor_sizes, geometry, next_id):
     """Track ids of the bubbles after the warm subscan's topology rounds, and the lineage they imply.
+
+    A bubble of ``after`` lying mostly (:data:`CONTINUES`) inside one of ``before`` continues it. A fitted
+    bubble that became two or more: its two largest children are a coalescence forward in time when
+    :func:`coalesces` says so (both take new ids, the lineage ``children -> parent``); otherwise the largest
+    keeps the id. Every other child is a new track, split off the fitted bubble.
 
     Parameters
     ----------
@@ -209,19 +251,20 @@ def assign_tracks(ids, before, after, successor_sizes, geometry, next_id):
         sizes = [_size(after[j]) for j in js]
         js = [js[i] for i in np.argsort(sizes)[::-1]]
         sizes = sorted(sizes, reverse=True)
-        known = successor_sizes.get(int(ids[k]))
-        # one bubble over two in the successor too (a coalescence forward in time) when the two together are
-        # nearer its size than the larger alone
-        if known is not None and abs(known - sum(sizes)) < abs(known - sizes[0]):
-            got = [fresh() for _ in js]
+        sides = [edge_side(after[j], geometry) for j in js]
+        if coalesces(sizes, sides, successor_sizes.get(int(ids[k]))):
+            got = [fresh() for _ in js[:2]]
             for j, i in zip(js, got):
                 new_ids[j] = i
             lineage["coalescences"].append({"parent": int(ids[k]), "children": got})
+            rest = 2
         else:
             new_ids[js[0]] = int(ids[k])
-            for j in js[1:]:
-                new_ids[j] = fresh()
-                lineage["new"][new_ids[j]] = f"split off bubble {int(ids[k])}, whose warm fit covered it"
+            rest = 1
+        for j, side in zip(js[rest:], sides[rest:]):
+            new_ids[j] = fresh()
+            lineage["new"][new_ids[j]] = (f"split off bubble {int(ids[k])}, whose warm fit covered it"
+                                          + (f", at the {side} edge of the field of view" if side else ""))
     for j, s in enumerate(after):
         if new_ids[j] is None:
             new_ids[j] = fresh()

@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bubsub.bench.dynamic_scores import SMALL_BALL, chain_burden, flowing_truth, score_run
+from bubsub.bench.dynamic_scores import SMALL_BALL, chain_burden, flowing_truth, read_lineage, score_run
 from bubsub.bench.matching import mesh_labels, overlaps
 from bubsub.bench.fov import voxel_route
 from bubsub.bench.reconstruct import cli_command
@@ -58,7 +58,7 @@ from bubsub.core.io.scanfile import read_scan, write_scan
 from bubsub.core.io.subscans import subscan, subscan_layout
 
 __all__ = ["LINK_SHARE", "link_by_overlap", "bubsub_labels", "voxel_labels", "run_voxel_route", "reversed_scan",
-           "simulate_flowing_case", "format_table", "main"]
+           "simulate_flowing_case", "format_table", "coalescence_cell", "main"]
 
 #: Shared share of the later label's voxels that links two voxel-route labels.
 LINK_SHARE = 0.3
@@ -263,6 +263,14 @@ def format_table(name, scores, seconds=None):
     return table(header, body)
 
 
+def coalescence_cell(c):
+    """``two before / one after / in the lineage, of N; false rows of all rows`` of
+    :func:`~bubsub.bench.dynamic_scores.score_coalescences` (``-`` where the route keeps no lineage)."""
+    lin = "-" if c["in_lineage"] is None else c["in_lineage"]
+    false = "-" if c["false_rows"] is None else f"{c['false_rows']} of {c['rows']}"
+    return f"{c['two_before']} / {c['one_after']} / {lin}, of {c['events']}; {false}"
+
+
 def _bubsub_seconds(rec_dir):
     """``{subscan: (start, seconds)}`` from each subscan folder's ``report.json`` (empty where there is none)."""
     out = {}
@@ -346,7 +354,7 @@ def main(argv=None):
             labels_fwd = labels
             labels = lambda k: labels_fwd(last - k)  # noqa: E731
             secs = {last - k: v for k, v in secs.items()}
-        scores = score_run(meta, tables, labels)
+        scores = score_run(meta, tables, labels, events=events, lineage=None if forward else read_lineage(rec))
         cold = [s for st, s in secs.values() if st == "cold"]
         warm = [s for st, s in secs.values() if st == "warm"]
         name = (f"bubsub reconstruct4d (from {rec})" if args.rec
@@ -369,7 +377,7 @@ def main(argv=None):
             wall, _, rss = run_tree(cli_command("bench", "dynamic", "--voxel-child", sim, vox, "--sirt-iterations",
                                                 args.sirt_iterations, "--voxel-bin", args.voxel_bin))
             done.write_text(json.dumps({"settings": want, "wall_s": wall, "peak_rss_mib": rss}))
-        scores = score_run(meta, tables, voxel_labels(vox / "labels.npz"))
+        scores = score_run(meta, tables, voxel_labels(vox / "labels.npz"), events=events)
         sec = json.loads((vox / "seconds.json").read_text())
         secs = {k: ("", s) for k, s in enumerate(sec["seconds"])}
         name = (f"voxel route: SIRT {args.sirt_iterations} on {' x '.join(map(str, sec['grid_shape']))} voxels "
@@ -408,6 +416,8 @@ def _print_summary(results):
         row("bubbles a forward chain would find anew, found here (all; ball >= 6 px)",
             lambda k: f"{pct(t[k]['fwd_found'], t[k]['fwd'])}; {pct(t[k]['fwd6_found'], t[k]['fwd6'])}"),
         row("small bubbles found (ball 6-12 px)", lambda k: pct(t[k]["small_found"], t[k]["small"])),
+        row("coalescences: two before / one after / in the lineage, of N; false rows",
+            lambda k: coalescence_cell(t[k]["coalescences"])),
         row("mean DDI in the FOV", lambda k: _fmt(t[k]["mean_ddi"])),
         row("cold subscan DDI", lambda k: _fmt(results[k].get("cold_ddi"))),
         row("track purity (tracks, rows)",

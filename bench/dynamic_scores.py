@@ -18,6 +18,10 @@ view, on the evaluation grid (``phantom.json``: two pixels per voxel), with
   radius (``anew6``);
 * **small**: truth bubbles whose visible part holds a largest ball of 6 to 12
   pixels' radius (inside the foam or as a cap at the detector's edge);
+* **coalescences** (:func:`score_coalescences`): per true coalescence, its
+  parents found in the subscan before, its child found in the subscan after,
+  and the route's ``lineage.csv`` row for it; lineage coalescence rows that
+  match none are false;
 * **track purity**: each reconstructed row (a track's bubble in a subscan) is
   put on the truth bubble it overlaps most; a track's purity is the share of
   its rows on its most frequent truth bubble, and the run's is the sum over
@@ -43,7 +47,7 @@ from scipy import ndimage
 from bubsub.bench.matching import MIN_IOU, match, overlaps, truth_labels
 
 __all__ = ["MERGE_COVER", "SMALL_BALL", "flowing_truth", "visible_ball", "truth_subscan", "row_owners",
-           "track_purity", "score_subscan", "score_run", "chain_burden"]
+           "track_purity", "score_subscan", "score_run", "score_coalescences", "read_lineage", "chain_burden"]
 
 #: A reconstructed bubble covering more than this share of two truth bubbles merges them.
 MERGE_COVER = 0.3
@@ -174,6 +178,11 @@ def score_subscan(truth, truth_ids, rec, ball, anew, anew_forward=()):
         ``fwd, fwd_found, fwd6, fwd6_found`` for ``anew_forward``, and ``truth6, found6``: the truth bubbles whose
         visible part holds a ball of at least 6 pixels' radius and how many of them are found.
     """
+    return _score_subscan(truth, truth_ids, rec, ball, anew, anew_forward)[0]
+
+
+def _score_subscan(truth, truth_ids, rec, ball, anew, anew_forward):
+    """:func:`score_subscan`'s dict and the set of truth ids found."""
     m = match(truth, rec)  # spurious, DDI, and each truth bubble's best reconstructed bubble and its IoU
     table, n_t, _ = overlaps(truth, rec)
     covers = table[:, 1:] > MERGE_COVER * np.maximum(n_t, 1)[:, None]
@@ -194,10 +203,10 @@ def score_subscan(truth, truth_ids, rec, ball, anew, anew_forward=()):
         a6 = [b for b in a if ball[present[b]] >= SMALL_BALL[0]]
         out.update({name: len(a), f"{name}_found": sum(b in found for b in a), f"{name}6": len(a6),
                     f"{name}6_found": sum(b in found for b in a6)})
-    return out
+    return out, found
 
 
-def score_run(meta, tables, labels_of, subscans=None):
+def score_run(meta, tables, labels_of, subscans=None, *, events=None, lineage=None):
     """Score every subscan of a run and its tracks.
 
     Parameters
@@ -209,14 +218,19 @@ def score_run(meta, tables, labels_of, subscans=None):
         field of view; ``ids[j]`` the track of label ``j + 1``), or None when the route has no subscan ``k``.
     subscans : iterable of int, optional
         Default all.
+    events : list of dict, optional
+        ``events.csv`` rows (:func:`flowing_truth`): with them, ``totals["coalescences"]`` scores each true
+        coalescence (:func:`score_coalescences`).
+    lineage : list of dict, optional
+        The route's ``lineage.csv`` rows (None: the route keeps no lineage).
 
     Returns
     -------
     dict
         ``subscans`` (per subscan :func:`score_subscan` with ``subscan``), ``totals`` (sums, ``found_share``,
-        ``mean_ddi``, ``track_purity``, ``tracks``, ``rows``).
+        ``mean_ddi``, ``track_purity``, ``tracks``, ``rows``, and ``coalescences`` when ``events`` are given).
     """
-    per, rows = [], []
+    per, rows, found_at, owner_at = [], [], {}, {}
     ks = list(range(meta["subscans"]) if subscans is None else subscans)
     ids_at = [set(t["id"].astype(int).tolist()) if len(t.get("id", ())) else set() for t in tables]
     for k in ks:
@@ -227,11 +241,13 @@ def score_run(meta, tables, labels_of, subscans=None):
         truth, truth_ids = truth_subscan(meta, tables[k])
         anew = ids_at[k] - ids_at[k + 1] if k + 1 < len(tables) else set()
         fwd = ids_at[k] - ids_at[k - 1] if k > 0 else set()
-        s = score_subscan(truth, truth_ids, rec, visible_ball(tables[k], meta), anew, fwd)
+        s, found_at[k] = _score_subscan(truth, truth_ids, rec, visible_ball(tables[k], meta), anew, fwd)
         per.append({"subscan": k, **s})
         owners = row_owners(truth, rec)
         present = np.flatnonzero(np.bincount(rec.ravel(), minlength=len(rec_ids) + 1)[1:] > 0)
-        rows += [(int(rec_ids[j]), int(truth_ids[owners[j] - 1]) if owners[j] else -1) for j in present]
+        here = [(int(rec_ids[j]), int(truth_ids[owners[j] - 1]) if owners[j] else -1) for j in present]
+        owner_at[k] = dict(here)
+        rows += here
     purity, n_tracks, n_rows = track_purity(rows)
     keys = ("truth", "found", "missed", "merged", "spurious", "anew", "anew_found", "anew6", "anew6_found",
             "fwd", "fwd_found", "fwd6", "fwd6_found", "truth6", "found6",
@@ -240,7 +256,84 @@ def score_run(meta, tables, labels_of, subscans=None):
     totals.update(found_share=totals["found"] / totals["truth"] if totals["truth"] else None,
                   mean_ddi=float(np.mean([p["ddi"] for p in per])) if per else None,
                   track_purity=purity, tracks=n_tracks, rows=n_rows)
+    if events is not None:
+        totals["coalescences"] = score_coalescences(events, found_at, owner_at, lineage)
     return {"subscans": per, "totals": totals}
+
+
+def score_coalescences(events, found_at, owner_at, lineage=None):
+    """How a route shows the simulation's coalescences, and the lineage's coalescence rows that are none.
+
+    A true coalescence (``events.csv``: ``coalesce``, its child ``id``, its ``parents``, ``subscan`` the first
+    subscan whose truth shows the child) is scored where the route has both the subscan before it and
+    ``subscan``:
+
+    * **two before**: both parents found (:func:`score_subscan`) in the subscan before;
+    * **one after**: the child found in ``subscan``;
+    * **in the lineage**: a ``coalescence`` row of ``lineage.csv`` between the same two subscans whose parent
+      tracks lie on the true parents and whose child track on the true child (each reconstructed bubble put on
+      the truth bubble it overlaps most, :func:`row_owners`).
+
+    A lineage coalescence row that is no true coalescence's is **false** (a swollen neighbour or a cap beside a
+    cut neighbour taken for one, or a true one put between other subscans).
+
+    Parameters
+    ----------
+    events : list of dict
+        ``events.csv`` rows.
+    found_at : dict
+        ``subscan -> set`` of the truth ids found there.
+    owner_at : dict
+        ``subscan -> {track id: truth id (-1: none)}`` of the route's bubbles there.
+    lineage : list of dict, optional
+        ``lineage.csv`` rows (any events; only ``coalescence`` rows count); None: the route has no lineage.
+
+    Returns
+    -------
+    dict
+        ``events`` (scored), ``two_before``, ``one_after``, ``in_lineage`` and ``rows``, ``false_rows`` (None
+        without a lineage), ``per_event`` (``child``, ``parents``, ``subscan``, ``two_before``, ``one_after``,
+        ``in_lineage``).
+    """
+    true = []
+    for e in events:
+        k = int(e["subscan"])
+        if e["event"] == "coalesce" and k - 1 in found_at and k in found_at:
+            true.append((k - 1, k, frozenset(int(p) for p in e["parents"].split(";")), int(e["id"])))
+    rows = [r for r in (lineage or []) if r.get("event") == "coalescence"]
+
+    def owners(k, ids):
+        return [owner_at.get(k, {}).get(int(i), -1) for i in str(ids).split(";") if str(i).strip()]
+
+    def matches(row, ev):
+        before, after, parents, child = ev
+        if (str(row["subscan_before"]), str(row["subscan"])) != (str(before), str(after)):
+            return False
+        p = owners(before, row["parent_ids"])
+        return (len(p) == len(set(p)) == len(parents) and set(p) == parents
+                and owners(after, row["child_ids"]) == [child])
+
+    per = []
+    for ev in true:
+        before, after, parents, child = ev
+        per.append({"child": child, "parents": sorted(parents), "subscan": after,
+                    "two_before": parents <= found_at[before], "one_after": child in found_at[after],
+                    "in_lineage": None if lineage is None else any(matches(r, ev) for r in rows)})
+    return {"events": len(per), "two_before": sum(p["two_before"] for p in per),
+            "one_after": sum(p["one_after"] for p in per),
+            "in_lineage": None if lineage is None else sum(p["in_lineage"] for p in per),
+            "rows": None if lineage is None else len(rows),
+            "false_rows": None if lineage is None else sum(not any(matches(r, ev) for ev in true) for r in rows),
+            "per_event": per}
+
+
+def read_lineage(rec_dir):
+    """The rows of a ``reconstruct4d`` folder's ``lineage.csv`` (dicts of strings), or None when it has none."""
+    path = Path(rec_dir) / "lineage.csv"
+    if not path.is_file():
+        return None
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
 
 
 def chain_burden(meta, tables, events):

@@ -1,6 +1,8 @@
 """The dynamic benchmark's scores, on a tiny flowing foam and reconstructions made from its own truth."""
 
 
+import csv
+
 import numpy as np
 import pytest
 
@@ -8,6 +10,7 @@ from bubsub.bench import dynamic as D
 from bubsub.bench import dynamic_scores as S
 from bubsub.core.foam.ellipsoids import ellipsoid_mesh
 from bubsub.core.io.meshio import read_ply, write_ply
+from bubsub.core.projection.mesh import Mesh
 
 
 @pytest.fixture(scope="module")
@@ -131,3 +134,46 @@ def test_reversed_scan_runs_the_subscans_backwards_and_every_anew_bubble_has_an_
     for d in ("backward", "forward"):
         assert sum(burden[d]["reasons"].values()) == burden[d]["all"] > 0
         assert "other" not in burden[d]["reasons"]  # the events explain every bubble that comes or goes
+
+
+def _write_lineage(folder, rows):
+    with open(folder / "lineage.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, ["event", "subscan_before", "subscan", "time_s", "parent_ids", "child_ids", "reason"])
+        w.writeheader()
+        w.writerows({"time_s": "", "reason": "", **r} for r in rows)
+
+
+def test_coalescences_are_scored_before_after_and_in_the_lineage_and_false_rows_counted(sim, tmp_path):
+    meta, tables, events = S.flowing_truth(sim)
+    (ev,) = [e for e in events if e["event"] == "coalesce"]
+    k, child, parents = int(ev["subscan"]), int(ev["id"]), [int(p) for p in ev["parents"].split(";")]
+    assert 1 <= k <= 2 and set(parents) <= set(tables[k - 1]["id"].astype(int))
+    others = [int(i) for i in tables[k - 1]["id"] if int(i) not in parents and int(i) in set(tables[k]["id"])][:2]
+    # the truth as the route, tracks = truth ids: the right row, a row between two bubbles that stay apart
+    # (false), and a row naming the right bubbles between the wrong subscans (false too)
+    rec = _fake_run(sim, tmp_path / "rec")
+    right = {"event": "coalescence", "subscan_before": k - 1, "subscan": k, "parent_ids": f"{parents[0]};{parents[1]}",
+             "child_ids": child}
+    _write_lineage(rec, [right, {**right, "parent_ids": f"{others[0]};{others[1]}", "child_ids": others[0]},
+                         {**right, "subscan_before": k - 2 if k == 2 else 1, "subscan": k - 1 if k == 2 else 2},
+                         {"event": "birth", "subscan_before": 0, "subscan": 1, "child_ids": others[1]}])
+    c = S.score_run(meta, tables, D.bubsub_labels(rec, meta), events=events, lineage=S.read_lineage(rec))
+    c = c["totals"]["coalescences"]
+    assert (c["events"], c["two_before"], c["one_after"], c["in_lineage"], c["rows"], c["false_rows"]) == \
+        (1, 1, 1, 1, 3, 2)
+    assert D.coalescence_cell(c) == "1 / 1 / 1, of 1; 2 of 3"
+
+    def keep_parents(j, meshes, ids):  # the child stays two bubbles: its parents' meshes, moved up by the flow
+        if j != k:
+            return meshes, ids
+        before, before_ids = read_ply(sim / "truth" / f"subscan_{k - 1:04d}.ply", with_ids=True)
+        up = np.array([0.0, 0.0, meta["flowing"]["flow_px_per_subscan"] * meta["column"]["pixel_size_mm"]])
+        extra = [before[list(before_ids).index(p)] for p in parents]
+        extra = [Mesh(np.asarray(m.vertices) + up, m.faces, m.attenuation) for m in extra]
+        keep = [i for i, x in enumerate(ids) if x != child]
+        return [meshes[i] for i in keep] + extra, [ids[i] for i in keep] + parents
+
+    rec2 = _fake_run(sim, tmp_path / "rec2", keep_parents)
+    c = S.score_run(meta, tables, D.bubsub_labels(rec2, meta), events=events)["totals"]["coalescences"]
+    assert (c["two_before"], c["one_after"], c["in_lineage"], c["false_rows"]) == (1, 0, None, None)
+    assert D.coalescence_cell(c) == "1 / 0 / -, of 1; -"

@@ -265,9 +265,14 @@ def format_table(name, scores, seconds=None):
 
 def coalescence_cell(c):
     """``two before / one after / in the lineage, of N; false rows of all rows`` of
-    :func:`~bubsub.bench.dynamic_scores.score_coalescences` (``-`` where the route keeps no lineage)."""
-    lin = "-" if c["in_lineage"] is None else c["in_lineage"]
+    :func:`~bubsub.bench.dynamic_scores.score_coalescences` (``-`` where the route keeps no lineage), with the
+    rows a subscan off in brackets where there are any."""
+    lin = "-" if c["in_lineage"] is None else str(c["in_lineage"])
     false = "-" if c["false_rows"] is None else f"{c['false_rows']} of {c['rows']}"
+    if c.get("in_lineage_a_subscan_off"):
+        lin += f" (+{c['in_lineage_a_subscan_off']} a subscan off)"
+    if c.get("false_rows_a_subscan_off"):
+        false += f" ({c['false_rows_a_subscan_off']} a true one a subscan off)"
     return f"{c['two_before']} / {c['one_after']} / {lin}, of {c['events']}; {false}"
 
 

@@ -154,14 +154,20 @@ def test_coalescences_are_scored_before_after_and_in_the_lineage_and_false_rows_
     rec = _fake_run(sim, tmp_path / "rec")
     right = {"event": "coalescence", "subscan_before": k - 1, "subscan": k, "parent_ids": f"{parents[0]};{parents[1]}",
              "child_ids": child}
+    shifted = {**right, "subscan_before": k - 2 if k == 2 else 1, "subscan": k - 1 if k == 2 else 2}
     _write_lineage(rec, [right, {**right, "parent_ids": f"{others[0]};{others[1]}", "child_ids": others[0]},
-                         {**right, "subscan_before": k - 2 if k == 2 else 1, "subscan": k - 1 if k == 2 else 2},
-                         {"event": "birth", "subscan_before": 0, "subscan": 1, "child_ids": others[1]}])
+                         shifted, {"event": "birth", "subscan_before": 0, "subscan": 1, "child_ids": others[1]}])
     c = S.score_run(meta, tables, D.bubsub_labels(rec, meta), events=events, lineage=S.read_lineage(rec))
     c = c["totals"]["coalescences"]
     assert (c["events"], c["two_before"], c["one_after"], c["in_lineage"], c["rows"], c["false_rows"]) == \
         (1, 1, 1, 1, 3, 2)
-    assert D.coalescence_cell(c) == "1 / 1 / 1, of 1; 2 of 3"
+    assert c["in_lineage_a_subscan_off"] == 0 and c["false_rows_a_subscan_off"] == 1
+    assert D.coalescence_cell(c) == "1 / 1 / 1, of 1; 2 of 3 (1 a true one a subscan off)"
+    # the coalescence only a subscan off: not in the lineage, and its row false
+    c = S.score_run(meta, tables, D.bubsub_labels(rec, meta), events=events, lineage=[shifted])
+    c = c["totals"]["coalescences"]
+    assert (c["in_lineage"], c["in_lineage_a_subscan_off"], c["false_rows"], c["false_rows_a_subscan_off"]) == \
+        (0, 1, 1, 1)
 
     def keep_parents(j, meshes, ids):  # the child stays two bubbles: its parents' meshes, moved up by the flow
         if j != k:

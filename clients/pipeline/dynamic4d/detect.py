@@ -76,8 +76,8 @@ WARM_STEPS = ("remove", "add", "split")
 #: A bubble after the rounds continues the fitted bubble that holds at least this fraction of it.
 CONTINUES = 0.5
 
-#: A coalescence's smaller child holds at least this share of the two children's size (a bubble of 0.56 times the
-#: other's radius): a cap or a sliver beside a neighbour is not the other half of a coalescence.
+#: A coalescence's smaller child holds at least this share of the two children's size (in 3D 0.56 times the
+#: other's radius, in 2D 0.42): a cap or a sliver beside a neighbour is not the other half of a coalescence.
 COALESCENCE_SHARE = 0.15
 
 #: Cells along the longest side of the grid on which two bubbles' overlap is measured.

@@ -1,6 +1,6 @@
 """Track ids after a warm subscan's detection: which fitted bubble that became two is a coalescence (3D).
 
-:func:`~bubsub.clients.pipeline.dynamic4d.detect.assign_tracks` on constructed scenes: one warm-fitted bubble
+:func:`~bubsub.clients.pipeline.dynamic4d.tracks.assign_tracks` on constructed scenes: one warm-fitted bubble
 (the successor's track 7) over two bubbles found in it, the successor's bubble as large as the two together,
 so that their sizes alone call it a coalescence.
 """
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bubsub.core import ScanGeometry, sphere_surface
-from bubsub.clients.pipeline.dynamic4d.detect import COALESCENCE_SHARE, assign_tracks, coalesces, edge_side
+from bubsub.clients.pipeline.dynamic4d.tracks import COALESCENCE_SHARE, assign_tracks, coalesces, edge_side
 
 CONTRAST = -0.1
 #: 32 rows of 0.05 mm: the field of view's top and bottom planes at z = +-0.8 mm.

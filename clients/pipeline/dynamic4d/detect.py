@@ -35,16 +35,8 @@ bubbles, with the preview and the steps :data:`WARM_STEPS`:
   unknowns are worth goes (a bubble that left the field of view, going
   backwards, keeps only a sliver in view).
 
-:func:`assign_tracks` then gives every bubble after the rounds its track:
-a bubble that lies mostly inside one fitted bubble continues its id; a
-fitted bubble that became two is a coalescence (forward in time) when the two
-look like one (:func:`coalesces`: both wholly in the field of view, of
-comparable size, together nearer the successor's bubble's size than the
-larger alone), both with new ids and the lineage ``children -> parent``;
-otherwise (one of the two is the bubble, the other a bubble whose space its
-warm fit took, or a cap beside a neighbour cut by the same detector edge) the
-larger keeps the id. Bubbles inside none are new tracks. Ids come from
-``next_id`` upward and are never reused in a run.
+:func:`~bubsub.clients.pipeline.dynamic4d.tracks.assign_tracks` then gives every bubble its track
+(continuations, coalescences seen backwards, new tracks).
 """
 
 from __future__ import annotations
@@ -54,9 +46,8 @@ import time
 import numpy as np
 
 from bubsub.core.projection.mesh import equivalent_radius
-from bubsub.core.projection.masks import coverage
 
-from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, preview_extension, truncated_flags
+from bubsub.clients.pipeline.inputs.fov import preview_extension
 from bubsub.clients.pipeline.static.initial import (distance_centres, edge_centres, edge_slices, initial_centres,
                                                     small_centres)
 from bubsub.clients.pipeline.regions.local import Footprints, footprint, local_refit, scene_residual
@@ -65,221 +56,13 @@ from bubsub.clients.pipeline.static.resolution import levels_by_size, pixels_per
 from bubsub.clients.pipeline.static.topology import adapt_bubbles, add_at, points_inside, split_step
 from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
+from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, centre_of, reach_of, size_of
 
-__all__ = ["WARM_STEPS", "COALESCENCE_SHARE", "detect_warm", "data_preview", "preview_changes", "assign_tracks",
-           "coalesces", "overlap_fraction", "edge_side"]
+__all__ = ["WARM_STEPS", "detect_warm", "data_preview", "preview_changes", "edge_seeds"]
 
 #: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
 #: forward in time, keeps the successor's two warm starts).
 WARM_STEPS = ("remove", "add", "split")
-
-#: A bubble after the rounds continues the fitted bubble that holds at least this fraction of it.
-CONTINUES = 0.5
-
-#: A coalescence's smaller child holds at least this share of the two children's size (in 3D 0.56 times the
-#: other's radius, in 2D 0.42): a cap or a sliver beside a neighbour is not the other half of a coalescence.
-COALESCENCE_SHARE = 0.15
-
-#: Cells along the longest side of the grid on which two bubbles' overlap is measured.
-OVERLAP_CELLS = 20
-
-
-def overlap_fraction(item, other, cells=OVERLAP_CELLS):
-    """Fraction of ``item``'s area (volume) inside ``other``, rasterised on a grid over ``item``'s box.
-
-    Parameters
-    ----------
-    item, other : SubdivisionSurface, Mesh or Polygon
-    cells : int
-        Grid cells along the box's longest side (two sub-samples per cell and axis).
-
-    Returns
-    -------
-    float
-        In [0, 1].
-    """
-    a, b = item.fine() if hasattr(item, "fine") else item, other.fine() if hasattr(other, "fine") else other
-    v = np.asarray(a.vertices, dtype=float)
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    ov, oh = np.asarray(b.vertices).min(axis=0), np.asarray(b.vertices).max(axis=0)
-    if np.any(oh < lo) or np.any(ov > hi):
-        return 0.0
-    h = float((hi - lo).max()) / cells
-    ndim = v.shape[1]
-    shape = tuple(max(1, int(np.ceil((hi[k] - lo[k]) / h))) for k in reversed(range(ndim)))
-    extent = tuple(x for k in range(ndim) for x in (lo[k], lo[k] + shape[ndim - 1 - k] * h))
-    fa = coverage(a, shape, extent, supersample=2)
-    total = float(fa.sum())
-    if total <= 0:
-        return 0.0
-    return float(np.minimum(fa, coverage(b, shape, extent, supersample=2)).sum()) / total
-
-
-def edge_side(surface, geometry):
-    """Where a bubble meets the edge of the field of view: ``"top"`` (z > 0 in 3D), ``"bottom"``, ``"side"``
-    (the cylinder, or the disc in 2D) or None."""
-    fov = field_of_view(geometry)
-    fine = surface.fine()
-    if not truncated_flags([fine], fov, fov_report(geometry)["margin"])[0]:
-        return None
-    v = np.asarray(fine.vertices)
-    if v.shape[1] == 3 and np.abs(v[:, 2]).max() > fov[1] - fov_report(geometry)["margin"]:
-        return "top" if float(np.mean(v[:, 2])) > 0 else "bottom"
-    return "side"
-
-
-def _size(surface):
-    fine = surface.fine()
-    return abs(float(fine.volume if surface.ndim == 3 else fine.area))
-
-
-def _centre(surface):
-    return np.asarray(surface.fine().centroid, dtype=float)
-
-
-def _radius(surface):
-    v = surface.fine().vertices
-    return float(np.linalg.norm(v - v.mean(axis=0), axis=1).max())
-
-
-def _parents(before, after):
-    """For each bubble of ``after``: the index of the ``before`` bubble it continues, or -1.
-
-    The same object continues itself; another continues the nearby ``before`` bubble holding at least
-    :data:`CONTINUES` of it.
-    """
-    same = {id(s): k for k, s in enumerate(before)}
-    centres = np.array([_centre(s) for s in before]) if before else np.zeros((0, 1))
-    radii = np.array([_radius(s) for s in before])
-    out = []
-    for s in after:
-        if id(s) in same:
-            out.append(same[id(s)])
-            continue
-        c, r = _centre(s), _radius(s)
-        near = np.nonzero(np.linalg.norm(centres - c, axis=1) <= radii + r)[0] if len(before) else []
-        best, frac = -1, CONTINUES
-        for k in near:
-            f = overlap_fraction(s, before[k])
-            if f >= frac:
-                best, frac = int(k), f
-        out.append(best)
-    return out
-
-
-def coalesces(sizes, sides, known):
-    """Whether a fitted bubble that became two is one bubble in the successor too: a coalescence forward in time.
-
-    A coalescence as the chain sees it going backwards: two bubbles of comparable size, each a real share of
-    the pair (:data:`COALESCENCE_SHARE`), both wholly in the field of view, that together hold about the
-    successor's bubble's size (nearer it than the larger alone). Otherwise the larger continues the track and
-    the other is a bubble the warm fit covered: a cap that leaves through the detector's edge later beside a
-    neighbour cut by the same edge (the visible parts' sizes say nothing of the bubbles'), or a small bubble
-    beside a neighbour that swelled into its space in the successor.
-
-    Parameters
-    ----------
-    sizes : sequence of float
-        The children's areas (2D) or volumes (3D), largest first, at least two.
-    sides : sequence of str or None
-        :func:`edge_side` of each child.
-    known : float or None
-        The size of the successor's bubble (None: unknown, never a coalescence).
-
-    Returns
-    -------
-    bool
-    """
-    if known is None or len(sizes) < 2:
-        return False
-    big, small = float(sizes[0]), float(sizes[1])
-    return (sides[0] is None and sides[1] is None and small >= COALESCENCE_SHARE * (big + small)
-            and abs(known - big - small) < abs(known - big))
-
-
-def assign_tracks(ids, before, after, successor_sizes, geometry, next_id):
-    """Track ids of the bubbles after the warm subscan's topology rounds, and the lineage they imply.
-
-    A bubble of ``after`` lying mostly (:data:`CONTINUES`) inside one of ``before`` continues it. A fitted
-    bubble that became two or more: its two largest children are a coalescence forward in time when
-    :func:`coalesces` says so (both take new ids, the lineage ``children -> parent``); otherwise the largest
-    keeps the id. Every other child is a new track, split off the fitted bubble.
-
-    Parameters
-    ----------
-    ids : sequence of int
-        Track ids of ``before``.
-    before : list of SubdivisionSurface
-        The warm fit's bubbles.
-    after : list of SubdivisionSurface
-        The bubbles after :func:`detect_warm`'s rounds.
-    successor_sizes : dict
-        ``id -> area (2D) or volume (3D)`` of each track's bubble in the successor subscan (mm^2 or mm^3).
-    geometry : ScanGeometry
-        Of the fitted projections (the field of view, for the reasons).
-    next_id : int
-        The first unused track id.
-
-    Returns
-    -------
-    new_ids : list of int
-        One per ``after`` bubble.
-    lineage : dict
-        ``new`` (``{id: reason}``: tracks that start here going backwards, i.e. end here forward in time),
-        ``coalescences`` (``[{"parent": id, "children": [id, id]}]``: one bubble in the successor, two here),
-        ``removed`` (``{id: reason}``: tracks the rounds removed).
-    next_id : int
-        The first id still unused.
-    """
-    parents = _parents(before, after)
-    children = {}
-    for j, k in enumerate(parents):
-        if k >= 0:
-            children.setdefault(k, []).append(j)
-    new_ids = [None] * len(after)
-    lineage = {"new": {}, "coalescences": [], "removed": {}}
-
-    def fresh():
-        nonlocal next_id
-        next_id += 1
-        return next_id - 1
-
-    for k, js in children.items():
-        if len(js) == 1:
-            new_ids[js[0]] = int(ids[k])
-            continue
-        sizes = [_size(after[j]) for j in js]
-        js = [js[i] for i in np.argsort(sizes)[::-1]]
-        sizes = sorted(sizes, reverse=True)
-        sides = [edge_side(after[j], geometry) for j in js]
-        if coalesces(sizes, sides, successor_sizes.get(int(ids[k]))):
-            got = [fresh() for _ in js[:2]]
-            for j, i in zip(js, got):
-                new_ids[j] = i
-            lineage["coalescences"].append({"parent": int(ids[k]), "children": got})
-            rest = 2
-        else:
-            new_ids[js[0]] = int(ids[k])
-            rest = 1
-        for j, side in zip(js[rest:], sides[rest:]):
-            new_ids[j] = fresh()
-            lineage["new"][new_ids[j]] = (f"split off bubble {int(ids[k])}, whose warm fit covered it"
-                                          + (f", at the {side} edge of the field of view" if side else ""))
-    for j, s in enumerate(after):
-        if new_ids[j] is None:
-            new_ids[j] = fresh()
-            side = edge_side(s, geometry)
-            lineage["new"][new_ids[j]] = (f"at the {side} edge of the field of view" if side else
-                                          "inside the field of view, without a warm start")
-    for k, i in enumerate(ids):
-        if k not in children:
-            side = edge_side(before[k], geometry)
-            lineage["removed"][int(i)] = (f"left the field of view (a sliver at its {side} edge, removed by the "
-                                          f"topology rounds)" if side else
-                                          "collapsed (removed by the topology rounds: it explains less than its "
-                                          "unknowns cost)")
-    return new_ids, lineage, next_id
-
 
 def _new_bubble(surfaces, geometry, settings):
     """``new_bubble(centre, radius)``: a round bubble with the fitted bubbles' control mesh, subdivided by its size."""
@@ -326,11 +109,11 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
     edges = edge_slices(unexplained, g, contrast, extent, voxel)
     if not any(len(e[2]) for e in edges):
         return surfaces
-    radii = np.array([equivalent_radius(_size(s), 3) for s in surfaces])
+    radii = np.array([equivalent_radius(size_of(s), 3) for s in surfaces])
     radius = float(np.median(radii))
     new_bubble = _new_bubble(surfaces, g, settings)
     seeds = []
-    for c in edge_centres([_centre(s) for s in surfaces], radii, edges, radius):
+    for c in edge_centres([centre_of(s) for s in surfaces], radii, edges, radius):
         cand = new_bubble(c, radius)
         p = footprint(projector, cand)
         if p.addition_gain(residual) < 0:
@@ -376,7 +159,7 @@ def data_preview(geometry, data, contrast, settings, surfaces):
     voxel = settings.voxel_size
     if voxel is None:
         default = preview_voxel_size(geometry)
-        voxel = voxel_for_bubbles([equivalent_radius(_size(s), s.ndim) for s in surfaces], geometry, default,
+        voxel = voxel_for_bubbles([equivalent_radius(size_of(s), s.ndim) for s in surfaces], geometry, default,
                                   extend) or default
         # no finer than a detector pixel at the axis (a small detector's default voxel is a fraction of one)
         voxel = max(voxel, 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0]))
@@ -453,7 +236,7 @@ def preview_changes(projector, surfaces, data, centres, radii, settings, *, min_
     changed = [k for k, s in enumerate(surfaces) if id(s) not in start]
     if changed:
         surfaces, _, _ = local_refit(projector, surfaces, data, changed, iterations=iterations,
-                                     touch=max(_radius(surfaces[k]) for k in changed), residual=residual)
+                                     touch=max(reach_of(surfaces[k]) for k in changed), residual=residual)
     return surfaces, changes
 
 
@@ -497,7 +280,7 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
     contrast = surfaces[0].attenuation
     voxel = settings.voxel_size or preview_voxel_size(geometry)
     if settings.voxel_size is None:  # as the cold start's preview: finer when the bubbles are few voxels across
-        radii = [equivalent_radius(_size(s), s.ndim) for s in surfaces]
+        radii = [equivalent_radius(size_of(s), s.ndim) for s in surfaces]
         voxel = voxel_for_bubbles(radii, geometry, voxel,
                                   preview_extension(settings.fov_model, data, contrast)) or voxel
         # no finer than a detector pixel at the axis: the residual is reconstructed on twice this voxel
@@ -532,7 +315,7 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
         # the new bubbles with every neighbour within their size free: a neighbour whose warm fit grew into a
         # new bubble's gas (the rounds refit only bubbles within a few voxels) gives it back
         after, residual, _ = local_refit(projector, after, data, born, iterations=max(10, settings.iterations // 2),
-                                         touch=2 * max(_radius(after[k]) for k in born))
+                                         touch=2 * max(reach_of(after[k]) for k in born))
         summary["objective"] = 0.5 * float(np.vdot(residual, residual))
     seconds["tracks_and_refit"] = time.perf_counter() - t0
     counts = {}

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 from bubsub.clients.cli.main import main
 from bubsub.clients.cluster.chunks import chunk_bounds, link_ids
@@ -35,13 +36,15 @@ def sim(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def in_process(sim, tmp_path_factory):
-    """The in-process run, its projector on 1 thread as on the workers: a projection's sums are reduced in an
-    order that depends on the thread count, and BFGS turns those 1e-16 differences into 1e-6 mm ones."""
+    """The in-process run, its projector and BLAS on 1 thread as on the workers: sums are reduced in an order
+    that depends on the thread count, and BFGS turns those 1e-16 differences into 1e-6 mm ones (and a voxel
+    preview's into other seeds)."""
     out = tmp_path_factory.mktemp("local4d")
     mp = pytest.MonkeyPatch()
     mp.setenv("BUBSUB_THREADS", "1")
     try:
-        assert main(["reconstruct4d", str(sim / "scan.h5"), "--out", str(out), *RUN]) == 0
+        with threadpool_limits(limits=1):
+            assert main(["reconstruct4d", str(sim / "scan.h5"), "--out", str(out), *RUN]) == 0
     finally:
         mp.undo()
     return out

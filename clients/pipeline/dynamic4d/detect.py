@@ -51,14 +51,15 @@ from bubsub.clients.pipeline.inputs.fov import preview_extension
 from bubsub.clients.pipeline.static.initial import (distance_centres, edge_centres, edge_slices, initial_centres,
                                                     small_centres)
 from bubsub.clients.pipeline.regions.local import Footprints, footprint, local_refit, scene_residual
-from bubsub.clients.pipeline.static.preview import preview_grid, preview_voxel_size, voxel_for_bubbles, voxel_preview
-from bubsub.clients.pipeline.static.resolution import levels_by_size, pixels_per_mm
+from bubsub.clients.pipeline.static.preview import (axis_pixel, preview_grid, preview_voxel_size, voxel_for_bubbles,
+                                                    voxel_preview)
+from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.static.topology import adapt_bubbles, add_at, points_inside, split_step
 from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, centre_of, reach_of, size_of
 
-__all__ = ["WARM_STEPS", "detect_warm", "data_preview", "preview_changes", "edge_seeds"]
+__all__ = ["WARM_STEPS", "detect_warm", "warm_voxel", "data_preview", "preview_changes", "edge_seeds"]
 
 #: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
 #: forward in time, keeps the successor's two warm starts).
@@ -127,13 +128,25 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
     return out
 
 
-def data_preview(geometry, data, contrast, settings, surfaces):
+def warm_voxel(geometry, data, contrast, settings, surfaces):
+    """The voxel of a warm subscan's previews (mm): ``settings.voxel_size``, else the cold start's default made
+    finer when the fitted bubbles are few voxels across
+    (:func:`~bubsub.clients.pipeline.static.preview.voxel_for_bubbles`), never finer than a detector pixel at the
+    axis (a small detector's default voxel is a fraction of one; the residual preview runs on twice this voxel and
+    a bubble added is at least 3 voxels in radius, so a finer grid costs a warm subscan more than its fit)."""
+    if settings.voxel_size is not None:
+        return settings.voxel_size
+    default = preview_voxel_size(geometry)
+    voxel = voxel_for_bubbles([equivalent_radius(size_of(s), s.ndim) for s in surfaces], geometry, default,
+                              preview_extension(settings.fov_model, data, contrast)) or default
+    return max(voxel, axis_pixel(geometry))
+
+
+def data_preview(geometry, data, contrast, settings, voxel):
     """The voxel preview of a warm subscan's data, as the cold start makes it, and the bubble centres in it.
 
-    The grid is the cold start's (:func:`~bubsub.clients.pipeline.static.preview.preview_grid` at ``settings.voxel_size``,
-    the default voxel, made finer by :func:`~bubsub.clients.pipeline.static.preview.voxel_for_bubbles` when the fitted
-    bubbles are few voxels across, never finer than a detector pixel at the axis; widened by the field-of-view model, so that caps at the detector's edge
-    show); the centres are the cold start's ``"dt"`` detector (the distance transform's maxima of the Otsu mask)
+    The grid is the cold start's (:func:`~bubsub.clients.pipeline.static.preview.preview_grid` at ``voxel``,
+    :func:`warm_voxel`'s; widened by the field-of-view model, so that caps at the detector's edge show); the centres are the cold start's ``"dt"`` detector (the distance transform's maxima of the Otsu mask)
     and, in 3D, the small bubbles its opening erased (:func:`~bubsub.clients.pipeline.static.initial.small_centres`).
 
     Parameters
@@ -142,8 +155,8 @@ def data_preview(geometry, data, contrast, settings, surfaces):
     data : ndarray, ``geometry.shape``
     contrast : float
     settings : DynamicSettings
-    surfaces : list of SubdivisionSurface
-        The warm fit (their sizes choose a finer voxel).
+    voxel : float
+        mm (:func:`warm_voxel`).
 
     Returns
     -------
@@ -156,13 +169,6 @@ def data_preview(geometry, data, contrast, settings, surfaces):
         mm: the distance transform at each centre (a small bubble's blob radius).
     """
     extend = preview_extension(settings.fov_model, data, contrast)
-    voxel = settings.voxel_size
-    if voxel is None:
-        default = preview_voxel_size(geometry)
-        voxel = voxel_for_bubbles([equivalent_radius(size_of(s), s.ndim) for s in surfaces], geometry, default,
-                                  extend) or default
-        # no finer than a detector pixel at the axis (a small detector's default voxel is a fraction of one)
-        voxel = max(voxel, 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0]))
     image, extent = voxel_preview(data, geometry, contrast, voxel, method=settings.preview, extend=extend)
     edge = not settings.fov_model
     if image.ndim == 3:
@@ -278,18 +284,10 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
         return list(ids), surfaces, {"new": {}, "coalescences": [], "removed": {}}, {"rounds": 0, "objective": None}, \
             next_id
     contrast = surfaces[0].attenuation
-    voxel = settings.voxel_size or preview_voxel_size(geometry)
-    if settings.voxel_size is None:  # as the cold start's preview: finer when the bubbles are few voxels across
-        radii = [equivalent_radius(size_of(s), s.ndim) for s in surfaces]
-        voxel = voxel_for_bubbles(radii, geometry, voxel,
-                                  preview_extension(settings.fov_model, data, contrast)) or voxel
-        # no finer than a detector pixel at the axis: the residual is reconstructed on twice this voxel
-        # (:func:`~bubsub.clients.pipeline.static.topology.adapt_bubbles`), and a bubble added is at least 3 voxels in
-        # radius; a finer grid costs a warm subscan more than its fit
-        voxel = max(voxel, 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0]))
+    voxel = warm_voxel(geometry, data, contrast, settings, surfaces)
     projector = MeshProjector(geometry, supersampling=settings.supersampling)
     t0 = time.perf_counter()
-    image, extent, centres, radii = data_preview(geometry, data, contrast, settings, surfaces)
+    image, extent, centres, radii = data_preview(geometry, data, contrast, settings, voxel)
     seconds_preview = time.perf_counter() - t0
     preview_voxel = (extent[1] - extent[0]) / image.shape[-1]
     previewed, preview_log = preview_changes(projector, surfaces, data, centres, radii, settings,
@@ -310,7 +308,8 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
     t0 = time.perf_counter()
     summary["changes"] = preview_log + summary["changes"]
     new_ids, lineage, next_id = assign_tracks(ids, surfaces, after, successor_sizes, geometry, next_id)
-    born = [k for k, i in enumerate(new_ids) if i not in set(ids)]
+    known = set(ids)
+    born = [k for k, i in enumerate(new_ids) if i not in known]
     if born:
         # the new bubbles with every neighbour within their size free: a neighbour whose warm fit grew into a
         # new bubble's gas (the rounds refit only bubbles within a few voxels) gives it back

@@ -23,8 +23,13 @@ from bubsub.clients.pipeline.inputs.fov import field_of_view
 from bubsub.clients.pipeline.static.resolution import pixels_per_mm
 from bubsub.clients.progress import phase
 
-__all__ = ["PREVIEW_FINE_ITERATIONS_3D", "BUBBLE_VOXELS", "MIN_BUBBLE_VOXELS", "MAX_PREVIEW_VOXELS",
+__all__ = ["axis_pixel", "PREVIEW_FINE_ITERATIONS_3D", "BUBBLE_VOXELS", "MIN_BUBBLE_VOXELS", "MAX_PREVIEW_VOXELS",
            "preview_voxel_size", "preview_grid", "voxel_for_bubbles", "voxel_preview", "resample_image"]
+
+
+def axis_pixel(geometry):
+    """A detector pixel's size at the rotation axis, mm (the finest voxel a preview is made on)."""
+    return 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0])
 
 
 def preview_voxel_size(geometry):
@@ -54,7 +59,7 @@ def preview_voxel_size(geometry):
     voxel = 2 * field_of_view(geometry)[0] / (160 if geometry.ndim == 3 else 256)
     if geometry.ndim == 3:
         return voxel
-    return max(voxel, 1.0 / float(pixels_per_mm(geometry, np.zeros((1, 2)))[0]))
+    return max(voxel, axis_pixel(geometry))
 
 
 def preview_grid(geometry, voxel_size=None, extend=1.0):
@@ -120,8 +125,7 @@ def voxel_for_bubbles(radii, geometry, voxel, extend=1.0):
     across = 2 * float(np.median(radii)) / voxel
     if across >= MIN_BUBBLE_VOXELS:
         return None
-    pixel = 1.0 / float(pixels_per_mm(geometry, np.zeros((1, geometry.ndim)))[0])
-    finer = max(voxel * across / BUBBLE_VOXELS, pixel)
+    finer = max(voxel * across / BUBBLE_VOXELS, axis_pixel(geometry))
     count = np.prod(preview_grid(geometry, finer, extend).shape, dtype=float)
     if count > MAX_PREVIEW_VOXELS:
         finer *= (count / MAX_PREVIEW_VOXELS) ** (1.0 / geometry.ndim)

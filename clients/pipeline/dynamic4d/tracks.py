@@ -79,9 +79,8 @@ def edge_side(surface, geometry):
 
 
 def size_of(surface):
-    """Area (2D, mm^2) or volume (3D, mm^3) of a bubble's smooth surface."""
-    fine = surface.fine()
-    return abs(float(fine.volume if surface.ndim == 3 else fine.area))
+    """Area (2D, mm^2) or volume (3D, mm^3) of a bubble's smooth surface (its mesh's ``size``, unsigned)."""
+    return abs(float(surface.fine().size))
 
 
 def centre_of(surface):

@@ -292,8 +292,7 @@ def separate(a, b, gap=0.0):
 
 
 def _size(surface):
-    fine = surface.fine()
-    return abs(fine.volume if surface.ndim == 3 else fine.area)
+    return abs(surface.fine().size)
 
 
 def _repair_once(surfaces, violations, gap, actions, round_no):

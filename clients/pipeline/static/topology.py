@@ -69,8 +69,7 @@ def _half_sq(r):
 
 
 def _size(s):
-    fine = s.fine()
-    return abs(fine.volume if s.ndim == 3 else fine.area)
+    return abs(s.fine().size)
 
 
 def _centre(s):

@@ -16,7 +16,8 @@ improves:
   bubbles become round bubbles, each kept when ``0.5 ||r + p_new||^2 < f``;
 * **merge**: two touching bubbles are replaced by one round bubble of their
   joint size, fitted alone against the data minus the other bubbles, and
-  kept when that beats the pair fitted the same way;
+  kept when that beats the pair fitted the same way and the fitted bubble
+  has no neck (:data:`MERGE_CONVEXITY`);
 * **split**: a bubble that holds two blobs of the voxel preview (a neighbour
   grown over a bubble the initialisation missed), or an elongated one
   (second-moment axis ratio above ``split_ratio``), is replaced by two round
@@ -40,7 +41,7 @@ internals as public names.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 
 from bubsub.core.projection.mesh import bounding_box, equivalent_radius
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
@@ -56,12 +57,21 @@ from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, truncated_flags, unobserved_control
 from bubsub.clients.progress import phase
 
-__all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "points_inside"]
+__all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "points_inside", "convexity", "MERGE_CONVEXITY"]
 
 #: BB iterations of the 3D residual preview (half the data preview's 30): the residual's blobs are bright
 #: enough for the add step after 15 (a bubble left out of a fit is added at the same place as with 30),
 #: for less of the add step's time
 RESIDUAL_PREVIEW_ITERATIONS_3D = 15
+
+#: Least convexity (:func:`convexity`) of the one bubble that replaces a merged pair. A bubble of a foam is
+#: convex (round in a wet foam, a polyhedron of nearly flat films in a dry one); fitted alone to the data of two
+#: touching bubbles, the one bubble keeps their neck: the union of two touching discs fills 0.88 of its convex
+#: hull, of two touching balls 0.80 (equal sizes), and the merged bubbles fitted to such pairs fill 0.80-0.91,
+#: while a bubble fitted to the data of one bubble seeded as two halves fills 0.99-1. Without this test the
+#: objective alone decides, and two touching bubbles whose merged fit is worse by less than the Akaike credit
+#: of the unknowns it saves are merged (``python -m bubsub.bench fov --inside 5``, docs/prepare.md).
+MERGE_CONVEXITY = 0.95
 
 
 def _half_sq(r):
@@ -161,9 +171,19 @@ def add_at(projector, surfaces, residual, own, centres, radii, new_bubble, chang
     return surfaces, own
 
 
+def convexity(surface):
+    """A bubble's size (area in 2D, volume in 3D) over its convex hull's, from its fine surface: 1 when convex."""
+    fine = surface.fine()
+    return abs(fine.size) / ConvexHull(np.asarray(fine.vertices, dtype=float)).volume
+
+
 def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, touch, iterations,
-               max_tries, cost=0.0, at_edge=None, only=None):
+               max_tries, cost=0.0, at_edge=None, only=None, min_convexity=MERGE_CONVEXITY):
     """Replace touching pairs by one bubble when that fits the data better than the pair.
+
+    The one bubble must also be convex to ``min_convexity`` (:func:`convexity`,
+    :data:`MERGE_CONVEXITY`; 0 leaves the objective alone to decide): fitted
+    to the data of two touching bubbles it keeps their neck.
 
     ``at_edge`` (one bool per bubble, optional): bubbles that reach the edge
     of the field of view, never merged. Such a bubble's part beyond the edge
@@ -200,7 +220,7 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         (pair, f_pair), (one, f_one) = local_fits(
             projector, [[surfaces[i], surfaces[j]], [new_bubble(c, equivalent_radius(size, ndim))]], target,
             iterations)
-        if f_one < f_pair + cost:
+        if f_one < f_pair + cost and (min_convexity <= 0 or convexity(one[0]) >= min_convexity):
             # the new bubble's own projection on its window, not the whole detector's (three arrays of
             # the scan's size would set the pipeline's peak memory on a large scan)
             p = footprint(projector, one[0])
@@ -327,7 +347,7 @@ def _changes_words(changes):
 def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius, max_radius, rounds=3,
                    iterations=30, threshold=0.15, touch=0.0, split_ratio=1.6, local_iterations=15, max_add=20,
                    max_tries=8, steps=("remove", "add", "merge", "split"), complexity=1.0, image=None,
-                   progress=False, penalty=None, fov_edge=False):
+                   progress=False, penalty=None, fov_edge=False, merge_convexity=MERGE_CONVEXITY):
     """Alternate topology changes and joint BFGS fits.
 
     Parameters
@@ -379,6 +399,8 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         against the unknowns the data see (its control vertices that some ray
         sees), not all of them, so that a cut bubble whose visible part is small
         is kept when it explains that part.
+    merge_convexity : float
+        Least convexity of the bubble that replaces a merged pair (:func:`merge_step`'s ``min_convexity``).
 
     Returns
     -------
@@ -425,7 +447,8 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
                 at_edge = _at_edge(surfaces, projector.geometry) if fov_edge else None
                 surfaces, own = merge_step(projector, surfaces, residual, own, data, new_bubble, changes, r,
                                            touch=touch, iterations=local_iterations, max_tries=max_tries, cost=cost,
-                                           at_edge=at_edge, only=_among(surfaces, fresh))
+                                           at_edge=at_edge, only=_among(surfaces, fresh),
+                                           min_convexity=merge_convexity)
                 bar.update(1)
             if "split" in steps:
                 surfaces, own = split_step(projector, surfaces, residual, own, data, new_bubble, changes, r,

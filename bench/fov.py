@@ -36,7 +36,9 @@ merged, spurious; the cut bubbles apart; DDI).
 The local-tomography cases (``--local``, ``--local-ideal``, ``--inside``):
 :mod:`bubsub.bench.fov_local`.
 
-``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--out DIR]``
+``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given] [--out DIR]``
+
+``python -m bubsub.bench fov --local-background 0 1 2 3 4 5 6 7 [--out DIR]``
 
 ``python -m bubsub.bench fov --local-ideal 0 --local-extend 1.25 1.6``
 
@@ -54,7 +56,7 @@ from skimage.feature import peak_local_max
 from skimage.filters import gaussian
 from skimage.segmentation import watershed
 
-from bubsub.bench.fov_local import print_inside, print_local, print_local_ideal
+from bubsub.bench.fov_local import print_inside, print_local, print_local_background, print_local_ideal
 from bubsub.bench.matching import column_truth, mesh_labels, truth_labels
 from bubsub.bench.reconstruct import cli_command as _cli
 from bubsub.bench.scale import run_tree, simulate_case, table
@@ -271,6 +273,10 @@ def main(argv=None):
     loc.add_argument("--local", type=int, nargs="+", metavar="SEED", help="simulated raw scans of these seeds")
     loc.add_argument("--local-center", choices=["auto", "given"], default="auto",
                      help="prepare's --center: auto, or the true axis given (default auto)")
+    loc.add_argument("--local-radius", choices=["fitted", "given"], default="fitted",
+                     help="the liquid cylinder's radius fitted by prepare (default) or given (--liquid-radius)")
+    loc.add_argument("--local-background", type=int, nargs="+", metavar="SEED",
+                     help="the background alone against the liquid's exact projection (local_background_case)")
     loc.add_argument("--local-ideal", type=int, nargs="+", metavar="SEED",
                      help="the reconstruction side alone: exact projections and background (local_ideal_case)")
     loc.add_argument("--local-extend", type=float, nargs="+", default=[1.25], metavar="F",
@@ -282,6 +288,8 @@ def main(argv=None):
         return _print_column(args, extra)
     if args.local:
         return print_local(args)
+    if args.local_background:
+        return print_local_background(args)
     if args.local_ideal:
         return print_local_ideal(args)
     if args.inside:

@@ -14,7 +14,16 @@ bubbles whose centroid lies there found with IoU >= 0.5, the reconstructed
 bubbles there that are no true bubble's best (spurious), the DDI there, and
 the axis error.
 
-``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--out DIR]``
+``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given] [--out DIR]``
+
+``--local-radius given`` passes the liquid cylinder's radius (``bubsub prepare --liquid-radius``, the container's
+inner radius a beamline user knows) instead of fitting it.
+
+``--local-background SEED ...``: the background alone (:func:`local_background_case`): the liquid's projection
+that :func:`bubsub.core.prep.background.chord_background` fits to the prepared scan's row, its radius fitted,
+given, or given 5 % off, against the liquid's exact projection.
+
+``python -m bubsub.bench fov --local-background 0 1 2 3 4 5 6 7``
 
 ``--local-ideal SEED ... --local-extend 1.25 1.6``: the reconstruction side
 alone on exact projections of such a foam with its liquid's exact projection
@@ -49,12 +58,14 @@ from bubsub.core.io.scanfile import Scan, read_scan
 from bubsub.core.matching import match
 from bubsub.core.metrics import dice_dissimilarity
 from bubsub.core.prep import prepare, prepare_options
+from bubsub.core.prep.background import chord_background, detector_offsets
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Polygon
 from bubsub.core.projection.masks import label_image
 
 __all__ = ["LOCAL_SCAN", "INSIDE_SCAN", "INSIDE_MARGIN", "inside_case", "local_case", "local_ideal_case",
-           "interior_scores", "print_local", "print_inside", "print_local_ideal"]
+           "local_background_case", "interior_scores", "print_local", "print_inside", "print_local_ideal",
+           "print_local_background"]
 
 
 #: The local-tomography case's raw scan: 256 columns of 12 um, 90 projections over 180 degrees, 2 rows.
@@ -111,8 +122,21 @@ def inside_case(out, seed):
             "contrast": steps["contrast"]["bubble_contrast_per_mm"], "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
 
 
-def local_case(out, seed, *, center="auto"):
+def _local_raw(out, seed):
+    """Write the local-tomography case's raw simulation of ``seed`` under ``out``: its :class:`RawSettings`."""
+    c = LOCAL_SCAN
+    axis = c["cols"] / 2 - 0.5 + c["axis_offset"]
+    half = min(axis + 0.5, c["cols"] - 0.5 - axis) * c["pixel_size"]
+    radius = 1.5 * half
+    s = raw_settings(seed=seed, container_radius=radius, wall=0.0, wider_than_detector=True, **c)
+    write_raw_simulation(out, disc_foam(seed, radius, n_bubbles=80, radius_range=(0.08 * half, 0.15 * half)), s)
+    return s
+
+
+def local_case(out, seed, *, center="auto", radius="fitted"):
     """Simulate, prepare, reconstruct and score one local-tomography scan (see the module docstring).
+
+    ``radius="given"`` passes the liquid cylinder's true radius to ``prepare`` (``liquid_radius``).
 
     Returns
     -------
@@ -121,17 +145,12 @@ def local_case(out, seed, *, center="auto"):
         ``prepare_s``, ``reconstruct_s``; ``failed`` with the message where prepare stops.
     """
     out = Path(out)
-    c = LOCAL_SCAN
-    axis = c["cols"] / 2 - 0.5 + c["axis_offset"]
-    half = min(axis + 0.5, c["cols"] - 0.5 - axis) * c["pixel_size"]
-    radius = 1.5 * half
-    s = raw_settings(seed=seed, container_radius=radius, wall=0.0, wider_than_detector=True, **c)
-    write_raw_simulation(out, disc_foam(seed, radius, n_bubbles=80, radius_range=(0.08 * half, 0.15 * half)), s)
+    s = _local_raw(out, seed)
     t0 = time.perf_counter()
     try:
         report = prepare(out / "raw.h5", out / "scan.h5", prepare_options(
             roi="1:2,:", bin=2, delta_beta=1450, center="auto" if center == "auto" else s.axis_column,
-            background="auto"), progress=False)
+            background="auto", liquid_radius=s.container_radius if radius == "given" else None), progress=False)
     except ValueError as exc:
         return {"failed": str(exc), "prepare_s": time.perf_counter() - t0}
     t1 = time.perf_counter()
@@ -143,6 +162,56 @@ def local_case(out, seed, *, center="auto"):
     contrast = next(x for x in report["steps"] if x["step"] == "contrast")["bubble_contrast_per_mm"]
     return {**scores, "axis_error_px": step["axis_column_raw"] - s.axis_column, "center": step["method"],
             "contrast": contrast, "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
+
+
+def local_background_case(out, seed):
+    """The local-tomography case's background alone, against the liquid's exact projection.
+
+    The raw scan of :func:`local_case` prepared as there but with the true
+    axis and without a background (the phase-retrieved line integrals of
+    its row, which ``--background auto`` fits), and
+    :func:`bubsub.core.prep.background.chord_background` run on it with the
+    liquid's radius fitted, given, and given 5 % small or large; each
+    against the liquid's exact projection ``mu 2 sqrt(R^2 - s^2)``.
+
+    Returns
+    -------
+    dict
+        ``true_radius_mm``, ``inner_gas_fraction`` and ``outer_gas_fraction``
+        (the truth bubbles' area fractions inside the field of view's disc
+        and between it and the liquid's wall), and ``fits``: per radius
+        (``fitted``, ``given``, ``given x0.95``, ``given x1.05``) the fit
+        (:func:`~bubsub.core.prep.background.chord_background`'s dict),
+        ``axis_error`` (the background less the liquid's projection at the
+        axis) and ``shape_error`` (that error's mean at the two outermost
+        columns less its value at the axis: the curvature that a constant
+        offset leaves out).
+    """
+    out = Path(out)
+    s = _local_raw(out, seed)
+    prepare(out / "raw.h5", out / "scan.h5", prepare_options(
+        roi="1:2,:", bin=2, delta_beta=1450, center=s.axis_column, background="none"), progress=False)
+    scan = read_scan(out / "scan.h5")
+    sino, geometry = scan.data, scan.geometry  # one row: 2D
+    offsets = detector_offsets(geometry)
+    r_true = s.container_radius
+    liquid = s.liquid_mu * 2 * np.sqrt(r_true ** 2 - offsets ** 2)
+    axis = int(np.argmin(np.abs(offsets)))
+    fits = {}
+    for name, radius in (("fitted", None), ("given", r_true), ("given x0.95", 0.95 * r_true),
+                         ("given x1.05", 1.05 * r_true)):
+        bg, fit = chord_background(sino, geometry, radius=radius)
+        err = bg - liquid
+        fits[name] = {"fit": fit, "axis_error": float(err[axis]),
+                      "shape_error": float(0.5 * (err[0] + err[-1]) - err[axis])}
+    r_fov = float(min(-offsets[0], offsets[-1]))
+    pixels = 1200
+    extent = (-r_true, r_true, -r_true, r_true)
+    gas = label_image(read_polygons_json(out / "truth.json"), (pixels, pixels), extent) > 0
+    yy, xx = (np.mgrid[:pixels, :pixels] + 0.5) * (2 * r_true / pixels) - r_true
+    r = np.hypot(xx, yy)
+    return {"true_radius_mm": r_true, "inner_gas_fraction": float(gas[r <= r_fov].mean()),
+            "outer_gas_fraction": float(gas[(r > r_fov) & (r <= r_true)].mean()), "fits": fits}
 
 
 def local_ideal_case(seed, extend):
@@ -231,7 +300,7 @@ def print_local(args):
           f"| DDI (interior) | prepare s | reconstruct s |")
     print("|---|---|---|---|---|---|---|---|---|---|", flush=True)
     for seed in args.local:
-        r = local_case(Path(args.out) / f"local{seed}", seed, center=args.local_center)
+        r = local_case(Path(args.out) / f"local{seed}", seed, center=args.local_center, radius=args.local_radius)
         if "failed" in r:
             print(f"| {seed} | {args.local_center} | prepare stopped: {r['failed']} | | | | | | "
                   f"{r['prepare_s']:.0f} | |", flush=True)
@@ -239,6 +308,23 @@ def print_local(args):
         print(f"| {seed} | {args.local_center} | {r['axis_error_px']:+.2f} | {r['contrast']:.4f} | {r['truth']} | "
               f"{r['found']} ({r['found_percent']:.0f} %) | {r['spurious']} | {r['ddi']:.4f} | {r['prepare_s']:.0f} | "
               f"{r['reconstruct_s']:.0f} |", flush=True)
+    return 0
+
+
+def print_local_background(args):
+    """Print the table of :func:`local_background_case` for ``args.local_background`` (seeds) under ``args.out``."""
+    print("| seed | true gas fraction inside / beyond the field of view | liquid's radius | radius (mm) | "
+          "liquid (1/mm) | gas fraction inside / beyond (fitted) | mean projection's residual (rms) | "
+          "error at the axis | shape error |")
+    print("|---|---|---|---|---|---|---|---|---|", flush=True)
+    for seed in args.local_background:
+        r = local_background_case(Path(args.out) / f"background{seed}", seed)
+        for name, f in r["fits"].items():
+            fit = f["fit"]
+            print(f"| {seed} | {r['inner_gas_fraction']:.2f} / {r['outer_gas_fraction']:.2f} | {name} | "
+                  f"{fit['radius_mm']:.2f} | {fit['liquid_attenuation']:.4f} | {fit['gas_fraction']:.2f} / "
+                  f"{fit['outer_gas_fraction']:.2f} | {fit['residual_rms']:.4f} | {f['axis_error']:+.4f} | "
+                  f"{f['shape_error']:+.4f} |", flush=True)
     return 0
 
 

@@ -19,22 +19,36 @@ def _disc(centre, radius, attenuation):
                    attenuation)
 
 
-def _scan(seed, cols=96, pixel=0.02, axis=49.3):
-    """Exact projections (90 views over 180 degrees, noise 0.003) of a liquid disc (0.1/mm) 1.5 times the field
-    of view's radius, filled out to its wall with disjoint gas discs (random sequential addition):
-    ``data, liquid's projection, geometry, field of view's radius, true gas fraction inside it``."""
+def _gas_discs(rng, reach, fov):
+    """Disjoint gas discs (radii 0.08-0.16 of ``fov``, films of 0.01 mm) inside ``reach`` mm of the axis, by random
+    sequential addition: a list of ``(centre, radius)``."""
+    centres, radii = np.empty((0, 2)), np.empty(0)
+    for c, q in zip(rng.uniform(-reach, reach, (20000, 2)), rng.uniform(0.08, 0.16, 20000) * fov):
+        if np.hypot(*c) + q < reach and np.all(np.hypot(*(centres - c).T) > q + radii + 0.01):
+            centres, radii = np.vstack([centres, c]), np.append(radii, q)
+    return list(zip(centres, radii))
+
+
+def _liquid_and_discs(seed, inside_only, cols, pixel, axis):
+    """90 views over 180 degrees of ``cols`` columns, a liquid disc (0.1/mm) 1.5 times the field of view's radius
+    and its gas discs (:func:`_gas_discs`) out to its wall, or ``inside_only`` the field of view: ``geometry,
+    field of view's radius, liquid's radius, the random generator, the discs, a projector, the liquid's
+    projection``."""
     g = scan_geometry(np.linspace(0, 180, 90, endpoint=False), pixel_size=(pixel, pixel), cols=cols,
                       axis_column=axis)
     fov = min(axis + 0.5, cols - 0.5 - axis) * pixel
     radius = 1.5 * fov
     rng = np.random.default_rng(seed)
-    centres, radii = np.empty((0, 2)), np.empty(0)
-    for c, q in zip(rng.uniform(-radius, radius, (20000, 2)), rng.uniform(0.08, 0.16, 20000) * fov):
-        if np.hypot(*c) + q < radius and np.all(np.hypot(*(centres - c).T) > q + radii + 0.01):
-            centres, radii = np.vstack([centres, c]), np.append(radii, q)
-    discs = list(zip(centres, radii))
+    discs = _gas_discs(rng, fov if inside_only else radius, fov)
     projector = MeshProjector(g, supersampling=2)
-    liquid = projector.forward([_disc((0, 0), radius, 0.1)])[0]
+    return g, fov, radius, rng, discs, projector, projector.forward([_disc((0, 0), radius, 0.1)])[0]
+
+
+def _scan(seed, cols=96, pixel=0.02, axis=49.3):
+    """Exact projections (90 views over 180 degrees, noise 0.003) of a liquid disc (0.1/mm) 1.5 times the field
+    of view's radius, filled out to its wall with disjoint gas discs (random sequential addition):
+    ``data, liquid's projection, geometry, field of view's radius, true gas fraction inside it``."""
+    g, fov, radius, rng, discs, projector, liquid = _liquid_and_discs(seed, False, cols, pixel, axis)
     data = liquid + projector.forward([_disc(c, q, -0.1) for c, q in discs])
     data += rng.normal(0, 0.003, data.shape)
     s = detector_offsets(g)
@@ -58,3 +72,43 @@ def test_the_liquids_projection_is_fitted_with_the_gas_inside_the_field_of_view_
     assert fit["liquid_attenuation"] == pytest.approx(0.1, rel=0.06)
     assert fit["contrast"] == pytest.approx(-0.1, rel=0.1)
     assert fit["gas_fraction"] == pytest.approx(gas_fraction, abs=0.05)
+
+
+def _annulus_scan(seed, outer, cols=96, pixel=0.02, axis=49.3):
+    """Exact projections (90 views, noise 0.003) of a liquid disc (0.1/mm) 1.5 times the field of view's radius:
+    disjoint gas discs (random sequential addition) inside the field of view, and beyond it out to the wall a
+    uniform gas fraction ``outer`` (an annulus of attenuation ``-0.1 outer``): ``data, liquid's projection,
+    geometry, liquid's radius``."""
+    g, fov, radius, rng, discs, projector, liquid = _liquid_and_discs(seed, True, cols, pixel, axis)
+    annulus = projector.forward([_disc((0, 0), radius, -0.1 * outer), _disc((0, 0), fov, 0.1 * outer)])
+    data = liquid + annulus + projector.forward([_disc(c, q, -0.1) for c, q in discs])
+    data += rng.normal(0, 0.003, data.shape)
+    return data.astype(np.float32), liquid, g, radius
+
+
+@pytest.mark.parametrize("seed, outer", [(0, 0.15), (1, 0.3)])
+def test_given_the_liquids_radius_the_foam_beyond_the_field_of_view_has_its_own_gas_fraction(seed, outer):
+    # the field of view holds about 0.48 of gas: the fitted radius with the inside's gas fraction beyond (the
+    # default) takes the lighter foam there for a wider cylinder, the given radius leaves it to its own fraction
+    data, liquid, g, radius = _annulus_scan(seed, outer)
+    bg, fit = chord_background(data, g, radius=radius)
+    assert fit["radius_mm"] == radius
+    assert fit["outer_gas_fraction"] == pytest.approx(outer, abs=0.06)  # 0.10 and 0.26: the inside's
+    assert fit["liquid_attenuation"] == pytest.approx(0.1, rel=0.06)    # gas a little overestimated (0.095, 0.096)
+    error = np.abs(bg - liquid).mean()
+    assert error < 0.05 * liquid.max()  # 0.047, 0.038 of it
+    assert np.abs(chord_background(data, g)[0] - liquid).mean() > 5 * error
+
+
+def test_a_given_radius_within_the_detectors_reach_is_refused():
+    data, _, g, radius = _annulus_scan(0, 0.3)
+    with pytest.raises(ValueError, match="liquid-radius"):
+        chord_background(data, g, radius=0.95 * radius / 1.5)
+
+
+def test_prepare_takes_the_liquids_radius_as_a_positive_length():
+    from bubsub.core.prep import prepare_options
+
+    assert prepare_options(liquid_radius=2.5).liquid_radius == 2.5
+    with pytest.raises(ValueError, match="liquid_radius must be a positive number"):
+        prepare_options(liquid_radius=-1.0)

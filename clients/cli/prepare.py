@@ -54,6 +54,7 @@ def cmd_prepare(args):
         stripes=args.stripes, delta_beta=args.delta_beta, energy=args.energy, distance=args.distance,
         pixel_size=args.pixel_size, roi=args.roi, bin=args.bin, projections=args.projections, center=args.center,
         crop_to_axis=not args.no_crop_to_axis, background=background, foam_radius=args.foam_radius,
+        liquid_radius=args.liquid_radius,
         contrast=args.contrast, source_origin=args.source_origin, origin_detector=args.origin_detector,
         theta_units=args.theta_units, slab_mb=args.slab_mb,
     )
@@ -117,6 +118,9 @@ def register(sub):
                         "reprojected), none, or an HDF5 file with /exchange/background (default auto)")
     g.add_argument("--foam-radius", type=_quantity("length", "--foam-radius"),
                    help="radius of the foam region about the axis (mm), for reproject and the contrast estimate")
+    g.add_argument("--liquid-radius", type=_quantity("length", "--liquid-radius"),
+                   help="radius of a liquid cylinder wider than the detector (the container's inner radius, mm), "
+                        "for --background auto; default fitted from the data")
     g.add_argument("--contrast", type=_contrast, help="bubble contrast, gas minus liquid attenuation, 1/mm "
                                                        "(default: estimated; the sign is checked)")
     p.add_argument("--slab-mb", type=positive_float, default=256.0, help="memory per slab, MB (default 256)")

@@ -37,7 +37,10 @@ class PrepareOptions:
     exclusive, ``None`` = to the edge); ``projections`` is ``(start, stop,
     step)``; ``center`` is ``"auto"``, ``"vo"``, ``"pair"``, ``"none"`` or
     a raw-detector column (float); ``background`` is ``"auto"``,
-    ``"envelope"``, ``"reproject"``, ``"none"`` or a file path.
+    ``"envelope"``, ``"reproject"``, ``"none"`` or a file path;
+    ``liquid_radius`` is the radius of a liquid cylinder wider than the
+    detector (the container's inner radius), which ``background="auto"``
+    then takes instead of fitting it (:func:`bubsub.core.prep.background.chord_background`).
     """
 
     flat: str = "interp"
@@ -56,6 +59,7 @@ class PrepareOptions:
     crop_to_axis: bool = True
     background: object = "auto"
     foam_radius: float | None = None
+    liquid_radius: float | None = None
     contrast: float | None = None
     source_origin: float | None = None
     origin_detector: float | None = None
@@ -159,7 +163,7 @@ def prepare_options(**kw):
         raise ValueError(f"flat must be one of {FLAT_MODES}, got {o['flat']!r}")
     if o.get("stripes", "none") not in STRIPE_METHODS:
         raise ValueError(f"stripes must be one of {STRIPE_METHODS}, got {o['stripes']!r}")
-    for name in ("delta_beta", "energy", "distance", "pixel_size", "foam_radius", "source_origin",
+    for name in ("delta_beta", "energy", "distance", "pixel_size", "foam_radius", "liquid_radius", "source_origin",
                  "origin_detector"):
         if name in o:
             o[name] = _positive(name, o[name])

@@ -475,7 +475,7 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
                     bg = np.empty_like(block)
                     for r in range(block.shape[1]):
                         if mode == "auto" and not sees_air(block[:, r]):
-                            bg[:, r], fit = chord_background(block[:, r], row_geom)
+                            bg[:, r], fit = chord_background(block[:, r], row_geom, radius=o.liquid_radius)
                             fit["drift_range"] = drift_offsets(block[:, r], bg[:, r])
                             chords.append(fit)
                             stored = False

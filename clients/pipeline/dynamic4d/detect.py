@@ -16,7 +16,8 @@ same grid, its distance-transform centres) and lets its centres decide
 * **add**: a round bubble at each centre no fitted bubble holds, kept by the
   same rule, then refitted with its neighbours free.
 
-Then caps at the detector's top and bottom rows are seeded
+Then caps at the detector's top and bottom rows that are no fitted bubble's
+own section are seeded, also where a neighbour's warm fit grew into them
 (:func:`edge_seeds`), and the static pipeline's topology rounds
 (:func:`bubsub.clients.pipeline.static.topology.adapt_bubbles`) run on the
 bubbles, with the preview and the steps :data:`WARM_STEPS`:
@@ -50,7 +51,8 @@ from bubsub.core.projection.mesh import equivalent_radius
 from bubsub.clients.pipeline.inputs.fov import preview_extension
 from bubsub.clients.pipeline.static.initial import (distance_centres, edge_centres, edge_slices, initial_centres,
                                                     small_centres)
-from bubsub.clients.pipeline.regions.local import Footprints, footprint, local_refit, scene_residual
+from bubsub.clients.pipeline.regions.local import (Footprints, footprint, local_fits, local_refit, others_removed,
+                                                   scene_residual)
 from bubsub.clients.pipeline.static.preview import (axis_pixel, preview_grid, preview_voxel_size, voxel_for_bubbles,
                                                     voxel_preview)
 from bubsub.clients.pipeline.static.resolution import levels_by_size
@@ -59,11 +61,16 @@ from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, centre_of, reach_of, size_of
 
-__all__ = ["WARM_STEPS", "detect_warm", "warm_voxel", "data_preview", "preview_changes", "edge_seeds"]
+__all__ = ["WARM_STEPS", "detect_warm", "warm_voxel", "data_preview", "preview_changes", "edge_seeds",
+           "unowned_discs", "row_pixel", "unknowns_cost"]
 
 #: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
 #: forward in time, keeps the successor's two warm starts).
 WARM_STEPS = ("remove", "add", "split")
+
+#: BFGS iterations of the local fits that compare a neighbour alone with it and an edge cap
+#: (:func:`edge_seeds`), as the static topology's splits and merges.
+LOCAL_ITERATIONS = 15
 
 def _new_bubble(surfaces, geometry, settings):
     """``new_bubble(centre, radius)``: a round bubble with the fitted bubbles' control mesh, subdivided by its size."""
@@ -78,12 +85,16 @@ def _new_bubble(surfaces, geometry, settings):
 def edge_seeds(projector, data, surfaces, settings, voxel):
     """Bubbles cut by the detector's top or bottom row that no fitted bubble explains, seeded and fitted.
 
-    The unexplained part of the residual (the bubbles' sign of ``data - Proj(fit)``) is reconstructed on the
-    first and last rows' slices (:func:`~bubsub.clients.pipeline.static.initial.edge_slices`); each disc no fitted
-    bubble accounts for becomes a sphere of the fitted bubbles' median radius beyond the edge plane with that
-    disc as its section (:func:`~bubsub.clients.pipeline.static.initial.edge_centres`: a bubble that leaves through
-    the edge later shows only a cap), kept when it lowers the objective, then refitted with its neighbours free
-    on a detector window. Parallel-beam 3D scans only (rows are slices there).
+    The data's first and last rows are reconstructed as slices
+    (:func:`~bubsub.clients.pipeline.static.initial.edge_slices`, as the cold start does); each disc that is no
+    fitted bubble's own section (:func:`unowned_discs`) becomes a sphere of the fitted bubbles' median radius
+    beyond the edge plane with that disc as its section
+    (:func:`~bubsub.clients.pipeline.static.initial.edge_centres`: a bubble that leaves through the edge later
+    shows only a cap). It is kept when adding it lowers the objective or, where a neighbour's warm fit grew into
+    the cap and explains too much of it for that, when the neighbour and the cap fitted together on a detector
+    window beat the neighbour alone by more than the cap's unknowns cost; the seeds are then refitted with their
+    neighbours free. The residual's discs alone miss such caps: what the swollen neighbour leaves of a cap a few
+    rows deep is too faint and thin to show. Parallel-beam 3D scans only (rows are slices there).
 
     Parameters
     ----------
@@ -105,27 +116,103 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
         return surfaces
     contrast = surfaces[0].attenuation
     residual = scene_residual(projector, surfaces, data)
-    unexplained = np.where(np.sign(contrast) * residual < 0, -residual, 0.0).astype(np.float32)
     extent = preview_grid(g, voxel, preview_extension(settings.fov_model, data, contrast))[1]
-    edges = edge_slices(unexplained, g, contrast, extent, voxel)
+    # the data's discs, as the cold start finds them: a neighbour whose warm fit grew into a cap (it has no warm
+    # start of its own) explains part of its signal, and the residual's discs of what is left are too thin to show
+    edges = edge_slices(data, g, contrast, extent, voxel)
     if not any(len(e[2]) for e in edges):
         return surfaces
-    radii = np.array([equivalent_radius(size_of(s), 3) for s in surfaces])
-    radius = float(np.median(radii))
+    radius = float(np.median([equivalent_radius(size_of(s), 3) for s in surfaces]))
     new_bubble = _new_bubble(surfaces, g, settings)
-    seeds = []
-    for c in edge_centres([centre_of(s) for s in surfaces], radii, edges, radius):
+    cost = unknowns_cost(new_bubble(np.zeros(3), radius), residual)
+    discs, holders = unowned_discs(surfaces, edges, row_pixel(g))
+    # edge_centres with no bubble to account for them: every disc left becomes a sphere beyond its edge
+    centres = edge_centres(np.zeros((0, 3)), np.zeros(0), discs, radius)
+    surfaces, own, seeds = list(surfaces), Footprints(projector, surfaces), []
+    for c, k in zip(centres, holders):
         cand = new_bubble(c, radius)
         p = footprint(projector, cand)
         if p.addition_gain(residual) < 0:
             p.add_to(residual)
             seeds.append(cand)
+        elif k >= 0:
+            # a neighbour's warm fit grew into the cap and explains too much of it for the seed alone to pay:
+            # the neighbour alone against the two, each fitted to the data less the rest
+            (_, f_one), (two, f_two) = local_fits(projector, [[surfaces[k]], [surfaces[k], cand]],
+                                                  others_removed(residual, own[k]), LOCAL_ITERATIONS)
+            if f_two < f_one - cost:
+                p0, p1 = (footprint(projector, t) for t in two)
+                own[k].add_to(residual, -1.0)
+                p0.add_to(residual)
+                p1.add_to(residual)
+                surfaces[k] = two[0]
+                own.set(k, two[0], p0)
+                seeds.append(two[1])
     if not seeds:
         return surfaces
 
     out, _, _ = local_refit(projector, list(surfaces) + seeds, data, range(len(surfaces), len(surfaces) + len(seeds)),
                             iterations=max(10, settings.iterations // 2), touch=radius, residual=residual)
     return out
+
+
+def unknowns_cost(bubble, residual):
+    """The objective drop a bubble like ``bubble`` must bring to be added (the static pipeline's Akaike rule):
+    its unknowns times the residual's mean square per pixel (the noise variance, where the fit explains the
+    bubbles)."""
+    return bubble.vertices.size * float(np.vdot(residual, residual)) / residual.size
+
+
+def row_pixel(geometry):
+    """A detector row's height, mm."""
+    return float(np.linalg.norm(geometry.vectors[0, 9:12]))
+
+
+def unowned_discs(surfaces, edges, row):
+    """The edge discs that are no fitted bubble's own section: ``edges`` with the other discs left out.
+
+    A disc's centre, half a row inside the edge plane, is tested against each fitted bubble that reaches the
+    plane; of the discs a bubble holds, the one nearest its centre across is its own section, unless the
+    bubble's centre stands further from the plane than its equivalent radius. A disc that no bubble holds as
+    its own (a neighbour whose warm fit grew into a cap it has no warm start for, a merge the section shows
+    as two discs) is unexplained.
+
+    Parameters
+    ----------
+    surfaces : list of SubdivisionSurface
+        3D.
+    edges : list of (plane, outward, centres, radii)
+        :func:`~bubsub.clients.pipeline.static.initial.edge_slices`'s.
+    row : float
+        A detector row's height, mm.
+
+    Returns
+    -------
+    discs : list of (plane, outward, centres, radii)
+    holders : list of int
+        Per disc left, in order, the bubble that holds it as its second, or -1.
+    """
+    fines = [s.fine().vertices for s in surfaces]
+    out, holders = [], []
+    for plane, outward, discs, rho in edges:
+        discs, rho = np.asarray(discs, float).reshape(-1, 2), np.asarray(rho, float)
+        probes = np.column_stack([discs, np.full(len(discs), plane - 0.5 * outward * row)])
+        owned, holder = np.zeros(len(discs), bool), np.full(len(discs), -1)
+        for k, (s, v) in enumerate(zip(surfaces, fines)):
+            if not len(discs) or not v[:, 2].min() <= probes[0, 2] <= v[:, 2].max():
+                continue
+            held = np.flatnonzero(points_inside(s.fine(), probes))
+            if not len(held):
+                continue
+            holder[held] = k
+            centre = v.mean(axis=0)
+            # a bubble whose centre stands further from the plane than its radius reaches it only by growing
+            # toward a cap: it holds none as its own
+            if abs(centre[2] - probes[0, 2]) <= equivalent_radius(size_of(s), 3):
+                owned[held[np.argmin(np.linalg.norm(discs[held] - centre[:2], axis=1))]] = True
+        out.append((plane, outward, discs[~owned], rho[~owned]))
+        holders += holder[~owned].tolist()
+    return out, holders
 
 
 def warm_voxel(geometry, data, contrast, settings, surfaces):
@@ -222,8 +309,7 @@ def preview_changes(projector, surfaces, data, centres, radii, settings, *, min_
     new_bubble = _new_bubble(surfaces, projector.geometry, settings)
     own = Footprints(projector, surfaces)
     residual = scene_residual(projector, surfaces, data)
-    cost = new_bubble(np.zeros(surfaces[0].ndim), 1.0).vertices.size * 2 * 0.5 * float(np.vdot(residual, residual)) \
-        / residual.size
+    cost = unknowns_cost(new_bubble(np.zeros(surfaces[0].ndim), 1.0), residual)
     changes = []
     held = np.array([points_inside(s.fine(), centres) for s in surfaces])
     twice = {k for k in range(len(surfaces)) if held[k].sum() >= 2}

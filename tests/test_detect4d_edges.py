@@ -1,0 +1,63 @@
+"""Caps at the detector's top edge in a warm subscan: which edge discs are a fitted bubble's own, and a cap
+that a neighbour's warm fit grew into found and given back (3D).
+
+The data are projected from icospheres (not the fitted subdivision model) with Gaussian noise of a fixed seed.
+"""
+
+import numpy as np
+import pytest
+import trimesh
+
+from bubsub.core import MeshProjector, ScanGeometry, SubdivisionSurface, sphere_surface
+from bubsub.core.projection.mesh import Mesh
+from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings
+from bubsub.clients.pipeline.dynamic4d.detect import detect_warm, row_pixel, unowned_discs
+
+CONTRAST = -0.1
+GEOMETRY = ScanGeometry.parallel(np.linspace(0, np.pi, 24, endpoint=False), pixel_size=0.05, cols=64, rows=32)
+TOP = 0.8  # the top edge plane: 32 rows of 0.05 mm about z = 0
+
+
+def ball(centre, radius):
+    m = trimesh.creation.icosphere(subdivisions=3)
+    return Mesh(np.asarray(m.vertices) * radius + np.asarray(centre), np.asarray(m.faces), CONTRAST)
+
+
+def ellipsoid(centre, axes):
+    unit = sphere_surface((0.0, 0.0, 0.0), 1.0, CONTRAST, control=42)
+    return SubdivisionSurface(Mesh(unit.vertices * axes + np.asarray(centre), unit.control_faces, CONTRAST),
+                              unit.levels)
+
+
+def test_a_cut_bubble_owns_its_disc_and_a_second_or_unreachable_one_is_left_with_its_holder():
+    cut = sphere_surface((0.0, 0.0, 0.6), 0.4, CONTRAST, control=42)  # centre 0.2 below the plane
+    far = ellipsoid((1.2, 0.0, 0.1), (0.3, 0.3, 0.75))  # reaches the plane, centre 0.7 below it: radius ~0.4
+    discs = np.array([[0.0, 0.0], [0.25, 0.0], [1.2, 0.0], [-1.2, 0.5]])
+    edges = [(TOP, 1.0, discs, np.full(4, 0.1)), (-TOP, -1.0, np.zeros((0, 2)), np.zeros(0))]
+    left, holders = unowned_discs([cut, far], edges, row_pixel(GEOMETRY))
+    np.testing.assert_allclose(left[0][2], discs[1:])  # the cut bubble's own disc is the one at its centre
+    assert holders == [0, 1, -1] and len(left[1][2]) == 0
+
+
+def test_a_cap_a_neighbours_warm_fit_grew_into_is_found_and_given_back():
+    truth = {"N": ((0.1, 0.0, 0.1), 0.35), "C": ((0.25, 0.05, 1.05), 0.4), "F": ((-0.9, 0.3, -0.2), 0.35)}
+    data = MeshProjector(GEOMETRY).forward([ball(*x) for x in truth.values()])
+    data = (data + np.random.default_rng(3).normal(0, 0.002, data.shape)).astype(np.float32)
+    # N's warm fit (it has no cap beside it in the successor: C was above the detector then) reaches the plane
+    swollen = ellipsoid((0.15, 0.02, 0.35), (0.36, 0.36, 0.5))
+    fitted = [swollen, sphere_surface(truth["F"][0], 0.35, CONTRAST, control=42)]
+    sizes = {3: 4 / 3 * np.pi * 0.35 ** 3, 4: 4 / 3 * np.pi * 0.35 ** 3}
+    ids, after, lineage, summary, next_id = detect_warm(GEOMETRY, data, [3, 4], fitted,
+                                                        DynamicSettings(iterations=20, progress=False),
+                                                        successor_sizes=sizes, next_id=9)
+    assert len(ids) == len(set(ids)) == 3 and next_id == 10
+    by_id = dict(zip(ids, after))
+    n = by_id[3].fine()
+    assert np.linalg.norm(np.asarray(n.centroid) - truth["N"][0]) < 0.06
+    assert n.equivalent_radius == pytest.approx(0.35, rel=0.1)
+    assert float(n.vertices[:, 2].max()) < 0.6  # gave the cap back: N's top is at 0.45
+    cap = by_id[9].fine().vertices
+    inside = cap[cap[:, 2] < TOP]
+    # the cap's visible part: the sphere's section 0.15 deep under the plane, about C's axis
+    assert float(inside[:, 2].min()) == pytest.approx(0.65, abs=0.05)
+    np.testing.assert_allclose(inside[:, :2].mean(axis=0), truth["C"][0][:2], atol=0.06)

@@ -152,7 +152,7 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
         return surfaces
 
     out, _, _ = local_refit(projector, list(surfaces) + seeds, data, range(len(surfaces), len(surfaces) + len(seeds)),
-                            iterations=max(10, settings.iterations // 2), touch=radius, residual=residual)
+                            iterations=LOCAL_ITERATIONS, touch=radius, residual=residual)
     return out
 
 

@@ -36,7 +36,7 @@ merged, spurious; the cut bubbles apart; DDI).
 The local-tomography cases (``--local``, ``--local-ideal``, ``--inside``):
 :mod:`bubsub.bench.fov_local`.
 
-``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given] [--out DIR]``
+``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given|exact] [--out DIR]``
 
 ``python -m bubsub.bench fov --local-background 0 1 2 3 4 5 6 7 [--out DIR]``
 
@@ -273,8 +273,9 @@ def main(argv=None):
     loc.add_argument("--local", type=int, nargs="+", metavar="SEED", help="simulated raw scans of these seeds")
     loc.add_argument("--local-center", choices=["auto", "given"], default="auto",
                      help="prepare's --center: auto, or the true axis given (default auto)")
-    loc.add_argument("--local-radius", choices=["fitted", "given"], default="fitted",
-                     help="the liquid cylinder's radius fitted by prepare (default) or given (--liquid-radius)")
+    loc.add_argument("--local-radius", choices=["fitted", "given", "exact"], default="fitted",
+                     help="the liquid cylinder's radius fitted by prepare (default) or given (--liquid-radius); "
+                          "exact: the liquid's exact projection as background and the true contrast")
     loc.add_argument("--local-background", type=int, nargs="+", metavar="SEED",
                      help="the background alone against the liquid's exact projection (local_background_case)")
     loc.add_argument("--local-ideal", type=int, nargs="+", metavar="SEED",

@@ -14,10 +14,11 @@ bubbles whose centroid lies there found with IoU >= 0.5, the reconstructed
 bubbles there that are no true bubble's best (spurious), the DDI there, and
 the axis error.
 
-``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given] [--out DIR]``
+``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given|exact] [--out DIR]``
 
 ``--local-radius given`` passes the liquid cylinder's radius (``bubsub prepare --liquid-radius``, the container's
-inner radius a beamline user knows) instead of fitting it.
+inner radius a beamline user knows) instead of fitting it; ``--local-radius exact`` reconstructs with the liquid's
+exact projection as background and the true contrast (what the reconstruction reaches with a perfect background).
 
 ``--local-background SEED ...``: the background alone (:func:`local_background_case`): the liquid's projection
 that :func:`bubsub.core.prep.background.chord_background` fits to the prepared scan's row, its radius fitted,
@@ -41,6 +42,7 @@ the foam in the model).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -136,7 +138,9 @@ def _local_raw(out, seed):
 def local_case(out, seed, *, center="auto", radius="fitted"):
     """Simulate, prepare, reconstruct and score one local-tomography scan (see the module docstring).
 
-    ``radius="given"`` passes the liquid cylinder's true radius to ``prepare`` (``liquid_radius``).
+    ``radius="given"`` passes the liquid cylinder's true radius to ``prepare`` (``liquid_radius``);
+    ``radius="exact"`` reconstructs the prepared data with the liquid's exact projection as background and the
+    true contrast instead of the fitted ones (the reconstruction's share of the error).
 
     Returns
     -------
@@ -156,10 +160,15 @@ def local_case(out, seed, *, center="auto", radius="fitted"):
     t1 = time.perf_counter()
     step = next(x for x in report["steps"] if x["step"] == "center")
     scan = read_scan(out / "scan.h5")
+    if radius == "exact":
+        offsets = detector_offsets(scan.geometry)
+        liquid = s.liquid_mu * 2 * np.sqrt(s.container_radius ** 2 - offsets ** 2)
+        scan = dataclasses.replace(scan, background=np.broadcast_to(liquid, scan.data.shape).astype(np.float32),
+                                   bubble_contrast=-s.liquid_mu)  # gas: no attenuation
     rec = reconstruct(scan, ReconstructionSettings(progress=False))
     t2 = time.perf_counter()
     scores = interior_scores([x.fine() for x in rec.surfaces], read_polygons_json(out / "truth.json"), scan.geometry)
-    contrast = next(x for x in report["steps"] if x["step"] == "contrast")["bubble_contrast_per_mm"]
+    contrast = scan.bubble_contrast  # prepare's estimate, or the truth with radius="exact"
     return {**scores, "axis_error_px": step["axis_column_raw"] - s.axis_column, "center": step["method"],
             "contrast": contrast, "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
 
@@ -312,19 +321,23 @@ def print_local(args):
 
 
 def print_local_background(args):
-    """Print the table of :func:`local_background_case` for ``args.local_background`` (seeds) under ``args.out``."""
-    print("| seed | true gas fraction inside / beyond the field of view | liquid's radius | radius (mm) | "
-          "liquid (1/mm) | gas fraction inside / beyond (fitted) | mean projection's residual (rms) | "
-          "error at the axis | shape error |")
-    print("|---|---|---|---|---|---|---|---|---|", flush=True)
+    """Print the table of :func:`local_background_case` for ``args.local_background`` (seeds) under ``args.out``.
+
+    One row per seed: the true gas fractions, then per radius (fitted, given, given 5 % small, 5 % large) the mean
+    projection's residual (rms), the error at the axis and the shape error; the radius where fitted and the
+    outer gas fraction where given.
+    """
+    print("| seed | true gas fraction inside / beyond | fitted: radius (mm), residual, axis, shape | given: gas "
+          "beyond, residual, axis, shape | given x0.95: residual, axis, shape | given x1.05: residual, axis, shape |")
+    print("|---|---|---|---|---|---|", flush=True)
     for seed in args.local_background:
         r = local_background_case(Path(args.out) / f"background{seed}", seed)
-        for name, f in r["fits"].items():
-            fit = f["fit"]
-            print(f"| {seed} | {r['inner_gas_fraction']:.2f} / {r['outer_gas_fraction']:.2f} | {name} | "
-                  f"{fit['radius_mm']:.2f} | {fit['liquid_attenuation']:.4f} | {fit['gas_fraction']:.2f} / "
-                  f"{fit['outer_gas_fraction']:.2f} | {fit['residual_rms']:.4f} | {f['axis_error']:+.4f} | "
-                  f"{f['shape_error']:+.4f} |", flush=True)
+        f = r["fits"]
+        cell = lambda x: (f"{x['fit']['residual_rms']:.4f}, {x['axis_error']:+.4f}, {x['shape_error']:+.4f}")
+        print(f"| {seed} | {r['inner_gas_fraction']:.2f} / {r['outer_gas_fraction']:.2f} | "
+              f"{f['fitted']['fit']['radius_mm']:.2f}, {cell(f['fitted'])} | "
+              f"{f['given']['fit']['outer_gas_fraction']:.2f}, {cell(f['given'])} | {cell(f['given x0.95'])} | "
+              f"{cell(f['given x1.05'])} |", flush=True)
     return 0
 
 

@@ -285,12 +285,13 @@ def chord_background(sinogram, geometry, *, grid=256, max_angles=128, erode=2, r
 
     The first pass alone takes the bubbles' chance arrangement inside the
     field of view for the liquid's profile; on the simulated scans of
-    ``python -m bubsub.bench fov --local`` (seeds 0-5) it misses the
+    ``python -m bubsub.bench fov --local`` (seeds 0-5, the axis found) it misses the
     liquid's projection at the axis (0.44 there) by -0.013 to +0.052, the
     second step (:data:`REFINE_PASSES` passes) by -0.002 to +0.008 on five
     of them and by +0.058 on the sixth, whose foam beyond the field of view
-    holds 0.68 times the gas fraction of the foam inside it (0.82-0.90 on
-    the others: no bubble crosses the wall). What the mean projection does
+    holds 0.64 times the gas fraction of the foam inside it (0.75-0.85 on
+    the others and on seeds 6 and 7: no bubble crosses the wall, and the
+    foam thins towards it). What the mean projection does
     not tell apart is the liquid's radius from a gas fraction that changes
     beyond the field of view: with ``phi_o`` free, radii 5 % apart leave
     the same residual of the mean projection (within 5 % on those six scans

@@ -67,10 +67,11 @@ RESIDUAL_PREVIEW_ITERATIONS_3D = 15
 #: Least convexity (:func:`convexity`) of the one bubble that replaces a merged pair. A bubble of a foam is
 #: convex (round in a wet foam, a polyhedron of nearly flat films in a dry one); fitted alone to the data of two
 #: touching bubbles, the one bubble keeps their neck: the union of two touching discs fills 0.88 of its convex
-#: hull, of two touching balls 0.80 (equal sizes), and the merged bubbles fitted to such pairs fill 0.80-0.91,
-#: while a bubble fitted to the data of one bubble seeded as two halves fills 0.99-1. Without this test the
-#: objective alone decides, and two touching bubbles whose merged fit is worse by less than the Akaike credit
-#: of the unknowns it saves are merged (``python -m bubsub.bench fov --inside 5``, docs/prepare.md).
+#: hull, of two touching balls 0.80 (equal sizes), and the merged bubbles fitted to such pairs fill 0.69-0.94
+#: (one in a hundred 0.997, its fit far worse than the pair's; docs/prepare.md), while a bubble fitted to the
+#: data of one bubble seeded as two pieces fills 1.00. Without
+#: this test the objective alone decides, and two touching bubbles whose merged fit is worse by less than the
+#: Akaike credit of the unknowns it saves are merged (``python -m bubsub.bench fov --inside 5``).
 MERGE_CONVEXITY = 0.95
 
 

@@ -502,7 +502,8 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
                   "cylinder's chord profile)" if mode == "auto" else mode)}
         if chords:
             entry["wider_than_detector"] = {
-                "rows": len(chords), "method": "liquid cylinder's chord profile fitted (chord_background)",
+                "rows": len(chords), "method": "liquid cylinder's chord profile fitted (chord_background)" + (
+                    ", its radius given (--liquid-radius)" if o.liquid_radius else ""),
                 **{k: float(np.median([c[k] for c in chords])) for k in chords[0]}}
         if liquids:
             entry["liquid_attenuation_per_mm"] = float(np.median(liquids))

@@ -47,15 +47,18 @@ def test_parallel_scale_space_finds_exactly_scikit_images_blobs(ndim):
     for _ in range(6):
         c, r = rng.uniform(5, np.array(shape) - 5), rng.uniform(2, 6)
         img += np.linalg.norm(grid - c, axis=-1) < r
-    peaks, sigmas, cube = _blob_log(img, 1.0, 5.0, 9, 0.1)
+    peaks, sigmas, strength = _blob_log(img, 1.0, 5.0, 9, 0.1)
     ref = blob_log(img, min_sigma=1.0, max_sigma=5.0, num_sigma=9, threshold=0.1, overlap=1.0, exclude_border=False)
     assert len(peaks) >= 6
     np.testing.assert_array_equal(peaks[:, :ndim], ref[:, :ndim])
     np.testing.assert_array_equal(sigmas[peaks[:, ndim]], ref[:, ndim])
     from scipy import ndimage
 
-    i = len(sigmas) // 2  # the cube is the scale-normalised response
-    np.testing.assert_allclose(cube[..., i], -sigmas[i] ** 2 * ndimage.gaussian_laplace(img, sigmas[i]), atol=1e-12)
+    # the strength is the scale-normalised response at each peak, highest first
+    expected = [-sigmas[s] ** 2 * ndimage.gaussian_laplace(img, sigmas[s])[tuple(p)]
+                for p, s in zip(peaks[:, :ndim], peaks[:, ndim])]
+    np.testing.assert_allclose(strength, expected, atol=1e-12)
+    assert np.all(np.diff(strength) <= 0)
 
 
 def _scan(truth, n_angles=10, cols=128):

@@ -49,6 +49,7 @@ import numpy as np
 
 from bubsub.core import MeshProjector, SubdivisionSurface
 from bubsub.core.malloc import release_free_memory
+from bubsub.core.projection.backends.raster import release_stores
 from bubsub.core.metrics import projection_mse
 from bubsub.core.projection.mesh import Mesh, Polygon
 from bubsub.core.projection.remesh import SHRINK, warm_start
@@ -393,6 +394,9 @@ def _warm(scan, previous, settings):
         report.update(diverged=True, error=str(exc))
         return previous, report, {}
     fields.pop("seconds_fit")
+    # the fit's crossing store (160 MB resident) is not kept through the detection's voxel preview, the warm
+    # subscan's peak memory; the detection's fits allocate their own
+    release_stores()
     t0 = _mark(report, "fit", t0)  # with the projectors' set-up and the initial objective
     report["objective"] = fields.pop("final_objective")
     report.update(fields)
@@ -426,12 +430,32 @@ def _detect(scan, previous, ids, fitted, settings):
     return detect_warm(geometry, data, ids, fitted, settings, successor_sizes=sizes, next_id=previous.next_id)
 
 
+#: A warm-started bubble cut by the detector's top or bottom edge whose part in view is less deep than this
+#: many detector rows ends its track (it left the field of view): the rows see too little of it to place its
+#: surface, and a fit keeps such a sliver of a bubble that has left, where going backwards in time a flowing
+#: foam carries bubbles out (``bubsub bench dynamic``: the slivers under two rows deep were bubbles already
+#: gone, the caps kept from two rows on true ones).
+MIN_EDGE_ROWS = 2
+
+
+def _edge_depth(surface, geometry):
+    """How deep (mm) a 3D bubble cut by the detector's top or bottom edge plane reaches into the field of view;
+    inf for one cut by neither or by both."""
+    z = surface.fine().vertices[:, 2]
+    half = field_of_view(geometry)[1]
+    top, bottom = z.max() > half, z.min() < -half
+    if top == bottom:
+        return np.inf
+    return float(half - max(z.min(), -half)) if top else float(min(z.max(), half) + half)
+
+
 def _survivors(ids, fitted, scan, settings, ended):
     """The fitted bubbles that have not collapsed or left the field of view, and their ids; the others end,
     their reason put in ``ended``."""
     # the geometry of the fitted projections; scan.data, whose split is a view, rather than a copy of bubble_data
     geometry = split_holdout(scan.geometry, scan.data, settings.holdout)[0]
     min_radius = settings.min_radius or preview_voxel_size(geometry)
+    row = 2 * field_of_view(geometry)[1] / geometry.det_rows if geometry.ndim == 3 else 0.0  # at the axis
     kept_ids, kept = [], []
     for i, s in zip(ids, fitted):
         r = s.fine().equivalent_radius
@@ -439,6 +463,9 @@ def _survivors(ids, fitted, scan, settings, ended):
             ended[i] = f"collapsed (equivalent radius {r:.3g} mm < {min_radius:.3g} mm)"
         elif not np.any(seen_by(s.fine().vertices, geometry)):
             ended[i] = "left the field of view (no ray of the subscan sees it)"
+        elif geometry.ndim == 3 and _edge_depth(s, geometry) < MIN_EDGE_ROWS * row:
+            ended[i] = (f"left the field of view (a sliver {_edge_depth(s, geometry) * 1e3:.0f} um deep in view, "
+                        f"less than {MIN_EDGE_ROWS} detector rows)")
         else:
             kept_ids.append(i)
             kept.append(s)

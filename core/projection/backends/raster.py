@@ -107,7 +107,7 @@ import numpy as np
 from bubsub.core.projection.backends.base import Backend, Traversal, check_deadline, deadline_map, stop_flag
 from bubsub.core.threads import thread_map
 
-__all__ = ["RasterBackend", "available", "unavailable_reason"]
+__all__ = ["RasterBackend", "available", "unavailable_reason", "release_stores"]
 
 _state = {}
 
@@ -211,6 +211,17 @@ def _give_back(store):
     with _POOL_LOCK:
         if len(_POOL) < 2:
             _POOL.append(store)
+
+
+def release_stores():
+    """Drop the crossing stores kept for reuse, so that their pages go back to the system.
+
+    A store stays resident between fits (up to ``BUBSUB_RASTER_STORE_MB``, 160 MB, each): a caller about to
+    do memory-heavy work that projects nothing (a voxel preview) lets them go; the next fit allocates a
+    store again, its pages faulted in as it fills them.
+    """
+    with _POOL_LOCK:
+        _POOL.clear()
 
 
 class _RasterTraversal(Traversal):

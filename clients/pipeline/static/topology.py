@@ -50,8 +50,8 @@ from bubsub.core.voxel.grid import world_to_index
 
 from bubsub.clients.pipeline.static.blobs import log_blobs
 from bubsub.clients.pipeline.inputs.fov import preview_extension
-from bubsub.clients.pipeline.regions.local import (Footprints, footprint, local_fits, local_refit, others_removed,
-                                                   scene_objective, scene_residual)
+from bubsub.clients.pipeline.regions.local import (LOCAL_RTOL, Footprints, footprint, local_fits, local_refit,
+                                                   others_removed, scene_objective, scene_residual)
 from bubsub.clients.pipeline.static.preview import preview_grid, resample_image, voxel_preview
 from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, truncated_flags, unobserved_control
@@ -348,7 +348,8 @@ def _changes_words(changes):
 def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius, max_radius, rounds=3,
                    iterations=30, threshold=0.15, touch=0.0, split_ratio=1.6, local_iterations=15, max_add=20,
                    max_tries=8, steps=("remove", "add", "merge", "split"), complexity=1.0, image=None,
-                   progress=False, penalty=None, fov_edge=False, merge_convexity=MERGE_CONVEXITY):
+                   progress=False, penalty=None, fov_edge=False, merge_convexity=MERGE_CONVEXITY,
+                   refit_rtol=LOCAL_RTOL):
     """Alternate topology changes and joint BFGS fits.
 
     Parameters
@@ -402,6 +403,9 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         is kept when it explains that part.
     merge_convexity : float
         Least convexity of the bubble that replaces a merged pair (:func:`merge_step`'s ``min_convexity``).
+    refit_rtol : float
+        The convergence test of each round's refit (:func:`~bubsub.clients.pipeline.regions.local.local_refit`'s
+        ``rtol``).
 
     Returns
     -------
@@ -467,7 +471,8 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
             before_refit = {id(s) for s in surfaces}
             surfaces, residual, summary = local_refit(projector, surfaces, data, changed, iterations=iterations,
                                                       touch=touch, near=gone, residual=residual, penalty=penalty,
-                                                      progress=progress, label=f"topology round {r + 1} refit")
+                                                      progress=progress, label=f"topology round {r + 1} refit",
+                                                      rtol=refit_rtol)
             fresh = {id(s) for s in surfaces if id(s) not in before_refit}
             refits.append(dict(summary, round=r))
             bar.update(1)
@@ -479,7 +484,8 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
 
 def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterations, levels, facet_pixels,
                   voxel_size=None, method="box", fov_model=True, image=None, extent=None, penalty=None,
-                  progress=False, steps=("remove", "add", "merge", "split"), unexplained_only=False):
+                  progress=False, steps=("remove", "add", "merge", "split"), unexplained_only=False,
+                  refit_rtol=LOCAL_RTOL):
     """:func:`adapt_topology` as the reconstruction pipeline runs it (its preview's grid and new bubbles).
 
     Parameters
@@ -509,6 +515,8 @@ def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterati
         rest set to 0: where fitted bubbles stand a little too large, the residual's other sign, which the
         preview's ``x >= 0`` cannot hold, washes out the blobs beside them (a warm fit's neighbours that grew
         toward a bubble they have no start for).
+    refit_rtol : float
+        As :func:`adapt_topology`'s.
 
     Returns
     -------
@@ -551,4 +559,4 @@ def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterati
     return adapt_topology(projector, surfaces, data, preview=preview, new_bubble=new_bubble, min_radius=3 * voxel,
                           max_radius=size / 8, rounds=rounds, iterations=max(10, iterations // 2), touch=2 * voxel,
                           image=None if image is None else (image, extent), progress=progress, penalty=penalty,
-                          fov_edge=fov_model, steps=steps)
+                          fov_edge=fov_model, steps=steps, refit_rtol=refit_rtol)

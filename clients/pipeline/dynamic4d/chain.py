@@ -438,7 +438,7 @@ def _detect(scan, previous, ids, fitted, settings):
 MIN_EDGE_ROWS = 2
 
 
-def _edge_depth(surface, geometry):
+def edge_depth(surface, geometry):
     """How deep (mm) a 3D bubble cut by the detector's top or bottom edge plane reaches into the field of view;
     inf for one cut by neither or by both."""
     z = surface.fine().vertices[:, 2]
@@ -463,8 +463,8 @@ def _survivors(ids, fitted, scan, settings, ended):
             ended[i] = f"collapsed (equivalent radius {r:.3g} mm < {min_radius:.3g} mm)"
         elif not np.any(seen_by(s.fine().vertices, geometry)):
             ended[i] = "left the field of view (no ray of the subscan sees it)"
-        elif geometry.ndim == 3 and _edge_depth(s, geometry) < MIN_EDGE_ROWS * row:
-            ended[i] = (f"left the field of view (a sliver {_edge_depth(s, geometry) * 1e3:.0f} um deep in view, "
+        elif geometry.ndim == 3 and edge_depth(s, geometry) < MIN_EDGE_ROWS * row:
+            ended[i] = (f"left the field of view (a sliver {edge_depth(s, geometry) * 1e3:.0f} um deep in view, "
                         f"less than {MIN_EDGE_ROWS} detector rows)")
         else:
             kept_ids.append(i)

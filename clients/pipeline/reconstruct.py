@@ -14,7 +14,9 @@ clock, the report so far) with its options as keywords:
    subdivided as finely as its size needs (:mod:`.resolution`).
 3. :func:`fit_phase`: BFGS on all control vertices, coarse to fine in the
    data: binned pixels first, the full detector last, each level ended on
-   convergence (:mod:`bubsub.clients.optimise.levels`); then :func:`prune`.
+   convergence (:mod:`bubsub.clients.optimise.levels`); for a foam wider than
+   the detector, alternated with the detector's view-constant term
+   (:mod:`.detector_term`); then :func:`prune`.
 4. :func:`topology_phase` (:mod:`.topology`), :func:`repair_phase` (the
    validity check and repair, :mod:`.repair`), each refitting only the
    bubbles it changed on detector windows (:mod:`.local`);
@@ -28,6 +30,8 @@ clock, the report so far) with its options as keywords:
    ``overlay.png``, ``sizes.png`` and (3D) ``meshes.png``
    (:func:`bubsub.clients.pipeline.results.outputs.write_outputs`, pictures by
    :mod:`bubsub.clients.pipeline.results.figures`).
+
+One module on purpose: the phases read in the order the pipeline runs them.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.optimise.separation import separation_penalty, separation_weight
 from bubsub.clients.pipeline.inputs.checks import check_bubble_signal, check_setting_values, check_settings
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, inside_fov, size_inside_fov, unobserved_control
+from bubsub.clients.pipeline.static.detector_term import detector_term_phase
 from bubsub.clients.pipeline.static.initial import default_detector
 from bubsub.clients.pipeline.regions.local import scene_objective
 from bubsub.clients.pipeline.phase_report import PhaseClock, REMOTE_PHASES, merged_projector_report, projector_report
@@ -198,8 +203,10 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signa
                             progress=s.progress)
     voxel = preview.voxel
     penalty = _separation(s.separation, d_fit, len(surfaces), voxel) if projector_factory is None else None
-    fit = fit_phase(run, surfaces, factory=projector_factory, data_levels=s.data_levels, iterations=s.iterations,
+    refit = partial(fit_phase, factory=projector_factory, data_levels=s.data_levels, iterations=s.iterations,
                     rtol=s.fit_rtol, penalty=penalty, progress=s.progress)
+    fit, term = detector_term_phase(run, refit(run, surfaces), refit, contrast,
+                                    enabled=s.fov_model and projector_factory is None)
     kept, dropped = prune(fit.surfaces, min_radius=voxel)
     interrupted = fit.interrupted  # Ctrl-C: no further changes, write what we have
     try:
@@ -224,8 +231,9 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signa
         kept = repair_phase(run, kept, partial(check_and_repair, projector=run.projector, data=run.data, repair=False))
 
     report = _report(run, kept, fit, preview, s, scan.geometry, dropped=dropped, interrupted=interrupted)
+    report.update({k: run.report[k] for k in ("detector_term",) if k in run.report})  # local tomography only
     if g_val is not None:
-        report.update(holdout_phase(run, kept, g_val, d_val, supersampling=s.supersampling))
+        report.update(holdout_phase(run, kept, g_val, d_val - term, supersampling=s.supersampling))
     # wall and CPU seconds of each phase (CPU: this process, all threads)
     report["seconds_parts"], report["cpu_seconds_parts"] = clock.parts()
     report["projector"] = projector_report(fit.remote, report["seconds_parts"], run.projector.backend)

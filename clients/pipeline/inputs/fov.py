@@ -26,7 +26,9 @@ bubsub.bench fov``; local tomography: ``python -m bubsub.bench fov --local``.
 Local tomography: the bubbles out to :data:`LOCAL_EXTEND` times the field
 of view's radius are fitted where the views constrain them, and the gas
 beyond (seen in fewer than 46 % of a 180-degree scan's projections at 1.5
-times the radius) is left to the fit's residual.
+times the radius) is left to the fit's residual, less what every projection
+shares (:mod:`bubsub.clients.pipeline.static.detector_term`, fitted where
+:func:`local_tomography` holds).
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from bubsub.clients.pipeline.inputs.sides import LOCAL_VIEWS, side_bubble_signal
 from bubsub.core.io.tables import FOV_COLUMN_INFO
 from bubsub.core.projection.masks import coverage, pixel_centres
 
-__all__ = ["field_of_view", "fov_report", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
+__all__ = ["field_of_view", "fov_report", "local_tomography", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
            "FOV_EXTEND", "LOCAL_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns",
            "FOV_COLUMN_INFO", "WHOLE_SIZE_COLUMNS", "fov_mask"]
 
@@ -76,13 +78,36 @@ def preview_extension(fov_model, data=None, contrast=None):
         return 1.0
     if data is None:
         return FOV_EXTEND
+    case = _sides(data, contrast)
+    return 1.0 if case is None else LOCAL_EXTEND if case else FOV_EXTEND
 
+
+def _sides(data, contrast):
+    """None when neither side of the detector sees bubble signal in any projection, else whether it
+    sees the bubbles' signal in at least :data:`LOCAL_VIEWS` of them (local tomography)."""
     left, right, level = side_signal(np.sign(contrast) * np.asarray(data, dtype=np.float32))
     if not bool(np.any(left > level) or np.any(right > level)):
-        return 1.0
+        return None
     left, right, level = side_bubble_signal(data, contrast)
-    local = max(np.count_nonzero(left > level), np.count_nonzero(right > level)) >= LOCAL_VIEWS * len(left)
-    return LOCAL_EXTEND if local else FOV_EXTEND
+    return max(np.count_nonzero(left > level), np.count_nonzero(right > level)) >= LOCAL_VIEWS * len(left)
+
+
+def local_tomography(data, contrast):
+    """Whether the bubbles' signal reaches a side of the detector in at least :data:`LOCAL_VIEWS` of
+    the projections: a foam wider than the detector, as :func:`preview_extension` judges it.
+
+    Parameters
+    ----------
+    data : ndarray
+        Bubble signal (``data - background``), ``(views, cols)`` or ``(views, rows, cols)``.
+    contrast : float
+        Bubble contrast.
+
+    Returns
+    -------
+    bool
+    """
+    return bool(_sides(data, contrast))
 
 
 def field_of_view(geometry):

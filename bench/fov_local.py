@@ -16,6 +16,9 @@ the axis error.
 
 ``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given|exact] [--out DIR]``
 
+``--local-passes N`` sets the passes of the detector's view-constant term (0: none,
+:mod:`bubsub.clients.pipeline.static.detector_term`).
+
 ``--local-radius given`` passes the liquid cylinder's radius (``bubsub prepare --liquid-radius``, the container's
 inner radius a beamline user knows) instead of fitting it; ``--local-radius exact`` reconstructs with the liquid's
 exact projection as background and the true contrast (what the reconstruction reaches with a perfect background).
@@ -53,6 +56,8 @@ from bubsub.clients.pipeline.evaluation.evaluate import evaluate_dir
 from bubsub.clients.pipeline.inputs.fov import field_of_view
 from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
+from bubsub.clients.pipeline.static import detector_term as dtmod
+from bubsub.clients.pipeline.static.detector_term import DETECTOR_TERM_PASSES
 from bubsub.core import MeshProjector
 from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
 from bubsub.core.io.meshio import read_polygons_json
@@ -135,8 +140,11 @@ def _local_raw(out, seed):
     return s
 
 
-def local_case(out, seed, *, center="auto", radius="fitted"):
+def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TERM_PASSES):
     """Simulate, prepare, reconstruct and score one local-tomography scan (see the module docstring).
+
+    ``passes``: of the detector's view-constant term
+    (:data:`bubsub.clients.pipeline.static.detector_term.DETECTOR_TERM_PASSES`; 0: none).
 
     ``radius="given"`` passes the liquid cylinder's true radius to ``prepare`` (``liquid_radius``);
     ``radius="exact"`` reconstructs the prepared data with the liquid's exact projection as background and the
@@ -165,7 +173,12 @@ def local_case(out, seed, *, center="auto", radius="fitted"):
         liquid = s.liquid_mu * 2 * np.sqrt(s.container_radius ** 2 - offsets ** 2)
         scan = dataclasses.replace(scan, background=np.broadcast_to(liquid, scan.data.shape).astype(np.float32),
                                    bubble_contrast=-s.liquid_mu)  # gas: no attenuation
-    rec = reconstruct(scan, ReconstructionSettings(progress=False))
+    before = dtmod.DETECTOR_TERM_PASSES
+    dtmod.DETECTOR_TERM_PASSES = passes
+    try:
+        rec = reconstruct(scan, ReconstructionSettings(progress=False))
+    finally:
+        dtmod.DETECTOR_TERM_PASSES = before
     t2 = time.perf_counter()
     scores = interior_scores([x.fine() for x in rec.surfaces], read_polygons_json(out / "truth.json"), scan.geometry)
     contrast = scan.bubble_contrast  # prepare's estimate, or the truth with radius="exact"
@@ -309,7 +322,8 @@ def print_local(args):
           f"| DDI (interior) | prepare s | reconstruct s |")
     print("|---|---|---|---|---|---|---|---|---|---|", flush=True)
     for seed in args.local:
-        r = local_case(Path(args.out) / f"local{seed}", seed, center=args.local_center, radius=args.local_radius)
+        r = local_case(Path(args.out) / f"local{seed}", seed, center=args.local_center, radius=args.local_radius,
+                       passes=getattr(args, "local_passes", DETECTOR_TERM_PASSES))
         if "failed" in r:
             print(f"| {seed} | {args.local_center} | prepare stopped: {r['failed']} | | | | | | "
                   f"{r['prepare_s']:.0f} | |", flush=True)

@@ -463,8 +463,8 @@ def _survivors(ids, fitted, scan, settings, ended):
             ended[i] = f"collapsed (equivalent radius {r:.3g} mm < {min_radius:.3g} mm)"
         elif not np.any(seen_by(s.fine().vertices, geometry)):
             ended[i] = "left the field of view (no ray of the subscan sees it)"
-        elif geometry.ndim == 3 and edge_depth(s, geometry) < MIN_EDGE_ROWS * row:
-            ended[i] = (f"left the field of view (a sliver {edge_depth(s, geometry) * 1e3:.0f} um deep in view, "
+        elif geometry.ndim == 3 and (depth := edge_depth(s, geometry)) < MIN_EDGE_ROWS * row:
+            ended[i] = (f"left the field of view (a sliver {depth * 1e3:.0f} um deep in view, "
                         f"less than {MIN_EDGE_ROWS} detector rows)")
         else:
             kept_ids.append(i)

@@ -56,13 +56,14 @@ from bubsub.clients.pipeline.regions.local import (LOCAL_RTOL, Footprints, footp
 from bubsub.clients.pipeline.static.preview import (axis_pixel, preview_grid, preview_voxel_size, voxel_for_bubbles,
                                                     voxel_preview)
 from bubsub.clients.pipeline.static.resolution import levels_by_size
-from bubsub.clients.pipeline.static.topology import adapt_bubbles, add_at, points_inside, split_step
+from bubsub.clients.pipeline.static.topology import (adapt_bubbles, add_at, points_inside, replace_by_two, split_step,
+                                                    unknowns_cost)
 from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
-from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, centre_of, reach_of, size_of
+from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, reach_of, size_of
 
 __all__ = ["WARM_STEPS", "detect_warm", "warm_voxel", "data_preview", "preview_changes", "edge_seeds",
-           "unowned_discs", "row_pixel", "unknowns_cost"]
+           "unowned_discs", "row_pixel"]
 
 #: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
 #: forward in time, keeps the successor's two warm starts).
@@ -124,7 +125,7 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
         return surfaces
     radius = float(np.median([equivalent_radius(size_of(s), 3) for s in surfaces]))
     new_bubble = _new_bubble(surfaces, g, settings)
-    cost = unknowns_cost(new_bubble(np.zeros(3), radius), residual)
+    cost = unknowns_cost(new_bubble(np.zeros(3), radius).vertices.size, residual)
     discs, holders = unowned_discs(surfaces, edges, row_pixel(g))
     # edge_centres with no bubble to account for them: every disc left becomes a sphere beyond its edge
     centres = edge_centres(np.zeros((0, 3)), np.zeros(0), discs, radius)
@@ -141,13 +142,7 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
             (_, f_one), (two, f_two) = local_fits(projector, [[surfaces[k]], [surfaces[k], cand]],
                                                   others_removed(residual, own[k]), LOCAL_ITERATIONS)
             if f_two < f_one - cost:
-                p0, p1 = (footprint(projector, t) for t in two)
-                own[k].add_to(residual, -1.0)
-                p0.add_to(residual)
-                p1.add_to(residual)
-                surfaces[k] = two[0]
-                own.set(k, two[0], p0)
-                seeds.append(two[1])
+                seeds.append(replace_by_two(projector, surfaces, residual, own, k, two)[0])
     if not seeds:
         return surfaces
 
@@ -165,13 +160,6 @@ def _refit_rtol(settings):
     the warm fit's last iterations. :func:`detect_warm` refits the new bubbles with the bubbles they touch to
     ``LOCAL_RTOL`` last: an edge cap seeded there needs its iterations."""
     return max(LOCAL_RTOL, float(settings.warm_rtol))
-
-
-def unknowns_cost(bubble, residual):
-    """The objective drop a bubble like ``bubble`` must bring to be added (the static pipeline's Akaike rule):
-    its unknowns times the residual's mean square per pixel (the noise variance, where the fit explains the
-    bubbles)."""
-    return bubble.vertices.size * float(np.vdot(residual, residual)) / residual.size
 
 
 def row_pixel(geometry):
@@ -203,23 +191,24 @@ def unowned_discs(surfaces, edges, row):
     holders : list of int
         Per disc left, in order, the bubble that holds it as its second, or -1.
     """
-    fines = [s.fine().vertices for s in surfaces]
+    fines = [s.fine() for s in surfaces]
     out, holders = [], []
     for plane, outward, discs, rho in edges:
         discs, rho = np.asarray(discs, float).reshape(-1, 2), np.asarray(rho, float)
         probes = np.column_stack([discs, np.full(len(discs), plane - 0.5 * outward * row)])
         owned, holder = np.zeros(len(discs), bool), np.full(len(discs), -1)
-        for k, (s, v) in enumerate(zip(surfaces, fines)):
+        for k, fine in enumerate(fines):
+            v = fine.vertices
             if not len(discs) or not v[:, 2].min() <= probes[0, 2] <= v[:, 2].max():
                 continue
-            held = np.flatnonzero(points_inside(s.fine(), probes))
+            held = np.flatnonzero(points_inside(fine, probes))
             if not len(held):
                 continue
             holder[held] = k
             centre = v.mean(axis=0)
             # a bubble whose centre stands further from the plane than its radius reaches it only by growing
             # toward a cap: it holds none as its own
-            if abs(centre[2] - probes[0, 2]) <= equivalent_radius(size_of(s), 3):
+            if abs(centre[2] - probes[0, 2]) <= equivalent_radius(abs(fine.size), 3):
                 owned[held[np.argmin(np.linalg.norm(discs[held] - centre[:2], axis=1))]] = True
         out.append((plane, outward, discs[~owned], rho[~owned]))
         holders += holder[~owned].tolist()
@@ -320,7 +309,7 @@ def preview_changes(projector, surfaces, data, centres, radii, settings, *, min_
     new_bubble = _new_bubble(surfaces, projector.geometry, settings)
     own = Footprints(projector, surfaces)
     residual = scene_residual(projector, surfaces, data)
-    cost = unknowns_cost(new_bubble(np.zeros(surfaces[0].ndim), 1.0), residual)
+    cost = unknowns_cost(new_bubble(np.zeros(surfaces[0].ndim), 1.0).vertices.size, residual)
     changes = []
     held = np.array([points_inside(s.fine(), centres) for s in surfaces])
     twice = {k for k in range(len(surfaces)) if held[k].sum() >= 2}

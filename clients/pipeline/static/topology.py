@@ -57,7 +57,8 @@ from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, truncated_flags, unobserved_control
 from bubsub.clients.progress import phase
 
-__all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "points_inside", "convexity", "MERGE_CONVEXITY"]
+__all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "replace_by_two", "unknowns_cost",
+           "points_inside", "convexity", "MERGE_CONVEXITY"]
 
 #: BB iterations of the 3D residual preview (half the data preview's 30): the residual's blobs are bright
 #: enough for the add step after 15 (a bubble left out of a fit is added at the same place as with 30),
@@ -274,6 +275,24 @@ def points_inside(surface, points):
     return out
 
 
+def replace_by_two(projector, surfaces, residual, own, k, two):
+    """A split's bookkeeping: ``two[0]`` takes bubble ``k``'s place in ``surfaces`` and ``own``, ``residual``
+    follows both new bubbles (in place); returns ``(two[1], its footprint)`` for the caller to add."""
+    p0, p1 = (footprint(projector, t) for t in two)  # on their windows, as in merge_step
+    p0.add_to(residual)
+    p1.add_to(residual)
+    own[k].add_to(residual, -1.0)
+    surfaces[k] = two[0]
+    own.set(k, two[0], p0)
+    return two[1], p1
+
+
+def unknowns_cost(unknowns, residual):
+    """The objective drop that ``unknowns`` more unknowns must bring (the Akaike rule): twice their number times
+    the residual's half mean square per pixel (the noise variance, where the fit explains the bubbles)."""
+    return unknowns * 2 * _half_sq(residual) / residual.size
+
+
 def split_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, ratio, iterations,
                max_tries, cost=0.0, blobs=None, only=None):
     """Replace a bubble by two when that fits the data better.
@@ -312,13 +331,7 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         (single, f_single), (two, f_two) = local_fits(
             projector, [[s], [new_bubble(c, r) for c, r in children]], target, iterations)
         if f_two < f_single - cost:
-            p0, p1 = (footprint(projector, t) for t in two)  # on their windows, as in merge_step
-            p0.add_to(residual)
-            p1.add_to(residual)
-            own[k].add_to(residual, -1.0)
-            surfaces[k] = two[0]
-            own.set(k, two[0], p0)
-            extra.append((two[1], p1))
+            extra.append(replace_by_two(projector, surfaces, residual, own, k, two))
             changes.append({"round": round_no, "change": "split", "centre": _centre(s).tolist(),
                             "objective_before": f_single, "objective_after": f_two})
     for s, p in extra:
@@ -436,7 +449,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         with phase(f"topology round {r + 1}", len(steps) + 1, unit="step", enabled=progress) as bar:
             own = Footprints(projector, surfaces)
             residual = scene_residual(projector, surfaces, data)
-            cost = complexity * unknowns * 2 * _half_sq(residual) / residual.size
+            cost = unknowns_cost(complexity * unknowns, residual)
             if "remove" in steps:
                 # unknowns no ray sees cost nothing to remove: a cut bubble is charged for its visible ones only
                 removal_cost = cost * _seen_unknowns(surfaces, projector.geometry) / unknowns if fov_edge else cost

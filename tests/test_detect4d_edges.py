@@ -11,7 +11,8 @@ import trimesh
 from bubsub.core import MeshProjector, ScanGeometry, SubdivisionSurface, sphere_surface
 from bubsub.core.projection.mesh import Mesh
 from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings
-from bubsub.clients.pipeline.dynamic4d.detect import detect_warm, row_pixel, unowned_discs
+from bubsub.clients.pipeline.dynamic4d.detect import detect_warm, unowned_discs
+from bubsub.clients.pipeline.static.initial import row_pixel
 
 CONTRAST = -0.1
 GEOMETRY = ScanGeometry.parallel(np.linspace(0, np.pi, 24, endpoint=False), pixel_size=0.05, cols=64, rows=32)

@@ -50,7 +50,7 @@ from bubsub.core.projection.mesh import equivalent_radius
 
 from bubsub.clients.pipeline.inputs.fov import preview_extension
 from bubsub.clients.pipeline.static.initial import (distance_centres, edge_centres, edge_slices, initial_centres,
-                                                    small_centres)
+                                                    row_pixel, small_centres)
 from bubsub.clients.pipeline.regions.local import (LOCAL_RTOL, Footprints, footprint, local_fits, local_refit,
                                                    others_removed, scene_residual)
 from bubsub.clients.pipeline.static.preview import (axis_pixel, preview_grid, preview_voxel_size, voxel_for_bubbles,
@@ -63,7 +63,7 @@ from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, reach_of, size_of
 
 __all__ = ["WARM_STEPS", "detect_warm", "warm_voxel", "data_preview", "preview_changes", "edge_seeds",
-           "unowned_discs", "row_pixel"]
+           "unowned_discs"]
 
 #: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
 #: forward in time, keeps the successor's two warm starts).
@@ -160,11 +160,6 @@ def _refit_rtol(settings):
     the warm fit's last iterations. :func:`detect_warm` refits the new bubbles with the bubbles they touch to
     ``LOCAL_RTOL`` last: an edge cap seeded there needs its iterations."""
     return max(LOCAL_RTOL, float(settings.warm_rtol))
-
-
-def row_pixel(geometry):
-    """A detector row's height, mm."""
-    return float(np.linalg.norm(geometry.vectors[0, 9:12]))
 
 
 def unowned_discs(surfaces, edges, row):

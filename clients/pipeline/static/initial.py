@@ -31,7 +31,7 @@ from bubsub.core.voxel.astra2d import reconstruct_2d
 from bubsub.core.voxel.segment import binarise, bubble_centres, mask_distance
 
 __all__ = ["LOG_THRESHOLD", "initial_centres", "distance_centres", "small_centres", "initial_surfaces", "choose_initial", "default_detector", "edge_slices",
-           "edge_centres", "EDGE_ITERATIONS", "HALF_HEIGHT_OVER_RADIUS", "MIN_DISC_PIXELS"]
+           "edge_centres", "row_pixel", "EDGE_ITERATIONS", "HALF_HEIGHT_OVER_RADIUS", "MIN_DISC_PIXELS"]
 
 
 def default_detector(detector, ndim):
@@ -280,6 +280,11 @@ EDGE_ITERATIONS = 30
 MIN_DISC_PIXELS = 3
 
 
+def row_pixel(geometry):
+    """A detector row's height on the detector, mm (in a parallel-beam scan, a slice's thickness)."""
+    return float(np.linalg.norm(geometry.vectors[0, 9:12]))
+
+
 def edge_slices(data, geometry, contrast, extent, voxel):
     """Discs of bubble cut by the detector's top and bottom edge, found on the edge rows' slices.
 
@@ -331,7 +336,7 @@ def edge_slices(data, geometry, contrast, extent, voxel):
     xy = tuple(extent[:4])
     positive = np.sign(contrast) * np.asarray(data, dtype=np.float32)
     upper = np.float32(abs(contrast))
-    height = float(np.linalg.norm(vec[0, 9:12]))
+    height = row_pixel(g)
     out = []
     for row in (0, g.det_rows - 1):
         # the row's centre height and the edge plane on its outer face (ScanGeometry.window's row offset)

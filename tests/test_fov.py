@@ -11,7 +11,8 @@ from bubsub.core import MeshProjector, sphere_surface
 from bubsub.core.foam.containers import sphere_mesh
 from bubsub.core.metrics import bubble_mask, dice_dissimilarity
 from bubsub.core.projection.geometry import ScanGeometry
-from bubsub.core.projection.mesh import Polygon
+from bubsub.core.projection.masks import coverage, pixel_centres
+from bubsub.core.projection.mesh import Mesh, Polygon, volume_in_slab
 from bubsub.clients.optimise.fit import fit
 from bubsub.clients.pipeline.inputs.fov import (field_of_view, fov_mask, seen_by, size_inside_fov, unobserved_control)
 from bubsub.clients.pipeline.static.initial import initial_surfaces
@@ -59,6 +60,34 @@ def test_size_inside_fov_of_spheres_cut_by_the_detector_edge_is_the_cap_volume()
         assert size_inside_fov(m, (2.4, half_z)) == pytest.approx(want, rel=3e-3)
     inside = sphere_mesh((0, 0, 0), r, C, subdivisions=3)
     assert size_inside_fov(inside, (2.4, half_z)) == pytest.approx(inside.volume, rel=3e-3)
+
+
+def test_volume_in_slab_clips_a_mesh_by_both_planes_as_the_grid_and_the_analytic_segment_do():
+    # a ball cut by both planes: the spherical segment between them (the fine icosphere within 1e-3 of the
+    # ideal ball), and a tilted ellipsoid against the rasterised coverage of the same mesh (independent route)
+    r, z0 = 0.6, 0.1
+    ball = sphere_mesh((0.2, -0.1, z0), r, C, subdivisions=5)
+    lo, hi = -0.3, 0.45
+
+    def below(h):  # volume of the ideal ball below z = h
+        d = np.clip(h - z0 + r, 0, 2 * r)
+        return np.pi * d * d * (3 * r - d) / 3
+
+    assert volume_in_slab(ball.vertices, ball.faces, lo, hi) == pytest.approx(below(hi) - below(lo), rel=1e-3)
+    assert volume_in_slab(ball.vertices, ball.faces, -5, 5) == pytest.approx(ball.volume, rel=1e-12)
+    assert volume_in_slab(ball.vertices, ball.faces, 2, 3) == 0.0
+    a = np.diag([0.9, 0.4, 0.3])
+    q, _ = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))
+    unit = sphere_mesh((0, 0, 0), 1.0, C, subdivisions=4)
+    ell = Mesh(unit.vertices @ (q @ a).T + [0.1, 0.0, 0.05], unit.faces, C)
+    grid = coverage(ell, (120, 120, 120), (-1.0, 1.2, -1.1, 1.1, -1.1, 1.1), supersample=2)
+    zc = pixel_centres((120, 120, 120), (-1.0, 1.2, -1.1, 1.1, -1.1, 1.1))[0]
+    h = 2.2 / 120
+    lo, hi = -1.1 + 50 * h, -1.1 + 74 * h  # on voxel faces
+    raster = float(grid[(zc > lo) & (zc < hi)].sum() * h ** 3)
+    assert volume_in_slab(ell.vertices, ell.faces, lo, hi) == pytest.approx(raster, rel=2e-3)
+    with pytest.raises(ValueError, match="lies above"):
+        volume_in_slab(ball.vertices, ball.faces, 1.0, 0.0)
 
 
 def test_size_inside_fov_of_a_disc_cut_by_the_field_of_view_circle_is_the_lens_area():

@@ -37,6 +37,7 @@ import numpy as np
 
 from bubsub.clients.pipeline.inputs.sides import LOCAL_VIEWS, side_bubble_signal, side_signal
 from bubsub.core.io.tables import FOV_COLUMN_INFO
+from bubsub.core.projection.mesh import volume_in_slab
 from bubsub.core.projection.masks import coverage, pixel_centres
 
 __all__ = ["field_of_view", "fov_report", "local_tomography", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
@@ -246,10 +247,14 @@ def unobserved_control(surface, geometry):
 def size_inside_fov(item, fov, *, samples=48):
     """Area (2D) or volume (3D) of a bubble's part inside the field of view.
 
-    Rasterised on a grid of ``samples`` cells across the bubble's bounding
-    box, two sub-samples per cell and axis, with cell faces on the
-    detector's nearer edge plane (error well under 1 % of the bubble's size
-    for round bubbles).
+    A 3D bubble that the detector's top or bottom cut, and not the field of
+    view's cylinder, is clipped by the two planes exactly
+    (:func:`~bubsub.core.projection.mesh.volume_in_slab`; a hundredth of the
+    grid's time, which a 4D run spends on every cut bubble of every
+    subscan). Others are rasterised on a grid of ``samples`` cells across
+    the bubble's bounding box, two sub-samples per cell and axis, with cell
+    faces on the detector's nearer edge plane (error well under 1 % of the
+    bubble's size for round bubbles).
 
     Parameters
     ----------
@@ -264,6 +269,8 @@ def size_inside_fov(item, fov, *, samples=48):
     """
     v = np.asarray(item.vertices, dtype=float)
     ndim = v.shape[1]
+    if ndim == 3 and np.all(np.hypot(v[:, 0], v[:, 1]) <= fov[0]):
+        return volume_in_slab(v, item.faces, -fov[1], fov[1])
     lo, hi = v.min(axis=0), v.max(axis=0)
     h = float((hi - lo).max()) / samples
     lo, hi = lo - h, hi + h

@@ -15,6 +15,9 @@ from bubsub.core.projection.mesh import Mesh
 from bubsub.clients.pipeline.dynamic4d.detect import detect_warm
 from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings, SubscanResult, reconstruct_subscan
 from bubsub.clients.pipeline.dynamic4d.lineage import lineage_rows
+from bubsub.clients.optimise.fit import fit
+from bubsub.clients.pipeline.regions.local import Footprints, scene_residual
+from bubsub.clients.pipeline.static.topology import MERGE_CONVEXITY, convexity, split_step
 
 CONTRAST = -0.1
 GEOMETRY = ScanGeometry.parallel(np.linspace(0, np.pi, 24, endpoint=False), pixel_size=0.05, cols=64, rows=32)
@@ -78,3 +81,37 @@ def test_a_neighbour_swollen_into_a_vanished_bubbles_space_is_split_and_keeps_it
     assert ids[k] == 9 and next_id == 10 and d < 0.06
     assert after[k].fine().equivalent_radius == pytest.approx(0.3, rel=0.15)
     assert "split off bubble 3" in lineage["new"][9] and not lineage["coalescences"]
+
+
+
+def _split_of_one_fitted_to(truth, blobs, seed, neck_convexity):
+    """split_step on one bubble fitted to ``truth``'s data with ``blobs`` (centres, radii) as the preview's
+    centres in it, and an unknowns cost no split can pay: only the neck rule can split.
+
+    Returns (convexity of the one bubble, whether it was split)."""
+    data = noisy_data(truth, seed)
+    projector = MeshProjector(GEOMETRY)
+    size = sum(4 / 3 * np.pi * r ** 3 for _, r in truth.values())
+    centre = np.mean([c for c, _ in truth.values()], axis=0)
+    one = fit(projector, [sphere_surface(centre, (3 * size / (4 * np.pi)) ** (1 / 3), CONTRAST)], data,
+              iterations=40, progress=False).surfaces
+    residual, own, changes = scene_residual(projector, one, data), Footprints(projector, one), []
+    out, _ = split_step(projector, one, residual, own, data, lambda c, r: sphere_surface(c, r, CONTRAST), changes,
+                        0, ratio=np.inf, iterations=15, max_tries=1, cost=1e9, blobs=blobs,
+                        neck_convexity=neck_convexity)
+    return convexity(one[0]), len(out) == 2
+
+
+def test_one_bubble_with_a_neck_over_a_pair_about_to_coalesce_is_split_without_the_unknowns_cost():
+    """Two balls a thin film apart (they coalesce in the successor): the one bubble fitted to them keeps their
+    neck, and two bubbles fit at least as well: split by the neck rule even where the objective's drop alone
+    would not pay the second bubble's unknowns; not without the rule, and never a convex bubble."""
+    pair = {"A": ((-0.41, 0.05, 0.0), 0.4), "B": ((0.41, 0.05, 0.0), 0.4)}
+    blobs = (np.array([c for c, _ in pair.values()]), np.array([0.4, 0.4]))
+    neck, split = _split_of_one_fitted_to(pair, blobs, 7, MERGE_CONVEXITY)
+    assert neck < MERGE_CONVEXITY and split
+    assert not _split_of_one_fitted_to(pair, blobs, 7, 0.0)[1]
+    lone = {"A": ((0.0, 0.05, 0.0), 0.4 * 2 ** (1 / 3))}
+    blobs = (np.array([[-0.25, 0.05, 0.0], [0.25, 0.05, 0.0]]), np.array([0.25, 0.25]))
+    round_one, split = _split_of_one_fitted_to(lone, blobs, 7, MERGE_CONVEXITY)
+    assert round_one > MERGE_CONVEXITY and not split

@@ -12,7 +12,8 @@ same grid, its distance-transform centres) and lets its centres decide
 * **split**: a fitted bubble that holds two or more centres is replaced by
   two round bubbles at them when that lowers the objective by more than the
   second bubble's unknowns cost (a swollen neighbour, or one bubble in the
-  successor that is two here);
+  successor that is two here), or at all when the bubble has a neck (the
+  merge step's convexity test: a pair about to coalesce);
 * **add**: a round bubble at each centre no fitted bubble holds, kept by the
   same rule, then refitted with its neighbours free.
 
@@ -56,8 +57,8 @@ from bubsub.clients.pipeline.regions.local import (LOCAL_RTOL, Footprints, footp
 from bubsub.clients.pipeline.static.preview import (axis_pixel, preview_grid, preview_voxel_size, voxel_for_bubbles,
                                                     voxel_preview)
 from bubsub.clients.pipeline.static.resolution import levels_by_size
-from bubsub.clients.pipeline.static.topology import (adapt_bubbles, add_at, points_inside, replace_by_two, split_step,
-                                                    unknowns_cost)
+from bubsub.clients.pipeline.static.topology import (MERGE_CONVEXITY, adapt_bubbles, add_at, points_inside,
+                                                    replace_by_two, split_step, unknowns_cost)
 from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, reach_of, size_of
@@ -271,7 +272,10 @@ def preview_changes(projector, surfaces, data, centres, radii, settings, *, min_
     * **split**: a fitted bubble that holds two or more centres (a neighbour whose warm fit grew over a bubble
       the successor lacks, or one bubble in the successor that is two here) is replaced by two round bubbles at
       its two largest centres, fitted locally, kept when the objective drops by more than the unknowns the
-      second bubble adds (:func:`~bubsub.clients.pipeline.static.topology.split_step`);
+      second bubble adds, or by anything when the bubble has a neck (convexity below
+      :data:`~bubsub.clients.pipeline.static.topology.MERGE_CONVEXITY`, the merge step's test) and lies inside
+      the field of view (:func:`~bubsub.clients.pipeline.static.topology.split_step`): a pair about to
+      coalesce, one bubble in the successor, differs from one bubble by little more than its thin film;
     * **add**: a round bubble at each centre that no bubble holds, its radius cut to the gap to its neighbours,
       kept when the objective drops by more than its unknowns cost
       (:func:`~bubsub.clients.pipeline.static.topology.add_at`).
@@ -313,7 +317,7 @@ def preview_changes(projector, surfaces, data, centres, radii, settings, *, min_
     if twice:
         surfaces, own = split_step(projector, surfaces, residual, own, data, new_bubble, changes, 0,
                                    ratio=np.inf, iterations=15, max_tries=len(twice), cost=cost,
-                                   blobs=(centres, radii), only=twice)
+                                   blobs=(centres, radii), only=twice, neck_convexity=MERGE_CONVEXITY)
     free = ~held.any(axis=0)
     if np.any(free):
         surfaces, own = add_at(projector, surfaces, residual, own, centres[free], radii[free], new_bubble, changes, 0,

@@ -294,7 +294,7 @@ def unknowns_cost(unknowns, residual):
 
 
 def split_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, ratio, iterations,
-               max_tries, cost=0.0, blobs=None, only=None):
+               max_tries, cost=0.0, blobs=None, only=None, neck_convexity=0.0):
     """Replace a bubble by two when that fits the data better.
 
     Candidates: a bubble holding two or more ``blobs`` (centres, radii of the
@@ -304,6 +304,16 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     bubble are the stronger evidence: in a foam of elongated bubbles the
     elongated candidates alone would fill the tries), then the most elongated.
     ``only`` (indices, optional): candidates among these bubbles only.
+
+    A split is kept when the two lower the objective by more than ``cost``,
+    or, with ``neck_convexity`` > 0, when the one bubble has a neck (its
+    :func:`convexity` below ``neck_convexity``), lies inside the field of
+    view (a cut bubble's shape beyond the edge is unseen) and the two fit
+    the data at least as well: :func:`merge_step` would not have joined
+    such a pair, so one bubble does not stand for it. Two touching bubbles
+    with a thin film between them (about to coalesce) are told from one by
+    little more than that film, and the comparison of two short local fits
+    alone decides at the margin of ``cost``.
     """
     cand = []
     for k, s in enumerate(surfaces):
@@ -330,7 +340,7 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         target = others_removed(residual, own[k])
         (single, f_single), (two, f_two) = local_fits(
             projector, [[s], [new_bubble(c, r) for c, r in children]], target, iterations)
-        if f_two < f_single - cost:
+        if f_two < f_single - cost or (f_two <= f_single and _has_neck(s, neck_convexity, projector.geometry)):
             extra.append(replace_by_two(projector, surfaces, residual, own, k, two))
             changes.append({"round": round_no, "change": "split", "centre": _centre(s).tolist(),
                             "objective_before": f_single, "objective_after": f_two})
@@ -338,6 +348,11 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
         surfaces.append(s)
         own.append(s, p)
     return surfaces, own
+
+
+def _has_neck(surface, min_convexity, geometry):
+    """Whether a bubble inside the field of view is less convex than ``min_convexity`` (0: never)."""
+    return min_convexity > 0 and convexity(surface) < min_convexity and not _at_edge([surface], geometry)[0]
 
 
 def _among(surfaces, ids):

@@ -37,7 +37,7 @@ The local-tomography cases (``--local``, ``--local-ideal``, ``--inside``):
 :mod:`bubsub.bench.fov_local`.
 
 ``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given|exact]
-[--local-passes N] [--out DIR]``
+[--local-passes N] [--local-term eliminated|alternated] [--local-contrast again|prepared] [--out DIR]``
 
 ``python -m bubsub.bench fov --local-background 0 1 2 3 4 5 6 7 [--out DIR]``
 
@@ -58,7 +58,7 @@ from skimage.filters import gaussian
 from skimage.segmentation import watershed
 
 from bubsub.bench.fov_local import print_inside, print_local, print_local_background, print_local_ideal
-from bubsub.clients.pipeline.static.detector_term import DETECTOR_TERM_PASSES
+from bubsub.clients.pipeline.static.detector_term import DETECTOR_TERM_METHOD, DETECTOR_TERM_PASSES, TERM_METHODS
 from bubsub.bench.matching import column_truth, mesh_labels, truth_labels
 from bubsub.bench.reconstruct import cli_command as _cli
 from bubsub.bench.scale import run_tree, simulate_case, table
@@ -279,8 +279,14 @@ def main(argv=None):
                      help="the liquid cylinder's radius fitted by prepare (default) or given (--liquid-radius); "
                           "exact: the liquid's exact projection as background and the true contrast")
     loc.add_argument("--local-passes", type=int, default=DETECTOR_TERM_PASSES, metavar="N",
-                     help="with --local: passes of the detector's view-constant term (clients/pipeline/static/"
+                     help="with --local: refits of the detector's view-constant term (clients/pipeline/static/"
                           f"detector_term.py; default {DETECTOR_TERM_PASSES}, 0: none)")
+    loc.add_argument("--local-term", choices=TERM_METHODS, default=DETECTOR_TERM_METHOD,
+                     help="with --local: how the detector's view-constant term is fitted with the bubbles "
+                          f"(default {DETECTOR_TERM_METHOD})")
+    loc.add_argument("--local-contrast", choices=["again", "prepared"], default="again",
+                     help="with --local: the contrast estimated again once the detector term is out (default), "
+                          "or the prepared one kept")
     loc.add_argument("--local-background", type=int, nargs="+", metavar="SEED",
                      help="the background alone against the liquid's exact projection (local_background_case)")
     loc.add_argument("--local-ideal", type=int, nargs="+", metavar="SEED",

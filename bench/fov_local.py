@@ -16,8 +16,9 @@ the axis error.
 
 ``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given|exact] [--out DIR]``
 
-``--local-passes N`` sets the passes of the detector's view-constant term (0: none,
-:mod:`bubsub.clients.pipeline.static.detector_term`).
+``--local-passes N`` sets the refits of the detector's view-constant term (0: none), ``--local-term
+eliminated|alternated`` how it is fitted, and ``--local-contrast prepared`` keeps the prepared contrast where the
+default estimates it again once the term is out (:mod:`bubsub.clients.pipeline.static.detector_term`).
 
 ``--local-radius given`` passes the liquid cylinder's radius (``bubsub prepare --liquid-radius``, the container's
 inner radius a beamline user knows) instead of fitting it; ``--local-radius exact`` reconstructs with the liquid's
@@ -57,7 +58,7 @@ from bubsub.clients.pipeline.inputs.fov import field_of_view
 from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 from bubsub.clients.pipeline.static import detector_term as dtmod
-from bubsub.clients.pipeline.static.detector_term import DETECTOR_TERM_PASSES
+from bubsub.clients.pipeline.static.detector_term import CONTRAST_AGAIN, DETECTOR_TERM_METHOD, DETECTOR_TERM_PASSES
 from bubsub.core import MeshProjector
 from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
 from bubsub.core.io.meshio import read_polygons_json
@@ -140,11 +141,15 @@ def _local_raw(out, seed):
     return s
 
 
-def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TERM_PASSES):
+def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TERM_PASSES, term=DETECTOR_TERM_METHOD,
+               contrast_again=CONTRAST_AGAIN):
     """Simulate, prepare, reconstruct and score one local-tomography scan (see the module docstring).
 
-    ``passes``: of the detector's view-constant term
-    (:data:`bubsub.clients.pipeline.static.detector_term.DETECTOR_TERM_PASSES`; 0: none).
+    ``passes``, ``term`` and ``contrast_again``: the refits of the detector's view-constant term, how it is
+    fitted, and whether the contrast is estimated again without it
+    (:data:`~bubsub.clients.pipeline.static.detector_term.DETECTOR_TERM_PASSES`, 0: none;
+    :data:`~bubsub.clients.pipeline.static.detector_term.DETECTOR_TERM_METHOD`,
+    :data:`~bubsub.clients.pipeline.static.detector_term.CONTRAST_AGAIN`).
 
     ``radius="given"`` passes the liquid cylinder's true radius to ``prepare`` (``liquid_radius``);
     ``radius="exact"`` reconstructs the prepared data with the liquid's exact projection as background and the
@@ -154,7 +159,8 @@ def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TER
     -------
     dict
         :func:`interior_scores` and ``axis_error_px`` (raw pixels), ``center`` (the method or the error),
-        ``prepare_s``, ``reconstruct_s``; ``failed`` with the message where prepare stops.
+        ``contrast`` (prepared, 1/mm), ``contrast_fitted`` (the bubbles', estimated again without the detector
+        term by default), ``prepare_s``, ``reconstruct_s``; ``failed`` with the message where prepare stops.
     """
     out = Path(out)
     s = _local_raw(out, seed)
@@ -173,17 +179,18 @@ def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TER
         liquid = s.liquid_mu * 2 * np.sqrt(s.container_radius ** 2 - offsets ** 2)
         scan = dataclasses.replace(scan, background=np.broadcast_to(liquid, scan.data.shape).astype(np.float32),
                                    bubble_contrast=-s.liquid_mu)  # gas: no attenuation
-    before = dtmod.DETECTOR_TERM_PASSES
-    dtmod.DETECTOR_TERM_PASSES = passes
+    before = dtmod.DETECTOR_TERM_PASSES, dtmod.DETECTOR_TERM_METHOD, dtmod.CONTRAST_AGAIN
+    dtmod.DETECTOR_TERM_PASSES, dtmod.DETECTOR_TERM_METHOD, dtmod.CONTRAST_AGAIN = passes, term, contrast_again
     try:
         rec = reconstruct(scan, ReconstructionSettings(progress=False))
     finally:
-        dtmod.DETECTOR_TERM_PASSES = before
+        dtmod.DETECTOR_TERM_PASSES, dtmod.DETECTOR_TERM_METHOD, dtmod.CONTRAST_AGAIN = before
     t2 = time.perf_counter()
     scores = interior_scores([x.fine() for x in rec.surfaces], read_polygons_json(out / "truth.json"), scan.geometry)
     contrast = scan.bubble_contrast  # prepare's estimate, or the truth with radius="exact"
+    fitted = rec.report.get("detector_term", {}).get("contrast_per_mm", contrast)  # estimated again
     return {**scores, "axis_error_px": step["axis_column_raw"] - s.axis_column, "center": step["method"],
-            "contrast": contrast, "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
+            "contrast": contrast, "contrast_fitted": fitted, "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
 
 
 def local_background_case(out, seed):
@@ -318,17 +325,20 @@ def interior_scores(rec, truth, geometry, *, pixels=600):
 
 def print_local(args):
     """Print the table of :func:`local_case` for ``args.local`` (seeds), ``args.local_center``, ``args.out``."""
-    print(f"| seed | centre | axis error (raw px) | contrast (1/mm) | interior bubbles | found (IoU >= 0.5) | spurious "
-          f"| DDI (interior) | prepare s | reconstruct s |")
+    print(f"| seed | centre | axis error (raw px) | contrast (1/mm): prepared, fitted | interior bubbles "
+          f"| found (IoU >= 0.5) | spurious | DDI (interior) | prepare s | reconstruct s |")
     print("|---|---|---|---|---|---|---|---|---|---|", flush=True)
     for seed in args.local:
         r = local_case(Path(args.out) / f"local{seed}", seed, center=args.local_center, radius=args.local_radius,
-                       passes=getattr(args, "local_passes", DETECTOR_TERM_PASSES))
+                       passes=getattr(args, "local_passes", DETECTOR_TERM_PASSES),
+                       term=getattr(args, "local_term", DETECTOR_TERM_METHOD),
+                       contrast_again=getattr(args, "local_contrast", "again") == "again")
         if "failed" in r:
             print(f"| {seed} | {args.local_center} | prepare stopped: {r['failed']} | | | | | | "
                   f"{r['prepare_s']:.0f} | |", flush=True)
             continue
-        print(f"| {seed} | {args.local_center} | {r['axis_error_px']:+.2f} | {r['contrast']:.4f} | {r['truth']} | "
+        print(f"| {seed} | {args.local_center} | {r['axis_error_px']:+.2f} | {r['contrast']:.4f}, "
+              f"{r['contrast_fitted']:.4f} | {r['truth']} | "
               f"{r['found']} ({r['found_percent']:.0f} %) | {r['spurious']} | {r['ddi']:.4f} | {r['prepare_s']:.0f} | "
               f"{r['reconstruct_s']:.0f} |", flush=True)
     return 0

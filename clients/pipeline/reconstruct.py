@@ -15,8 +15,9 @@ clock, the report so far) with its options as keywords:
 3. :func:`fit_phase`: BFGS on all control vertices, coarse to fine in the
    data: binned pixels first, the full detector last, each level ended on
    convergence (:mod:`bubsub.clients.optimise.levels`); for a foam wider than
-   the detector, alternated with the detector's view-constant term
-   (:mod:`.detector_term`); then :func:`prune`.
+   the detector, refitted with the detector's view-constant term eliminated
+   and the contrast estimated again without it (:mod:`.detector_term`); then
+   :func:`prune`.
 4. :func:`topology_phase` (:mod:`.topology`), :func:`repair_phase` (the
    validity check and repair, :mod:`.repair`), each refitting only the
    bubbles it changed on detector windows (:mod:`.local`);
@@ -205,8 +206,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signa
     penalty = _separation(s.separation, d_fit, len(surfaces), voxel) if projector_factory is None else None
     refit = partial(fit_phase, factory=projector_factory, data_levels=s.data_levels, iterations=s.iterations,
                     rtol=s.fit_rtol, penalty=penalty, progress=s.progress)
-    fit, term = detector_term_phase(run, refit(run, surfaces), refit, contrast,
-                                    enabled=s.fov_model and projector_factory is None)
+    fit, term, contrast = detector_term_phase(run, refit(run, surfaces), refit, contrast,
+                                              enabled=s.fov_model and projector_factory is None)
     kept, dropped = prune(fit.surfaces, min_radius=voxel)
     interrupted = fit.interrupted  # Ctrl-C: no further changes, write what we have
     try:

@@ -41,6 +41,8 @@ The local-tomography cases (``--local``, ``--local-ideal``, ``--inside``):
 
 ``python -m bubsub.bench fov --local-background 0 1 2 3 4 5 6 7 [--out DIR]``
 
+``python -m bubsub.bench fov --local-axis 0 1 2 ... 19 [--out DIR]``
+
 ``python -m bubsub.bench fov --local-ideal 0 --local-extend 1.25 1.6``
 
 ``python -m bubsub.bench fov --inside 0 1 2 [--out DIR]``
@@ -57,7 +59,7 @@ from skimage.feature import peak_local_max
 from skimage.filters import gaussian
 from skimage.segmentation import watershed
 
-from bubsub.bench.fov_local import print_inside, print_local, print_local_background, print_local_ideal
+from bubsub.bench.fov_local import print_inside, print_local, print_local_axis, print_local_background, print_local_ideal
 from bubsub.clients.pipeline.static.detector_term import DETECTOR_TERM_METHOD, DETECTOR_TERM_PASSES, TERM_METHODS
 from bubsub.bench.matching import column_truth, mesh_labels, truth_labels
 from bubsub.bench.reconstruct import cli_command as _cli
@@ -289,6 +291,8 @@ def main(argv=None):
                           "or the prepared one kept")
     loc.add_argument("--local-background", type=int, nargs="+", metavar="SEED",
                      help="the background alone against the liquid's exact projection (local_background_case)")
+    loc.add_argument("--local-axis", type=int, nargs="+", metavar="SEED",
+                     help="the axis alone: prepare --center auto on these seeds' raw scans (local_axis_case)")
     loc.add_argument("--local-ideal", type=int, nargs="+", metavar="SEED",
                      help="the reconstruction side alone: exact projections and background (local_ideal_case)")
     loc.add_argument("--local-extend", type=float, nargs="+", default=[1.25], metavar="F",
@@ -302,6 +306,8 @@ def main(argv=None):
         return print_local(args)
     if args.local_background:
         return print_local_background(args)
+    if args.local_axis:
+        return print_local_axis(args)
     if args.local_ideal:
         return print_local_ideal(args)
     if args.inside:

@@ -38,6 +38,11 @@ the foam in the model).
 
 ``python -m bubsub.bench fov --local-ideal 0 --local-extend 1.25 1.6``
 
+``--local-axis SEED ...``: the axis alone (:func:`local_axis_case`): the raw scan of ``--local`` simulated and
+prepared with ``--center auto`` (no background, no reconstruction), the axis found against the true one.
+
+``python -m bubsub.bench fov --local-axis 0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 [--out DIR]``
+
 ``--inside SEED ...``: a raw scan whose liquid cylinder stands just inside the detector
 (:func:`inside_case`), through the same preparation and reconstruction, scored by ``bubsub evaluate``.
 
@@ -72,8 +77,8 @@ from bubsub.core.projection.mesh import Polygon
 from bubsub.core.projection.masks import label_image
 
 __all__ = ["LOCAL_SCAN", "INSIDE_SCAN", "INSIDE_MARGIN", "inside_case", "local_case", "local_ideal_case",
-           "local_background_case", "interior_scores", "print_local", "print_inside", "print_local_ideal",
-           "print_local_background"]
+           "local_background_case", "local_axis_case", "interior_scores", "print_local", "print_inside", "print_local_ideal",
+           "print_local_background", "print_local_axis"]
 
 
 #: The local-tomography case's raw scan: 256 columns of 12 um, 90 projections over 180 degrees, 2 rows.
@@ -191,6 +196,32 @@ def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TER
     fitted = rec.report.get("detector_term", {}).get("contrast_per_mm", contrast)  # estimated again
     return {**scores, "axis_error_px": step["axis_column_raw"] - s.axis_column, "center": step["method"],
             "contrast": contrast, "contrast_fitted": fitted, "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
+
+
+def local_axis_case(out, seed):
+    """The local-tomography case's axis alone: ``bubsub prepare --bin 2 --delta-beta 1450 --center auto``.
+
+    The raw scan of :func:`local_case` (its true axis known to the
+    simulation), prepared without a background (the axis is found before
+    it) and not reconstructed.
+
+    Returns
+    -------
+    dict
+        ``true`` and ``found`` (raw detector columns), ``error_px`` (found less true, raw pixels), ``method``
+        (the report's), ``prepare_s`` (CPU seconds); ``failed`` with the message where prepare stops.
+    """
+    out = Path(out)
+    s = _local_raw(out, seed)
+    t0 = time.process_time()
+    try:
+        report = prepare(out / "raw.h5", out / "scan.h5", prepare_options(
+            roi="1:2,:", bin=2, delta_beta=1450, center="auto", background="none"), progress=False)
+    except ValueError as exc:
+        return {"true": s.axis_column, "failed": str(exc), "prepare_s": time.process_time() - t0}
+    step = next(x for x in report["steps"] if x["step"] == "center")
+    return {"true": s.axis_column, "found": step["axis_column_raw"], "error_px": step["axis_column_raw"] - s.axis_column,
+            "method": step["method"], "prepare_s": time.process_time() - t0}
 
 
 def local_background_case(out, seed):
@@ -362,6 +393,26 @@ def print_local_background(args):
               f"{f['fitted']['fit']['radius_mm']:.2f}, {cell(f['fitted'])} | "
               f"{f['given']['fit']['outer_gas_fraction']:.2f}, {cell(f['given'])} | {cell(f['given x0.95'])} | "
               f"{cell(f['given x1.05'])} |", flush=True)
+    return 0
+
+
+def print_local_axis(args):
+    """Print the table of :func:`local_axis_case` for ``args.local_axis`` (seeds) under ``args.out``, then the
+    largest and the median absolute error."""
+    print("| seed | true axis (raw column) | found | error (raw px) | method | prepare CPU s |")
+    print("|---|---|---|---|---|---|", flush=True)
+    errors = []
+    for seed in args.local_axis:
+        r = local_axis_case(Path(args.out) / f"axis{seed}", seed)
+        if "failed" in r:
+            print(f"| {seed} | {r['true']:.2f} | stopped | | {r['failed']} | {r['prepare_s']:.1f} |", flush=True)
+            continue
+        errors.append(abs(r["error_px"]))
+        print(f"| {seed} | {r['true']:.2f} | {r['found']:.2f} | {r['error_px']:+.2f} | {r['method']} | "
+              f"{r['prepare_s']:.1f} |", flush=True)
+    if errors:
+        print(f"\n{len(errors)} of {len(args.local_axis)} found; |error| largest {max(errors):.2f}, median "
+              f"{float(np.median(errors)):.2f} raw px")
     return 0
 
 

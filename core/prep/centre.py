@@ -179,7 +179,8 @@ def center_seam(sinogram, theta_deg, *, search=(0.25, 0.75), step=0.25):
     return _least(cand, cost)
 
 
-def center_sharpness(sinogram, theta_deg, start, *, width=2.0, step=0.25, max_cols=512, max_angles=256):
+def center_sharpness(sinogram, theta_deg, start, *, width=2.0, step=0.25, max_cols=512, max_angles=256,
+                     truncated=False):
     """Axis column near ``start`` whose filtered back-projection has the least total variation.
 
     A wrong axis smears every feature of the slice into an arc (each
@@ -192,7 +193,15 @@ def center_sharpness(sinogram, theta_deg, start, *, width=2.0, step=0.25, max_co
     symmetry each off by up to 1.2 raw pixels, this refinement of the one
     taken within 0.12). Candidates every ``step`` pixels within ``width``
     of ``start``, the least refined by a parabola through it and its
-    neighbours. Works without air at the sides too (the interior's edges).
+    neighbours. Works without air at the sides too (the interior's edges),
+    with ``truncated``: the row of a sample wider than the detector is then
+    continued by its edge columns over half its width on each side before
+    the FBP, so that the ramp filter does not see the detector's edges as
+    the sample's (without it the least total variation of such a row
+    follows the truncation, not the axis: tests/test_local_tomography.py).
+    The total variation is summed over 0.8 times the continued row's
+    half-width, beyond the field of view, where a wrong axis smears the
+    features near its edge.
 
     Parameters
     ----------
@@ -208,6 +217,9 @@ def center_sharpness(sinogram, theta_deg, start, *, width=2.0, step=0.25, max_co
     max_cols, max_angles : int
         The row is binned to at most ``max_cols`` columns and at most
         ``max_angles`` projections are back-projected (speed).
+    truncated : bool
+        The sample is wider than the detector (no air at the row's sides):
+        the row is continued by its edge columns (see above).
 
     Returns
     -------
@@ -223,6 +235,10 @@ def center_sharpness(sinogram, theta_deg, start, *, width=2.0, step=0.25, max_co
     k = -(-sino.shape[1] // max_cols)
     cols = sino.shape[1] // k
     sino = sino[:, :cols * k].reshape(sino.shape[0], cols, k).mean(axis=2)
+    pad = cols // 2 if truncated else 0
+    if pad:
+        sino = np.pad(sino, ((0, 0), (pad, pad)), mode="edge")
+        cols += 2 * pad
     half = 0.5 * cols
     yy, xx = np.mgrid[:cols, :cols] + 0.5 - half
     disc = np.hypot(xx, yy) <= 0.8 * half
@@ -231,7 +247,7 @@ def center_sharpness(sinogram, theta_deg, start, *, width=2.0, step=0.25, max_co
     for i, c in enumerate(cand):
         g = ScanGeometry.parallel(theta, pixel_size=1.0, cols=cols)
         v = np.array(g.vectors)
-        v[:, 2:4] += (cols / 2 - 0.5 - ((c + 0.5) / k - 0.5)) * v[:, 4:6]  # the axis at column c of the row
+        v[:, 2:4] += (cols / 2 - 0.5 - ((c + 0.5) / k - 0.5 + pad)) * v[:, 4:6]  # the axis at column c of the row
         image = reconstruct_2d("fbp", sino, ScanGeometry.from_astra("parallel_vec", v, det_count=cols),
                                (cols, cols), (-half, half, -half, half))
         gy, gx = np.gradient(image)

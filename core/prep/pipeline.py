@@ -247,6 +247,10 @@ def _jsonable(v):
 
 #: Raw pixels about the searches' axis within which ``--center auto`` refines it (:func:`center_sharpness`).
 SHARPEN_WIDTH = 2.0
+#: Raw pixels about the seam's column within which ``--center auto`` refines it on a row with no air at its sides
+#: (:func:`_axis_without_air`): wider than :data:`SHARPEN_WIDTH`, the seam being the coarser (up to 1.55 raw pixels
+#: off on the scans of ``python -m bubsub.bench fov --local-axis``, seeds 0-39).
+LOCAL_SHARPEN_WIDTH = 3.0
 #: Phase-retrieval lengths cropped from each side of a scan with no air at its sides (see :func:`_phase_margin`).
 PHASE_MARGIN_LENGTHS = 2.0
 
@@ -337,13 +341,11 @@ def _axis(o, src, fm, rows, cols, index, theta, pixel=None, phase=None):
     the seam search (:func:`center_seam`) and the symmetry while these two
     agree within it, their mean. The last two run on the phase-retrieved row
     when ``--delta-beta`` is given (phase-contrast fringes would dominate
-    them). Beside air the column found is then refined within
-    :data:`SHARPEN_WIDTH` pixels by the least total variation of the row's
-    FBP (:func:`center_sharpness`), on the same row. Without air it is not:
-    there the FBP of the truncated row is dominated by its truncation, and on
-    the scans of ``python -m bubsub.bench fov --local`` (seeds 0-3) the
-    refinement moved the seam's column by up to 1 raw pixel, further from
-    the axis on three of the four.
+    them). The column found is then refined by the least total variation of
+    the row's FBP (:func:`center_sharpness`), on the same row: beside air
+    within :data:`SHARPEN_WIDTH` pixels, without air within
+    :data:`LOCAL_SHARPEN_WIDTH` pixels with the row continued by its edge
+    columns (:func:`_axis_without_air`).
     """
     if isinstance(o.center, float):
         c = o.center - cols[0]
@@ -399,10 +401,10 @@ def _axis_beside_air(sino, smooth, theta, where):
     return vo, f"vo ({where})"
 
 
-def _sharpened(sino, theta, c, method):
-    """``c`` refined by :func:`center_sharpness` on the (phase-retrieved) row: ``(column, method)``."""
-    sharp = center_sharpness(sino, theta, c, width=SHARPEN_WIDTH)
-    if abs(sharp - c) >= SHARPEN_WIDTH - 0.25:  # the least at the window's edge: no refinement found
+def _sharpened(sino, theta, c, method, width=SHARPEN_WIDTH, truncated=False):
+    """``c`` refined by :func:`center_sharpness` within ``width`` on the (phase-retrieved) row: ``(column, method)``."""
+    sharp = center_sharpness(sino, theta, c, width=width, truncated=truncated)
+    if abs(sharp - c) >= width - 0.25:  # the least at the window's edge: no refinement found
         return c, method
     return sharp, f"{method}, refined by the least total variation of its FBP ({sharp - c:+.2f} pixels)"
 
@@ -418,7 +420,15 @@ def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
     only on average; the seam is sharp but can lock onto another column
     where the outer bubbles move many pixels between projections) no axis
     is guessed: the error asks for ``--center``. Otherwise the seam's column
-    is the axis.
+    is refined within :data:`LOCAL_SHARPEN_WIDTH` pixels by the least total
+    variation of the FBP of the interior columns continued by their edge
+    columns (:func:`center_sharpness` with ``truncated``; the seam alone
+    compares two rows at each end of the 180 degrees, where the outer
+    bubbles move several pixels between projections, and on the scans of
+    ``python -m bubsub.bench fov --local-axis``, seeds 0-39, lands up to
+    1.55 raw pixels from the axis, the refinement within 0.75: the method
+    column gives the refinement's shift). Where the least lies at the
+    window's edge the seam's column is kept.
     """
     m = 0
     if phase:
@@ -436,8 +446,10 @@ def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
             f"reliably: the seam of the 180-degree sinogram gives detector column {seam + first_col:.1f}, the "
             f"symmetry of the mean projection {sym + first_col:.1f}; give the axis with --center COLUMN (raw "
             f"detector column)")
-    return seam, (f"seam of the 180-degree sinogram, checked by the symmetry of the mean projection ({where}; no air "
-                  f"at the detector's sides; {sym - seam:+.2f} pixels apart)")
+    sharp, method = _sharpened(inner, theta, seam - m, (
+        f"seam of the 180-degree sinogram, checked by the symmetry of the mean projection ({where}; no air at the "
+        f"detector's sides; {sym - seam:+.2f} pixels apart)"), width=LOCAL_SHARPEN_WIDTH, truncated=True)
+    return sharp + m, method
 
 
 #: Fraction of the detector's width within which the symmetry search must confirm the seam search on a row

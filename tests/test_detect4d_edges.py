@@ -40,6 +40,19 @@ def test_a_cut_bubble_owns_its_disc_and_a_second_or_unreachable_one_is_left_with
     assert holders == [0, 1, -1] and len(left[1][2]) == 0
 
 
+def test_a_disc_beside_a_bubble_that_reaches_the_plane_is_not_its_own_section():
+    """A bubble whose warm fit grew up into a cap beside it holds the cap's disc, the one nearest it, yet its
+    centre across lies outside that disc: a round bubble's section holds its centre across."""
+    grown = sphere_surface((0.0, 0.0, 0.45), 0.4, CONTRAST, control=42)  # centre 0.35 below the plane
+    beside = np.array([[0.18, 0.0]])  # a cap's disc of radius 0.1, 0.18 off the bubble's centre across
+    left, holders = unowned_discs([grown], [(TOP, 1.0, beside, np.full(1, 0.1))], row_pixel(GEOMETRY))
+    np.testing.assert_allclose(left[0][2], beside)
+    assert holders == [0]
+    own = np.array([[0.05, 0.0]])  # its own section, which holds its centre across
+    left, holders = unowned_discs([grown], [(TOP, 1.0, own, np.full(1, 0.1))], row_pixel(GEOMETRY))
+    assert len(left[0][2]) == 0 and holders == []
+
+
 def test_a_cap_a_neighbours_warm_fit_grew_into_is_found_and_given_back():
     truth = {"N": ((0.1, 0.0, 0.1), 0.35), "C": ((0.25, 0.05, 1.05), 0.4), "F": ((-0.9, 0.3, -0.2), 0.35)}
     data = MeshProjector(GEOMETRY).forward([ball(*x) for x in truth.values()])

@@ -168,7 +168,11 @@ def unowned_discs(surfaces, edges, row):
 
     A disc's centre, half a row inside the edge plane, is tested against each fitted bubble that reaches the
     plane; of the discs a bubble holds, the one nearest its centre across is its own section, unless the
-    bubble's centre stands further from the plane than its equivalent radius. A disc that no bubble holds as
+    bubble's centre stands further from the plane than its equivalent radius or the disc does not hold the
+    bubble's centre across (a round bubble's section does; a neighbour whose warm start stood higher, or
+    that grew toward a cap beside it, reaches the plane through the cap's disc: on the second seed of
+    ``bubsub bench dynamic``'s flowing foam, tiny caps at the top edge were otherwise covered by their
+    neighbours, two merged bubbles per subscan). A disc that no bubble holds as
     its own (a neighbour whose warm fit grew into a cap it has no warm start for, a merge the section shows
     as two discs) is unexplained.
 
@@ -205,7 +209,10 @@ def unowned_discs(surfaces, edges, row):
             # a bubble whose centre stands further from the plane than its radius reaches it only by growing
             # toward a cap: it holds none as its own
             if abs(centre[2] - probes[0, 2]) <= equivalent_radius(abs(fine.size), 3):
-                owned[held[np.argmin(np.linalg.norm(discs[held] - centre[:2], axis=1))]] = True
+                nearest = held[np.argmin(np.linalg.norm(discs[held] - centre[:2], axis=1))]
+                # a round bubble's section holds its centre across; a disc beside it is a cap it grew into
+                if np.linalg.norm(discs[nearest] - centre[:2]) <= rho[nearest]:
+                    owned[nearest] = True
         out.append((plane, outward, discs[~owned], rho[~owned]))
         holders += holder[~owned].tolist()
     return out, holders

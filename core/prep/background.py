@@ -33,9 +33,10 @@ import numpy as np
 from scipy import ndimage
 from skimage.filters import threshold_otsu
 
+from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.voxel.astra2d import AstraProjector2D, reconstruct_2d
 
-__all__ = ["fbp_row", "detector_offsets", "envelope_background", "radial_background", "reproject_background",
+__all__ = ["fbp_row", "row_geometry", "row_phases", "detector_offsets", "envelope_background", "radial_background", "reproject_background",
            "liquid_and_gas", "noise_level", "sees_air", "chord_background", "NO_AIR_LEVEL"]
 
 
@@ -138,6 +139,27 @@ def fbp_row(sinogram, geometry, grid=None):
     image = reconstruct_2d("fbp", np.asarray(sinogram, dtype=np.float32), geometry, (n, n), extent)
     centres = (np.arange(n) + 0.5) * (2 * half / n) - half
     return image, extent, np.hypot(centres[None, :], centres[:, None]), 2 * half / n
+
+
+def row_geometry(geometry):
+    """The 2D geometry of one detector row of a parallel 3D geometry (same angles and axis); a 2D one as it is."""
+    if geometry.ndim == 2:
+        return geometry
+    v = geometry.vectors
+    return ScanGeometry.from_astra("parallel_vec", v[:, [0, 1, 3, 4, 6, 7]], det_count=geometry.det_cols)
+
+
+def row_phases(sinogram, geometry, foam_radius=None):
+    """Liquid and gas attenuation (1/mm) of one row: :func:`liquid_and_gas` of its FBP (at most 512 pixels
+    across) inside ``foam_radius`` mm of the axis (default 0.9 of the detector's half-width).
+
+    Raises
+    ------
+    ValueError
+        From :func:`liquid_and_gas`, where either phase has too few pixels.
+    """
+    image, extent, r, _ = fbp_row(sinogram, geometry, min(geometry.det_count, 512))
+    return liquid_and_gas(image, r <= (foam_radius or 0.9 * extent[1]))
 
 
 def _reproject(image, geometry, extent):

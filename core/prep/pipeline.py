@@ -40,8 +40,8 @@ from tqdm.auto import tqdm
 from bubsub.core.contrast import contrast_sign_error, signal_masses
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.io.scanfile import create_scan_datasets, set_scan_attrs
-from bubsub.core.prep.background import (chord_background, fbp_row, envelope_background, liquid_and_gas, noise_level,
-                                         radial_background, reproject_background, sees_air)
+from bubsub.core.prep.background import (chord_background, envelope_background, noise_level, radial_background,
+                                         reproject_background, row_geometry, row_phases, sees_air)
 from bubsub.core.prep.centre import (center_pair, center_seam, center_sharpness, center_symmetry, center_vo,
                                     closest_pair)
 from bubsub.core.prep.flats import flat_model, minus_log, repair_pixels
@@ -543,9 +543,7 @@ def _row_geometry(geometry):
         return geometry
     if geometry.is_cone:
         raise ValueError("--background auto and reproject support parallel beams only; use envelope or a file")
-    v = geometry.vectors
-    return ScanGeometry.from_astra("parallel_vec", np.stack([v[:, 0], v[:, 1], v[:, 3], v[:, 4], v[:, 6], v[:, 7]],
-                                                            axis=1), det_count=geometry.det_cols)
+    return row_geometry(geometry)
 
 
 def _background_file(path, geometry):
@@ -577,8 +575,7 @@ def _contrast(data_ds, bg_ds, geometry, o, steps):
         row = sino
         if bg_ds is not None and not sees_air(sino):  # local tomography: the liquid's chords out (no cupping)
             row = sino - (bg_ds[()] if two_d else bg_ds[:, mid])
-        image, extent, r, _ = fbp_row(row, g2, min(g2.det_count, 512))
-        liquid, gas = liquid_and_gas(image, r <= (o.foam_radius or 0.9 * extent[1]))
+        liquid, gas = row_phases(row, g2, o.foam_radius)
         contrast = gas - liquid
         entry.update(source="estimated from an FBP of the middle row (Otsu split of the foam region)",
                      liquid_per_mm=liquid, gas_per_mm=gas)

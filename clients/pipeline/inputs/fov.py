@@ -40,8 +40,8 @@ from bubsub.core.io.tables import FOV_COLUMN_INFO
 from bubsub.core.projection.mesh import volume_in_slab
 from bubsub.core.projection.masks import coverage, pixel_centres
 
-__all__ = ["field_of_view", "fov_report", "local_tomography", "truncated_flags", "TRUNCATED_INFO", "inside_fov", "preview_extension",
-           "FOV_EXTEND", "LOCAL_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns",
+__all__ = ["field_of_view", "fov_report", "local_tomography", "truncated_flags", "TRUNCATED_INFO", "inside_fov",
+           "preview_extension", "FOV_EXTEND", "LOCAL_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns",
            "FOV_COLUMN_INFO", "WHOLE_SIZE_COLUMNS", "fov_mask"]
 
 #: Radius of the voxel preview's grid over the field of view's radius when the boundary is modelled: a point

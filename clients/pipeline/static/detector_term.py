@@ -48,8 +48,7 @@ from __future__ import annotations
 import numpy as np
 
 from bubsub.clients.pipeline.inputs.fov import local_tomography
-from bubsub.core.prep.background import fbp_row, liquid_and_gas
-from bubsub.core.projection.geometry import ScanGeometry
+from bubsub.core.prep.background import row_geometry, row_phases
 
 __all__ = ["DETECTOR_TERM_METHOD", "DETECTOR_TERM_PASSES", "FIRST_STEP", "TERM_METHODS", "CONTRAST_AGAIN",
            "CONTRAST_CHANGE", "ViewMeanFree", "view_constant_residual", "term_free_contrast", "detector_term_phase"]
@@ -141,7 +140,7 @@ class ViewMeanFree:
 def term_free_contrast(data, geometry):
     """The bubble contrast from an FBP of the middle detector row of ``data`` (the bubbles' signal, the
     detector term taken out): the gas's attenuation less the liquid's, each phase eroded by 2 pixels
-    (:func:`bubsub.core.prep.background.liquid_and_gas`, as ``bubsub prepare`` estimates it on data less
+    (:func:`bubsub.core.prep.background.row_phases`, as ``bubsub prepare`` estimates it on data less
     the background), inside 0.9 of the field of view's radius.
 
     Parameters
@@ -158,14 +157,9 @@ def term_free_contrast(data, geometry):
     """
     if geometry.is_cone:
         return None
-    row, g = data, geometry
-    if geometry.ndim == 3:  # the middle row's 2D geometry: the ray, the detector centre and u in x, y
-        v = geometry.vectors
-        g = ScanGeometry.from_astra("parallel_vec", v[:, [0, 1, 3, 4, 6, 7]], det_count=geometry.det_cols)
-        row = data[:, geometry.det_rows // 2]
-    image, extent, r, _ = fbp_row(np.asarray(row, dtype=np.float64), g, min(g.det_count, 512))
+    row = data if geometry.ndim == 2 else data[:, geometry.det_rows // 2]
     try:
-        liquid, gas = liquid_and_gas(image, r <= 0.9 * extent[1])
+        liquid, gas = row_phases(row, row_geometry(geometry))
     except ValueError:
         return None
     return gas - liquid

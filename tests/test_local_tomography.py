@@ -9,8 +9,8 @@ import pytest
 
 from bubsub.core import MeshProjector
 from bubsub.core.prep.background import chord_background, detector_offsets, radial_background, sees_air
-from bubsub.core.prep.centre import center_seam, center_sharpness, center_symmetry
-from bubsub.core.prep.pipeline import scan_geometry
+from bubsub.core.prep.centre import center_seam, center_sharpest, center_sharpness, center_symmetry
+from bubsub.core.prep.pipeline import SHARPEST_MARGIN, scan_geometry
 from bubsub.core.projection.mesh import Polygon
 
 C = -0.1
@@ -170,13 +170,64 @@ def test_a_prepared_local_scan_is_named_local_tomography_in_one_line(prepared, c
     assert text.startswith("note: scan.h5 is local tomography") and [r.getMessage() for r in caplog.records] == [text]
 
 
-def test_prepare_asks_for_the_axis_where_the_searches_without_air_disagree(prepared, tmp_path):
+def test_prepare_finds_the_axis_where_the_mean_projection_is_asymmetric(prepared, tmp_path):
     from bubsub.core.prep import prepare, prepare_options
 
-    # this foam's few large bubbles make its mean over 180 degrees asymmetric: the two searches disagree and
-    # prepare stops with one line instead of guessing
+    # this foam's few large bubbles make its mean over 180 degrees asymmetric (the symmetry search stands pixels
+    # off); the sharpest FBP over the detector's middle confirms the seam
+    report = prepare(prepared[0] / "raw.h5", tmp_path / "auto.h5",
+                     prepare_options(roi="1:2,:", bin=2, delta_beta=1450, center="auto"), progress=False)
+    step = next(x for x in report["steps"] if x["step"] == "center")
+    assert step["method"].startswith("seam of the 180-degree sinogram, checked by the sharpest FBP")
+    assert step["axis_column_raw"] == pytest.approx(prepared[2].axis_column, abs=0.5)
+
+
+def test_prepare_takes_the_sharpest_fbp_where_the_seam_locks_elsewhere(tmp_path):
+    from bubsub.bench.fov_local import local_axis_case
+
+    # seed 36 of `python -m bubsub.bench fov --local-axis`: the seam's least lands 43 raw pixels off, its cost
+    # has a local least at the sharpest FBP's column too
+    r = local_axis_case(tmp_path, 36)
+    assert r["method"].startswith("sharpest FBP over the detector's middle, a local least of the seam's cost")
+    assert abs(r["error_px"]) < 0.5
+
+
+@pytest.mark.parametrize("axis", [47.5, 51.3])
+def test_the_sharpest_fbp_over_the_detectors_middle_finds_the_axis_and_says_how_distinct(axis):
+    data, liquid, _, _, theta = _sinogram(axis, cols=128, pixel=0.015, angles=60)
+    column, margin = center_sharpest(data, theta, truncated=True)
+    assert column == pytest.approx(axis, abs=0.3) and margin > SHARPEST_MARGIN
+    # a row of noise sharpens nowhere: its least lies at the search's edge
+    noise = liquid + np.random.default_rng(0).normal(0, 0.01, data.shape)
+    assert center_sharpest(noise, theta, truncated=True)[1] == 0.0
+
+
+def test_prepare_asks_for_the_axis_of_a_row_with_nothing_to_sharpen(tmp_path):
+    from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
+    from bubsub.core.prep import prepare, prepare_options
+
+    # the liquid cylinder and one bubble a fifth of a pixel across, wider than the detector: no feature sharpens
+    # at one column more than at others
+    cols, px, off = 160, 0.008, 5.3
+    radius = 1.5 * (cols / 2 - off) * px
+    s = raw_settings(seed=3, n_angles=60, cols=cols, rows=2, pixel_size=px, axis_offset=off, distance=300.0,
+                     container_radius=radius, wall=0.0, supersample=2, wider_than_detector=True)
+    write_raw_simulation(tmp_path, disc_foam(3, radius, n_bubbles=1, radius_range=(0.0015, 0.0016)), s)
     with pytest.raises(ValueError, match=r"^the rotation axis of this sample, wider than the detector \(no air at "
                                          r"its sides\), could not be found reliably: .* give the axis with --center"):
-        prepare(prepared[0] / "raw.h5", tmp_path / "auto.h5",
+        prepare(tmp_path / "raw.h5", tmp_path / "auto.h5",
                 prepare_options(roi="1:2,:", bin=2, delta_beta=1450, center="auto"), progress=False)
     assert not (tmp_path / "auto.h5").exists()
+
+
+def test_prepare_takes_the_sharpest_fbp_with_a_warning_where_there_is_no_seam(prepared, tmp_path):
+    from bubsub.core.prep import prepare, prepare_options
+
+    # 57 of the 60 projections: not an even 180-degree scan, so no seam search checks the sharpest FBP
+    with pytest.warns(UserWarning, match=r"taken at detector column .* unchecked: not an even 180-degree scan"):
+        report = prepare(prepared[0] / "raw.h5", tmp_path / "auto.h5",
+                         prepare_options(roi="1:2,:", bin=2, delta_beta=1450, center="auto", projections="0:57"),
+                         progress=False)
+    step = next(x for x in report["steps"] if x["step"] == "center")
+    assert step["method"].startswith("sharpest FBP over the detector's middle")
+    assert step["axis_column_raw"] == pytest.approx(prepared[2].axis_column, abs=0.5)

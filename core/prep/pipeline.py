@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from pathlib import Path
 
 import h5py
@@ -42,8 +43,8 @@ from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.io.scanfile import create_scan_datasets, set_scan_attrs
 from bubsub.core.prep.background import (chord_background, envelope_background, noise_level, radial_background,
                                          reproject_background, row_geometry, row_phases, sees_air)
-from bubsub.core.prep.centre import (center_pair, center_seam, center_sharpness, center_symmetry, center_vo,
-                                    closest_pair)
+from bubsub.core.prep.centre import (center_pair, center_seam, center_sharpest, center_sharpness, center_symmetry,
+                                     center_vo, closest_pair)
 from bubsub.core.prep.flats import flat_model, minus_log, repair_pixels
 from bubsub.core.prep.offsets import air_offsets, drift_offsets
 from bubsub.core.prep.options import check_against_raw, prepare_options
@@ -334,18 +335,20 @@ def _bin(p, k):
 def _axis(o, src, fm, rows, cols, index, theta, pixel=None, phase=None):
     """Axis column in ROI coordinates (None: the ROI centre is taken as is) and how it was found.
 
-    ``auto``: Vo's method on the middle row; where that row has no air at the
-    detector's sides (:func:`sees_air`: a sample wider than the detector) the
-    symmetry of its mean projection (:func:`center_symmetry`) instead, and
-    where Vo's column stands more than :data:`CENTRE_AGREE` pixels from both
-    the seam search (:func:`center_seam`) and the symmetry while these two
-    agree within it, their mean. The last two run on the phase-retrieved row
-    when ``--delta-beta`` is given (phase-contrast fringes would dominate
-    them). The column found is then refined by the least total variation of
-    the row's FBP (:func:`center_sharpness`), on the same row: beside air
-    within :data:`SHARPEN_WIDTH` pixels, without air within
+    ``auto``: Vo's method on the middle row, and where Vo's column stands
+    more than :data:`CENTRE_AGREE` pixels from both the seam search
+    (:func:`center_seam`) and the symmetry of the mean projection
+    (:func:`center_symmetry`) while these two agree within it, their mean;
+    where that row has no air at the detector's sides (:func:`sees_air`: a
+    sample wider than the detector) the sharpest FBP over the detector's
+    middle checked by the seam instead (:func:`_axis_without_air`). All but
+    Vo's run on the phase-retrieved row when ``--delta-beta`` is given
+    (phase-contrast fringes would dominate them). The column found is then
+    refined by the least total variation of the row's FBP
+    (:func:`center_sharpness`), on the same row: beside air within
+    :data:`SHARPEN_WIDTH` pixels, without air within
     :data:`LOCAL_SHARPEN_WIDTH` pixels with the row continued by its edge
-    columns (:func:`_axis_without_air`).
+    columns.
     """
     if isinstance(o.center, float):
         c = o.center - cols[0]
@@ -410,51 +413,72 @@ def _sharpened(sino, theta, c, method, width=SHARPEN_WIDTH, truncated=False):
 
 
 def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
-    """The axis of a row with no air at its sides: the seam and the symmetry searches, which must agree.
+    """The axis of a row with no air at its sides: where the sharpest FBP and the seam search agree.
 
-    Both search the interior only: with phase retrieval, the columns within
-    :data:`PHASE_MARGIN_LENGTHS` phase-retrieval lengths of the detector's
-    sides are left out (:func:`_phase_margin`). Where the two disagree by
-    more than :data:`CENTRE_CHECK` of the detector's width (the symmetry is
-    the coarser: the mean of a foam's bubbles over 180 degrees is symmetric
-    only on average; the seam is sharp but can lock onto another column
-    where the outer bubbles move many pixels between projections) no axis
-    is guessed: the error asks for ``--center``. Otherwise the seam's column
-    is refined within :data:`LOCAL_SHARPEN_WIDTH` pixels by the least total
+    Both searches see the interior only: with phase retrieval, the columns
+    within :data:`PHASE_MARGIN_LENGTHS` phase-retrieval lengths of the
+    detector's sides are left out (:func:`_phase_margin`). The least total
     variation of the FBP of the interior columns continued by their edge
-    columns (:func:`center_sharpness` with ``truncated``; the seam alone
-    compares two rows at each end of the 180 degrees, where the outer
-    bubbles move several pixels between projections, and on the scans of
-    ``python -m bubsub.bench fov --local-axis``, seeds 0-39, lands up to
-    1.55 raw pixels from the axis, the refinement within 0.75: the method
-    column gives the refinement's shift). Where the least lies at the
-    window's edge the seam's column is kept.
+    columns (:func:`center_sharpest`, coarse, over the detector's middle)
+    and the seam of the 180-degree sinogram (:func:`center_seam`) are two
+    independent criteria. Where the seam's least lies within
+    :data:`LOCAL_SHARPEN_WIDTH` of the sharpest column, the seam's column
+    is refined within that width (:func:`center_sharpness` with
+    ``truncated``, finer). The seam compares two rows at each end of the 180
+    degrees, where the outer bubbles move several pixels between
+    projections, and can lock onto another column (43 pixels off on one of
+    the scans of ``python -m bubsub.bench fov --local-axis``, seeds 0-59):
+    where its cost still has a local least within that width of the
+    sharpest column, the two agree there and the sharpest column is
+    refined. Otherwise no axis is guessed (the sharpest FBP of a row with
+    little foam in it can settle pixels off): the error asks for
+    ``--center``. A scan that is not an even 180-degree scan has no seam:
+    the sharpest column is taken, with a warning, where it is distinct (the
+    next local least more than :data:`SHARPEST_MARGIN` of it above it).
     """
     m = 0
     if phase:
         length = np.sqrt(phase["delta_beta"] * phase["distance_mm"] * wavelength_mm(phase["energy_kev"]) / (4 * np.pi))
         m = min(int(np.ceil(PHASE_MARGIN_LENGTHS * length / pixel[1])), sino.shape[1] // 4)
     inner = sino[:, m:sino.shape[1] - m]
-    sym = center_symmetry(inner) + m
+    sharpest, margin = center_sharpest(inner, theta, truncated=True)
+    at = f"detector column {sharpest + m + first_col:.1f}"
+    stop = (f"the rotation axis of this sample, wider than the detector (no air at its sides), could not be found "
+            f"reliably: the sharpest filtered back-projection ({where}) is at {at}")
+    ask = "give the axis with --center COLUMN (raw detector column)"
     try:
-        seam = center_seam(inner, theta) + m
-    except ValueError:  # not an even 180-degree scan: the symmetry alone
-        return sym, f"symmetry of the mean projection ({where}; no air at the detector's sides)"
-    if abs(seam - sym) > CENTRE_CHECK * sino.shape[1]:
-        raise ValueError(
-            f"the rotation axis of this sample, wider than the detector (no air at its sides), could not be found "
-            f"reliably: the seam of the 180-degree sinogram gives detector column {seam + first_col:.1f}, the "
-            f"symmetry of the mean projection {sym + first_col:.1f}; give the axis with --center COLUMN (raw "
-            f"detector column)")
-    sharp, method = _sharpened(inner, theta, seam - m, (
-        f"seam of the 180-degree sinogram, checked by the symmetry of the mean projection ({where}; no air at the "
-        f"detector's sides; {sym - seam:+.2f} pixels apart)"), width=LOCAL_SHARPEN_WIDTH, truncated=True)
+        seam = center_seam(inner, theta)
+    except ValueError:  # not an even 180-degree scan: the sharpest column alone
+        if margin < SHARPEST_MARGIN:
+            raise ValueError(f"{stop} but hardly sharper than at other columns, and this is not an even 180-degree "
+                             f"scan (no seam search to check it); {ask}") from None
+        warnings.warn(f"the axis of this sample, wider than the detector, is taken at {at} (the sharpest filtered "
+                      f"back-projection), unchecked: not an even 180-degree scan, no seam search; check the "
+                      f"reconstruction or give --center", stacklevel=2)
+        start, method = sharpest, f"sharpest FBP over the detector's middle ({where}; no air at the detector's sides)"
+    else:
+        cols, w = inner.shape[1] - 1, LOCAL_SHARPEN_WIDTH
+        if abs(seam - sharpest) <= w:
+            start, method = seam, (f"seam of the 180-degree sinogram, checked by the sharpest FBP over the "
+                                   f"detector's middle ({where}; no air at the detector's sides; "
+                                   f"{sharpest - seam:+.2f} pixels apart)")
+        else:
+            near = center_seam(inner, theta, search=((sharpest - w) / cols, (sharpest + w) / cols))
+            if abs(near - sharpest) >= w - 0.25:  # the seam's cost falls all the way to the window's edge
+                raise ValueError(f"{stop}, the seam of the 180-degree sinogram at detector column "
+                                 f"{seam + m + first_col:.1f}; {ask}")
+            start, method = sharpest, (f"sharpest FBP over the detector's middle, a local least of the seam's cost "
+                                       f"{near - sharpest:+.2f} pixels from it ({where}; no air at the detector's "
+                                       f"sides; the seam's least at column {seam + m + first_col:.1f})")
+    sharp, method = _sharpened(inner, theta, start, method, width=LOCAL_SHARPEN_WIDTH, truncated=True)
     return sharp + m, method
 
 
-#: Fraction of the detector's width within which the symmetry search must confirm the seam search on a row
-#: with no air at its sides.
-CENTRE_CHECK = 0.05
+#: How much sharper than any other local least the least total variation over the detector's middle must be
+#: (:func:`center_sharpest`'s ``margin``) for ``--center auto`` to take it unchecked on a row with no air at its
+#: sides of a scan that is not an even 180-degree scan: half the least margin on the foams of ``python -m
+#: bubsub.bench fov --local-axis`` (0.010-0.036, seeds 0-59).
+SHARPEST_MARGIN = 0.005
 #: Pixels within which the seam and symmetry centres must agree with each other, and beyond which Vo's must
 #: stand from both, for ``--center auto`` to take their mean instead of Vo's.
 CENTRE_AGREE = 2.0

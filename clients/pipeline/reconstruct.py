@@ -206,7 +206,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signa
     penalty = _separation(s.separation, d_fit, len(surfaces), voxel) if projector_factory is None else None
     refit = partial(fit_phase, factory=projector_factory, data_levels=s.data_levels, iterations=s.iterations,
                     rtol=s.fit_rtol, penalty=penalty, progress=s.progress)
-    fit, term, contrast = detector_term_phase(run, refit(run, surfaces), refit, contrast,
+    fit, term, contrast = detector_term_phase(run, surfaces, refit, contrast,
                                               enabled=s.fov_model and projector_factory is None)
     kept, dropped = prune(fit.surfaces, min_radius=voxel)
     interrupted = fit.interrupted  # Ctrl-C: no further changes, write what we have

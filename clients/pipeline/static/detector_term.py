@@ -15,13 +15,19 @@ bubbles, and swells or shifts those whose outline crosses the ring it makes.
 value per detector pixel) together. For given bubbles the best term is the
 mean over the projections of what they leave, ``t(x) = mean_v (d - P(x))``,
 so ``t`` is eliminated exactly (variable projection): the bubbles are
-refitted from the first fit's to ``0.5 ||(I - M)(P(x) - d)||^2``, ``M`` the
-mean over the projections per detector pixel (:class:`ViewMeanFree`), and
-``t(x)`` of the refitted bubbles is taken from the data. A bubble's own
+fitted from the seeds to ``0.5 ||(I - M)(P(x) - d)||^2``, ``M`` the mean
+over the projections per detector pixel (:class:`ViewMeanFree`), and
+``t(x)`` of the fitted bubbles is taken from the data. From the seeds, not
+from a plain fit's bubbles: a plain fit explains a single column's error
+(a ring in the image) with spikes of the bubbles that cross the ring, and
+a ring being the same in every view, the elimination barely pulls them
+back (on seed 11 of ``python -m bubsub.bench fov --local``, a column 0.06
+low: interior DDI 0.064 refitted after a plain fit, 0.040 from the seeds;
+``tests/test_detector_term.py``). A bubble's own
 projection moves with the angle, so what every projection shares is the
 term's; only a round bubble on the rotation axis projects the same in every
-view, and its size then stays the first fit's (the data cannot tell it from
-the term).
+view, and its size then stays the seed's (the data cannot tell it from the
+term).
 
 With the term out, the bubble contrast is estimated again
 (:func:`term_free_contrast`, as ``bubsub prepare`` estimates it from the data
@@ -57,8 +63,8 @@ __all__ = ["DETECTOR_TERM_METHOD", "DETECTOR_TERM_PASSES", "FIRST_STEP", "TERM_M
 TERM_METHODS = ("eliminated", "alternated")
 #: The default of :data:`TERM_METHODS` (``python -m bubsub.bench fov --local``, docs/prepare.md).
 DETECTOR_TERM_METHOD = "eliminated"
-#: Refits after the first fit: with the term eliminated (a second restarts the optimiser where the first
-#: stopped), or the alternation's passes (docs/prepare.md measured it with 2).
+#: Fits with the term: eliminated, the fits with the term out (the first from the seeds, a second restarts the
+#: optimiser where the first stopped); alternated, the passes after a plain fit (docs/prepare.md measured 2).
 DETECTOR_TERM_PASSES = 1
 #: The alternation's first pass takes its residual this many times: the first fit took about half of the
 #: term into the bubbles; the second pass's residual corrects what that over- or undershoots.
@@ -165,26 +171,29 @@ def term_free_contrast(data, geometry):
     return gas - liquid
 
 
-def detector_term_phase(run, fit, refit, contrast, *, enabled=True, passes=None, method=None, contrast_again=None):
-    """Fit the detector's view-constant term with the bubbles where the scan is local tomography (see the
-    module docstring); elsewhere nothing changes, not even the report.
+def detector_term_phase(run, surfaces, refit, contrast, *, enabled=True, passes=None, method=None,
+                        contrast_again=None):
+    """The pipeline's fit, with the detector's view-constant term where the scan is local tomography (see the
+    module docstring); elsewhere the plain fit of ``surfaces``, and nothing else changes, not even the report.
 
     Parameters
     ----------
     run : bubsub.clients.pipeline.reconstruct.PhaseContext
         Its ``data`` are replaced by the data less the term; its report gets
-        ``detector_term``: ``method``, ``passes`` (refits done) and ``rms`` (the term's root mean square).
-        Its ``projector`` is a :class:`ViewMeanFree` during an eliminated refit, and is restored after.
-    fit : bubsub.clients.pipeline.reconstruct._Fit
-        The first fit, on ``run.data``.
+        ``detector_term``: ``method``, ``passes`` (fits with the term) and ``rms`` (the term's root mean square).
+        Its ``projector`` is a :class:`ViewMeanFree` during an eliminated fit, and is restored after.
+    surfaces : list of SubdivisionSurface
+        The seeds.
     refit : callable(run, surfaces) -> _Fit
         Fits ``surfaces`` to ``run.data`` with ``run.projector`` (the pipeline's fit phase).
     contrast : float
         Bubble contrast.
     enabled : bool
-        False: nothing is done (the field-of-view model off, or a remote projector that holds its data).
+        False: the plain fit (the field-of-view model off, or a remote projector that holds its data).
     passes : int, optional
-        Default :data:`DETECTOR_TERM_PASSES` (read at the call); 0: nothing is fitted (the report says so).
+        Default :data:`DETECTOR_TERM_PASSES` (read at the call): eliminated, the fits with the term out, the
+        first from the seeds, each next from the last; alternated, the passes after a plain first fit; 0: the
+        plain fit alone (the report says so).
     method : {"eliminated", "alternated"}, optional
         Default :data:`DETECTOR_TERM_METHOD` (read at the call).
     contrast_again : bool, optional
@@ -196,7 +205,7 @@ def detector_term_phase(run, fit, refit, contrast, *, enabled=True, passes=None,
     Returns
     -------
     fit : _Fit
-        The last fit; ``fit`` itself when it was interrupted or found no bubbles.
+        The last fit; a fit interrupted or without bubbles ends the phase.
     term : ndarray float32, ``run.data.shape[1:]``, or 0.0
         What was taken from each detector pixel (to take from held-out projections too); 0.0 when
         nothing was done.
@@ -207,7 +216,8 @@ def detector_term_phase(run, fit, refit, contrast, *, enabled=True, passes=None,
     if method not in TERM_METHODS:
         raise ValueError(f"the detector term's method must be one of {TERM_METHODS}, got {method!r}")
     if not enabled or not local_tomography(run.data, contrast):
-        return fit, 0.0, contrast
+        return refit(run, surfaces), 0.0, contrast
+    passes = DETECTOR_TERM_PASSES if passes is None else passes
     term = np.zeros(run.data.shape[1:], dtype=np.float32)
 
     def take(step):
@@ -229,11 +239,14 @@ def detector_term_phase(run, fit, refit, contrast, *, enabled=True, passes=None,
         take(view_constant_residual(run.projector, out.surfaces, run.data))  # t(x) of the refitted bubbles
         return out
 
+    # eliminated, the first fit is already one with the term out: a plain fit first would explain a column
+    # error's ring with spikes of the bubbles that cross it, which the term's elimination then leaves in place
+    fit = refit(run, surfaces) if method == "alternated" or passes == 0 else None
     done = 0
-    for k in range(DETECTOR_TERM_PASSES if passes is None else passes):
-        if fit.interrupted or not fit.surfaces:
+    for k in range(passes):
+        if fit is not None and (fit.interrupted or not fit.surfaces):
             break
-        fit = one_refit(fit.surfaces, k)
+        fit = one_refit(surfaces if fit is None else fit.surfaces, k)
         done += 1
     entry = {"method": method, "passes": done}
     if (CONTRAST_AGAIN if contrast_again is None else contrast_again) and done:

@@ -45,6 +45,19 @@ def _column_error(cols, seed=1):
     return error
 
 
+def _round_seeds(bubbles):
+    """Round bubbles of the true bubbles' centroids and areas."""
+    return [circle_surface(np.asarray(b.vertices).mean(axis=0), np.sqrt(abs(b.area) / np.pi), C) for b in bubbles]
+
+
+def _bfgs_refit(iterations):
+    """The pipeline's fit phase stood in for by ``iterations`` of BFGS: ``refit(run, surfaces) -> fit``."""
+    def refit(run, surfaces):
+        result = fit_bubbles(run.projector, surfaces, run.data, iterations=iterations, progress=False)
+        return SimpleNamespace(surfaces=result.surfaces, interrupted=False)
+    return refit
+
+
 def test_a_foam_wider_than_the_detector_is_local_tomography_and_one_inside_is_not():
     _, wide, _ = _scan(1.5)
     _, inside, _ = _scan(0.8)
@@ -104,11 +117,7 @@ def test_a_smooth_term_is_recovered_with_the_bubbles_sizes():
     s = np.linspace(-1, 1, g.det_cols)
     error = 0.012 - 0.008 * s ** 2 + _column_error(g.det_cols)
     projector = MeshProjector(g)
-    start = [circle_surface(np.asarray(b.vertices).mean(axis=0), np.sqrt(abs(b.area) / np.pi), C) for b in bubbles]
-
-    def refit(run, surfaces):
-        result = fit_bubbles(run.projector, surfaces, run.data, iterations=30, progress=False)
-        return SimpleNamespace(surfaces=result.surfaces, interrupted=False)
+    start, refit = _round_seeds(bubbles), _bfgs_refit(30)
 
     d = (data + error[None]).astype(np.float32)
     first = refit(SimpleNamespace(projector=projector, data=d), start)
@@ -199,11 +208,7 @@ def test_the_first_fit_is_one_with_the_term_out_so_a_rings_spikes_never_form():
     for c in np.random.default_rng(5).choice(np.arange(g.det_cols // 4, 3 * g.det_cols // 4), 3, replace=False):
         error[c - 1:c + 2] += [-0.02, -0.06, -0.02]
     projector = MeshProjector(g)
-    start = [circle_surface(np.asarray(b.vertices).mean(axis=0), np.sqrt(abs(b.area) / np.pi), C) for b in bubbles]
-
-    def refit(run, surfaces):
-        result = fit_bubbles(run.projector, surfaces, run.data, iterations=60, progress=False)
-        return SimpleNamespace(surfaces=result.surfaces, interrupted=False)
+    start, refit = _round_seeds(bubbles), _bfgs_refit(60)
 
     d = (data + error[None]).astype(np.float32)
     r_fov = field_of_view(g)[0]

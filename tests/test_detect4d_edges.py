@@ -10,7 +10,9 @@ import trimesh
 
 from bubsub.core import MeshProjector, ScanGeometry, SubdivisionSurface, sphere_surface
 from bubsub.core.projection.mesh import Mesh
+from bubsub.core.metrics import label_image
 from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings
+from bubsub.clients.pipeline.dynamic4d import detect
 from bubsub.clients.pipeline.dynamic4d.detect import detect_warm, unowned_discs
 from bubsub.clients.pipeline.static.initial import row_pixel
 
@@ -75,3 +77,56 @@ def test_a_cap_a_neighbours_warm_fit_grew_into_is_found_and_given_back():
     # the cap's visible part: the sphere's section 0.15 deep under the plane, about C's axis
     assert float(inside[:, 2].min()) == pytest.approx(0.65, abs=0.05)
     np.testing.assert_allclose(inside[:, :2].mean(axis=0), truth["C"][0][:2], atol=0.06)
+
+
+def test_a_cap_whose_seed_pays_alone_beside_a_swollen_neighbour_ends_as_one_bubble_per_true_bubble():
+    """The cap's seed explains enough of the cap to pay on its own, though the neighbour's warm fit holds the
+    cap's disc: it is kept, the neighbour gives the cap back in the refits, and every true bubble in the field of
+    view is one reconstructed bubble (IoU >= 0.5 on a voxel grid, no bubble left over)."""
+    truth = {"N": ((0.1, 0.0, 0.1), 0.35), "C": ((0.25, 0.05, 1.0), 0.4), "F": ((-0.9, 0.3, -0.2), 0.35)}
+    balls = [ball(*x) for x in truth.values()]
+    data = MeshProjector(GEOMETRY).forward(balls)
+    data = (data + np.random.default_rng(3).normal(0, 0.002, data.shape)).astype(np.float32)
+    swollen = ellipsoid((0.15, 0.02, 0.35), (0.36, 0.36, 0.5))  # N's warm fit, grown up through C's cap
+    fitted = [swollen, sphere_surface(truth["F"][0], 0.35, CONTRAST, control=42)]
+    sizes = {3: 4 / 3 * np.pi * 0.35 ** 3, 4: 4 / 3 * np.pi * 0.35 ** 3}
+    ids, after, _, _, _ = detect_warm(GEOMETRY, data, [3, 4], fitted, DynamicSettings(iterations=20, progress=False),
+                                      successor_sizes=sizes, next_id=9)
+    assert len(ids) == len(set(ids)) == 3 and 9 in ids
+    shape, extent = (32, 64, 64), (-1.6, 1.6, -1.6, 1.6, -TOP, TOP)  # the field of view's rows, 0.05 mm voxels
+    t, r = label_image(balls, shape, extent).ravel(), label_image([s.fine() for s in after], shape, extent).ravel()
+    table = np.bincount(t * 4 + r, minlength=16).reshape(4, 4)[1:, 1:]  # truth x reconstructed voxel counts
+    best = table.argmax(axis=1)
+    iou = table[np.arange(3), best] / (table.sum(axis=1) + table.sum(axis=0)[best] - table[np.arange(3), best])
+    assert sorted(best.tolist()) == [0, 1, 2] and iou.min() >= 0.5
+    assert ids[best[1]] == 9  # the cap is the new bubble
+
+
+@pytest.mark.parametrize("gives_back", [True, False])
+def test_a_caps_seed_is_kept_beside_its_neighbour_only_where_the_neighbour_gives_the_disc_back(monkeypatch,
+                                                                                                gives_back):
+    """A disc held by a neighbour whose seed does not pay alone: the joint fit of neighbour and cap is replaced
+    by one that beats the neighbour alone by far (the comparison's outcome fixed, so that only the disc decides).
+    The seed is kept when the neighbour, in that fit, is the true round bubble below the disc; it is left out
+    when the neighbour still reaches through the disc (it would stand on the cap beside it)."""
+    truth = {"N": ((0.1, 0.0, 0.1), 0.35), "C": ((0.25, 0.05, 1.05), 0.4), "F": ((-0.9, 0.3, -0.2), 0.35)}
+    data = MeshProjector(GEOMETRY).forward([ball(*x) for x in truth.values()])
+    data = (data + np.random.default_rng(3).normal(0, 0.002, data.shape)).astype(np.float32)
+    swollen = ellipsoid((0.2, 0.04, 0.3), (0.36, 0.36, 0.6))  # N's warm fit: its top at 0.9, through C's disc
+    fitted = [swollen, sphere_surface(truth["F"][0], 0.35, CONTRAST, control=42)]
+    round_n = sphere_surface(truth["N"][0], 0.35, CONTRAST, control=42)
+    calls = []
+
+    def joint_wins(projector, candidates, target, iterations):
+        (one, (_, cap)) = candidates
+        calls.append(cap)
+        return [(one, 1.0), ([round_n if gives_back else swollen, cap], 0.0)]
+
+    monkeypatch.setattr(detect, "local_fits", joint_wins)
+    monkeypatch.setattr(detect, "local_refit", lambda projector, surfaces, *a, **k: (surfaces, None, {}))
+    out = detect.edge_seeds(MeshProjector(GEOMETRY), data, fitted, DynamicSettings(iterations=20, progress=False),
+                            0.05)
+    assert len(calls) == 1  # one disc, held by N, whose seed alone does not pay
+    assert len(out) == (3 if gives_back else 2)
+    assert out[1] is fitted[1]
+    assert (out[0] is round_n) == gives_back and (out[-1] is calls[0]) == gives_back

@@ -19,7 +19,8 @@ same grid, its distance-transform centres) and lets its centres decide
 
 Then caps at the detector's top and bottom rows that are no fitted bubble's
 own section are seeded, also where a neighbour's warm fit grew into them
-(:func:`edge_seeds`), and the static pipeline's topology rounds
+and gives them back when fitted with them (:func:`edge_seeds`), and the
+static pipeline's topology rounds
 (:func:`bubsub.clients.pipeline.static.topology.adapt_bubbles`) run on the
 bubbles, with the preview and the steps :data:`WARM_STEPS`:
 
@@ -64,7 +65,7 @@ from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, reach_of, size_of
 
 __all__ = ["WARM_STEPS", "detect_warm", "warm_voxel", "data_preview", "preview_changes", "edge_seeds",
-           "unowned_discs"]
+           "unowned_discs", "disc_probes"]
 
 #: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
 #: forward in time, keeps the successor's two warm starts).
@@ -93,10 +94,17 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
     beyond the edge plane with that disc as its section
     (:func:`~bubsub.clients.pipeline.static.initial.edge_centres`: a bubble that leaves through the edge later
     shows only a cap). It is kept when adding it lowers the objective or, where a neighbour's warm fit grew into
-    the cap and explains too much of it for that, when the neighbour and the cap fitted together on a detector
-    window beat the neighbour alone by more than the cap's unknowns cost; the seeds are then refitted with their
-    neighbours free. The residual's discs alone miss such caps: what the swollen neighbour leaves of a cap a few
-    rows deep is too faint and thin to show. Parallel-beam 3D scans only (rows are slices there).
+    the cap (it holds the disc, :func:`unowned_discs`) and explains too much of it for that, when the neighbour
+    and the cap fitted together on a detector window beat the neighbour alone by more than the cap's unknowns
+    cost and the neighbour, in that fit, gives the disc back. A neighbour that keeps the disc leaves the seed
+    standing on the cap beside it, and the topology rounds' split step then cuts a piece at the cap out of the
+    neighbour: two bubbles on one cap (on the second seed of ``bubsub bench dynamic``'s flowing foam, a
+    spurious bubble in each of three subscans). Such a cap is left to that split step, which restarts the
+    neighbour and a piece at the cap as two round bubbles.
+
+    The seeds are then refitted with their neighbours free. The residual's discs alone miss such caps: what the
+    swollen neighbour leaves of a cap a few rows deep is too faint and thin to show. Parallel-beam 3D scans only
+    (rows are slices there).
 
     Parameters
     ----------
@@ -130,8 +138,9 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
     discs, holders = unowned_discs(surfaces, edges, row_pixel(g))
     # edge_centres with no bubble to account for them: every disc left becomes a sphere beyond its edge
     centres = edge_centres(np.zeros((0, 3)), np.zeros(0), discs, radius)
+    probes = disc_probes(discs, row_pixel(g))
     surfaces, own, seeds = list(surfaces), Footprints(projector, surfaces), []
-    for c, k in zip(centres, holders):
+    for c, k, probe in zip(centres, holders, probes):
         cand = new_bubble(c, radius)
         p = footprint(projector, cand)
         if p.addition_gain(residual) < 0:
@@ -139,10 +148,12 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
             seeds.append(cand)
         elif k >= 0:
             # a neighbour's warm fit grew into the cap and explains too much of it for the seed alone to pay:
-            # the neighbour alone against the two, each fitted to the data less the rest
+            # the neighbour alone against the two, each fitted to the data less the rest; the two only where the
+            # neighbour gives the disc back (else the seed stands on the cap beside it, a second bubble once the
+            # rounds split the neighbour; their split step restarts both as round bubbles instead)
             (_, f_one), (two, f_two) = local_fits(projector, [[surfaces[k]], [surfaces[k], cand]],
                                                   others_removed(residual, own[k]), LOCAL_ITERATIONS)
-            if f_two < f_one - cost:
+            if f_two < f_one - cost and not points_inside(two[0].fine(), probe[None])[0]:
                 seeds.append(replace_by_two(projector, surfaces, residual, own, k, two)[0])
     if not seeds:
         return surfaces
@@ -195,7 +206,7 @@ def unowned_discs(surfaces, edges, row):
     out, holders = [], []
     for plane, outward, discs, rho in edges:
         discs, rho = np.asarray(discs, float).reshape(-1, 2), np.asarray(rho, float)
-        probes = np.column_stack([discs, np.full(len(discs), plane - 0.5 * outward * row)])
+        probes = disc_probes([(plane, outward, discs, rho)], row)
         owned, holder = np.zeros(len(discs), bool), np.full(len(discs), -1)
         for k, fine in enumerate(fines):
             v = fine.vertices
@@ -216,6 +227,28 @@ def unowned_discs(surfaces, edges, row):
         out.append((plane, outward, discs[~owned], rho[~owned]))
         holders += holder[~owned].tolist()
     return out, holders
+
+
+def disc_probes(edges, row):
+    """The points that stand for edge discs: each disc's centre half a row inside its edge plane.
+
+    Parameters
+    ----------
+    edges : list of (plane, outward, centres, radii)
+        :func:`~bubsub.clients.pipeline.static.initial.edge_slices`'s; ``centres`` ``(k, 2)``, mm.
+    row : float
+        A detector row's height, mm.
+
+    Returns
+    -------
+    (n, 3) float
+        mm, the discs of every plane in order.
+    """
+    out = [np.zeros((0, 3))]
+    for plane, outward, discs, _ in edges:
+        discs = np.asarray(discs, float).reshape(-1, 2)
+        out.append(np.column_stack([discs, np.full(len(discs), plane - 0.5 * outward * row)]))
+    return np.concatenate(out)
 
 
 def warm_voxel(geometry, data, contrast, settings, surfaces):

@@ -248,10 +248,13 @@ def _jsonable(v):
 
 #: Raw pixels about the searches' axis within which ``--center auto`` refines it (:func:`center_sharpness`).
 SHARPEN_WIDTH = 2.0
-#: Raw pixels about the seam's column within which ``--center auto`` refines it on a row with no air at its sides
-#: (:func:`_axis_without_air`): wider than :data:`SHARPEN_WIDTH`, the seam being the coarser (up to 1.55 raw pixels
-#: off on the scans of ``python -m bubsub.bench fov --local-axis``, seeds 0-39).
-LOCAL_SHARPEN_WIDTH = 3.0
+#: Raw pixels about the sharpest FBP's coarse column within which ``--center auto`` refines it on a row with no
+#: air at its sides (:func:`_axis_without_air`; the coarse column within 0.33 raw pixels of the axis on the scans
+#: of ``python -m bubsub.bench fov --local-axis``, seeds 0-59).
+LOCAL_SHARPEN_WIDTH = 2.0
+#: Raw pixels within which the seam search must confirm the sharpest FBP's coarse column on a row with no air at
+#: its sides (the seam up to 1.55 raw pixels off on those scans).
+SEAM_AGREE = 3.0
 #: Phase-retrieval lengths cropped from each side of a scan with no air at its sides (see :func:`_phase_margin`).
 PHASE_MARGIN_LENGTHS = 2.0
 
@@ -413,7 +416,7 @@ def _sharpened(sino, theta, c, method, width=SHARPEN_WIDTH, truncated=False):
 
 
 def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
-    """The axis of a row with no air at its sides: where the sharpest FBP and the seam search agree.
+    """The axis of a row with no air at its sides: the sharpest FBP, where the seam search agrees.
 
     Both searches see the interior only: with phase retrieval, the columns
     within :data:`PHASE_MARGIN_LENGTHS` phase-retrieval lengths of the
@@ -422,19 +425,18 @@ def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
     columns (:func:`center_sharpest`, coarse, over the detector's middle)
     and the seam of the 180-degree sinogram (:func:`center_seam`) are two
     independent criteria. Where the seam's least lies within
-    :data:`LOCAL_SHARPEN_WIDTH` of the sharpest column, the seam's column
-    is refined within that width (:func:`center_sharpness` with
-    ``truncated``, finer). The seam compares two rows at each end of the 180
-    degrees, where the outer bubbles move several pixels between
-    projections, and can lock onto another column (43 pixels off on one of
-    the scans of ``python -m bubsub.bench fov --local-axis``, seeds 0-59):
-    where its cost still has a local least within that width of the
-    sharpest column, the two agree there and the sharpest column is
-    refined. Otherwise no axis is guessed (the sharpest FBP of a row with
-    little foam in it can settle pixels off): the error asks for
-    ``--center``. A scan that is not an even 180-degree scan has no seam:
-    the sharpest column is taken, with a warning, where it is distinct (the
-    next local least more than :data:`SHARPEST_MARGIN` of it above it).
+    :data:`SEAM_AGREE` of the sharpest column, or its cost has a local
+    least there (the seam compares two rows at each end of the 180 degrees,
+    where the outer bubbles move several pixels between projections, and
+    its least can lie elsewhere: 43 and 61 pixels off on two of the scans
+    of ``python -m bubsub.bench fov --local-axis``, seeds 0-59), the
+    sharpest column is refined within :data:`LOCAL_SHARPEN_WIDTH`
+    (:func:`center_sharpness` with ``truncated``, at full resolution).
+    Otherwise no axis is guessed (the sharpest FBP of a row with little
+    foam in it can settle pixels off): the error asks for ``--center``. A
+    scan that is not an even 180-degree scan has no seam: the sharpest
+    column is taken, with a warning, where it is distinct (the next local
+    least more than :data:`SHARPEST_MARGIN` of it above it).
     """
     m = 0
     if phase:
@@ -446,6 +448,7 @@ def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
     stop = (f"the rotation axis of this sample, wider than the detector (no air at its sides), could not be found "
             f"reliably: the sharpest filtered back-projection ({where}) is at {at}")
     ask = "give the axis with --center COLUMN (raw detector column)"
+    method = f"sharpest FBP over the detector's middle ({where}; no air at the detector's sides"
     try:
         seam = center_seam(inner, theta)
     except ValueError:  # not an even 180-degree scan: the sharpest column alone
@@ -455,21 +458,19 @@ def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
         warnings.warn(f"the axis of this sample, wider than the detector, is taken at {at} (the sharpest filtered "
                       f"back-projection), unchecked: not an even 180-degree scan, no seam search; check the "
                       f"reconstruction or give --center", stacklevel=2)
-        start, method = sharpest, f"sharpest FBP over the detector's middle ({where}; no air at the detector's sides)"
+        method += "; unchecked: no seam search)"
     else:
-        cols, w = inner.shape[1] - 1, LOCAL_SHARPEN_WIDTH
+        cols, w = inner.shape[1] - 1, SEAM_AGREE
         if abs(seam - sharpest) <= w:
-            start, method = seam, (f"seam of the 180-degree sinogram, checked by the sharpest FBP over the "
-                                   f"detector's middle ({where}; no air at the detector's sides; "
-                                   f"{sharpest - seam:+.2f} pixels apart)")
+            method += f"), checked by the seam of the 180-degree sinogram ({seam - sharpest:+.2f} pixels from it)"
         else:
             near = center_seam(inner, theta, search=((sharpest - w) / cols, (sharpest + w) / cols))
             if abs(near - sharpest) >= w - 0.25:  # the seam's cost falls all the way to the window's edge
                 raise ValueError(f"{stop}, the seam of the 180-degree sinogram at detector column "
                                  f"{seam + m + first_col:.1f}; {ask}")
-            start, method = sharpest, (f"sharpest FBP over the detector's middle, a local least of the seam's cost "
-                                       f"{near - sharpest:+.2f} pixels from it ({where}; no air at the detector's "
-                                       f"sides; the seam's least at column {seam + m + first_col:.1f})")
+            method += (f"), checked by a local least of the seam's cost ({near - sharpest:+.2f} pixels from it; its "
+                       f"least at column {seam + m + first_col:.1f})")
+    start = sharpest
     sharp, method = _sharpened(inner, theta, start, method, width=LOCAL_SHARPEN_WIDTH, truncated=True)
     return sharp + m, method
 

@@ -78,8 +78,8 @@ def test_the_term_is_the_detector_error_when_the_bubbles_are_right(method):
         return SimpleNamespace(surfaces=surfaces, interrupted=False)
 
     out, term, contrast = detector_term_phase(run, bubbles, refit, C, passes=2, method=method, contrast_again=False)
-    # eliminated: two fits with the term out, the first from the seeds; alternated: a plain fit, then two passes
-    assert out.surfaces is bubbles and len(refits) == (2 if method == "eliminated" else 3) and contrast == C
+    # a plain fit, then eliminated: two fits with the term out from each of two starts; alternated: two passes
+    assert out.surfaces is bubbles and len(refits) == (5 if method == "eliminated" else 3) and contrast == C
     # against the injected error: within the noise's mean over 90 views and the projectors' ray sampling
     assert np.sqrt(np.mean((term - error) ** 2)) < 0.1 * np.sqrt(np.mean(error ** 2))
     assert np.abs(term - error).max() < 0.004
@@ -153,10 +153,10 @@ def test_the_contrast_is_estimated_again_once_the_term_is_out(given, kept):
     estimate = entry["contrast_estimated_per_mm"]
     if kept:
         assert abs(estimate / given - 1) > CONTRAST_CHANGE
-        assert contrast == given and seen == [given] and entry["contrast_per_mm"] == given
+        assert contrast == given and seen == [given] * 3 and entry["contrast_per_mm"] == given
     else:
         assert estimate == pytest.approx(C, abs=0.003)
-        assert contrast == pytest.approx(C, abs=0.003) and seen == [given, contrast]
+        assert contrast == pytest.approx(C, abs=0.003) and seen == [given] * 3 + [contrast]
         assert all(x.attenuation == contrast for x in out.surfaces) and entry["contrast_per_mm"] == contrast
     assert entry["passes"] == 1
 
@@ -219,9 +219,28 @@ def test_the_first_fit_is_one_with_the_term_out_so_a_rings_spikes_never_form():
     ddi = lambda surfaces: dice_dissimilarity(label_image([x.fine() for x in surfaces], pixels, extent)[inner] > 0,
                                               truth)
     plain = refit(SimpleNamespace(projector=projector, data=d), start)
-    got = {}
+    got = {}  # the phase from round seeds, and from the plain fit's bubbles as if they were its seeds
     for name, seeds in (("from the seeds", start), ("after a plain fit", plain.surfaces)):
         run = SimpleNamespace(projector=projector, data=d.copy(), report={})
         got[name] = ddi(detector_term_phase(run, seeds, refit, C, contrast_again=False)[0].surfaces)
     assert ddi(plain.surfaces) > 0.1
     assert got["from the seeds"] < 0.02 and got["after a plain fit"] > 2 * got["from the seeds"]
+
+
+@pytest.mark.parametrize("good", ["seeds", "plain fit"])
+def test_the_elimination_keeps_the_start_of_the_lower_objective(good):
+    g, data, bubbles = _scan(1.5)
+    shrunk = [b.with_vertices(0.7 * (b.vertices - b.vertices.mean(axis=0)) + b.vertices.mean(axis=0))
+              for b in bubbles]
+    run = SimpleNamespace(projector=MeshProjector(g), data=data.astype(np.float32), report={})
+
+    def refit(r, surfaces):  # a plain fit gives the `good` start's bubbles; one with the term out stays
+        if not isinstance(r.projector, ViewMeanFree):
+            surfaces = shrunk if good == "seeds" else bubbles
+        return SimpleNamespace(surfaces=surfaces, interrupted=False)
+
+    out, _, _ = detector_term_phase(run, bubbles if good == "seeds" else shrunk, refit, C, contrast_again=False)
+    entry = run.report["detector_term"]
+    assert out.surfaces is bubbles and entry["start"] == good
+    other = "plain fit" if good == "seeds" else "seeds"
+    assert entry["starts"][good]["objective"] < 0.5 * entry["starts"][other]["objective"]

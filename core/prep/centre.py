@@ -332,12 +332,12 @@ def _total_variations(sinogram, theta_deg, candidates, max_cols, max_angles, tru
     yy, xx = np.mgrid[:cols, :cols] + 0.5 - half
     disc = np.hypot(xx, yy) <= 0.8 * half
     cost = np.empty(len(candidates))
+    base = ScanGeometry.parallel(theta, pixel_size=1.0, cols=cols).vectors
     with warnings.catch_warnings():
         # a short scan's FBP lacks Parker weights alike for every candidate: the comparison stands
         warnings.filterwarnings("ignore", message="FDK/FBP of a short or limited-angle scan")
         for i, c in enumerate(candidates):
-            g = ScanGeometry.parallel(theta, pixel_size=1.0, cols=cols)
-            v = np.array(g.vectors)
+            v = np.array(base)
             v[:, 2:4] += (cols / 2 - 0.5 - ((c + 0.5) / k - 0.5 + pad)) * v[:, 4:6]  # the axis at column c of the row
             image = reconstruct_2d("fbp", sino, ScanGeometry.from_astra("parallel_vec", v, det_count=cols),
                                    (cols, cols), (-half, half, -half, half))

@@ -470,8 +470,7 @@ def _axis_without_air(sino, theta, phase, pixel, where, first_col=0):
                                  f"{seam + m + first_col:.1f}; {ask}")
             method += (f"), checked by a local least of the seam's cost ({near - sharpest:+.2f} pixels from it; its "
                        f"least at column {seam + m + first_col:.1f})")
-    start = sharpest
-    sharp, method = _sharpened(inner, theta, start, method, width=LOCAL_SHARPEN_WIDTH, truncated=True)
+    sharp, method = _sharpened(inner, theta, sharpest, method, width=LOCAL_SHARPEN_WIDTH, truncated=True)
     return sharp + m, method
 
 

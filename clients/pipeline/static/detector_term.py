@@ -175,6 +175,11 @@ def term_free_contrast(data, geometry):
     return gas - liquid
 
 
+def _rms(a):
+    """Root mean square, in float64."""
+    return float(np.sqrt(np.mean(np.square(a, dtype=np.float64))))
+
+
 def detector_term_phase(run, surfaces, refit, contrast, *, enabled=True, passes=None, method=None,
                         contrast_again=None):
     """The pipeline's fit, with the detector's view-constant term where the scan is local tomography (see the
@@ -273,8 +278,8 @@ def detector_term_phase(run, surfaces, refit, contrast, *, enabled=True, passes=
             tries.append((f, name, fit, run.data, term, done))
             if fit.interrupted:
                 break
-        f, entry["start"], fit, run.data, term, done = min(tries, key=lambda t: t[0])
-        entry["starts"] = {t[1]: {"objective": float(t[0]), "term_rms": float(np.sqrt(np.mean(np.square(t[4], dtype=np.float64))))} for t in tries}
+        _, entry["start"], fit, run.data, term, done = min(tries, key=lambda t: t[0])
+        entry["starts"] = {name: {"objective": float(f), "term_rms": _rms(t)} for f, name, _, _, t, _ in tries}
     entry["passes"] = done
     if (CONTRAST_AGAIN if contrast_again is None else contrast_again) and done:
         estimate = term_free_contrast(run.data, run.projector.geometry)
@@ -284,6 +289,6 @@ def detector_term_phase(run, surfaces, refit, contrast, *, enabled=True, passes=
             contrast = float(estimate)
             fit = one_refit([x.with_attenuation(contrast) for x in fit.surfaces], done)
     entry["contrast_per_mm"] = float(contrast)
-    entry["rms"] = float(np.sqrt(np.mean(term.astype(np.float64) ** 2)))
+    entry["rms"] = _rms(term)
     run.report["detector_term"] = entry
     return fit, term, contrast

@@ -417,6 +417,38 @@ def test_pgd_bb_reaches_the_nonnegative_least_squares_solution():
     assert f(pgd_bb(op, b.astype(np.float32), 30)) < f(np.zeros(20)) * 0.05
 
 
+def test_pgd_bb_with_an_upper_bound_reaches_the_box_constrained_solution():
+    from scipy.optimize import lsq_linear
+
+    from bubsub.core.voxel.solvers import pgd_bb
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(60, 20)) + 2 * np.eye(60, 20)
+    truth = np.where(rng.uniform(size=20) < 0.4, 0.0, 1.0)  # a bubble image: 0 or the contrast
+    b = A @ truth + 0.6 * rng.normal(size=60)
+    want = lsq_linear(A, b, bounds=(0.0, 1.0), tol=1e-12).x
+    assert (want >= 1 - 1e-9).any() and (want <= 1e-9).any()  # both bounds active
+    op = _Dense(A, (4, 5))
+    got = pgd_bb(op, b.astype(np.float32), 300, upper=1.0)
+    assert got.min() >= 0 and got.max() <= 1
+    assert np.allclose(got.ravel(), want, atol=2e-3)
+    with pytest.raises(ValueError, match="upper"):
+        pgd_bb(op, b.astype(np.float32), 10, upper=-1.0)
+
+
+def test_an_upper_bound_goes_only_to_the_box_constrained_method():
+    from bubsub.core import ScanGeometry
+    from bubsub.core.voxel.astra2d import reconstruct_2d
+
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 12, endpoint=False), cols=32)
+    sino = np.ones(g.shape, dtype=np.float32)
+    image = reconstruct_2d("bb", sino, g, (32, 32), (-16, 16, -16, 16), iterations=5, nonneg=True, upper=0.01,
+                           backend="numpy")
+    assert image.max() <= 0.01 + 1e-7
+    with pytest.raises(ValueError, match="only taken by method 'bb'"):
+        reconstruct_2d("sirt", sino, g, (32, 32), (-16, 16, -16, 16), iterations=5, upper=0.01, backend="numpy")
+
+
 def test_track_check_catches_swapped_ids(sim, rec, tmp_path):
     from bubsub.clients.pipeline.evaluation.evaluate4d import evaluate_dynamic
 

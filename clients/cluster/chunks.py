@@ -168,6 +168,23 @@ def relabel(result, mapping):
     return dataclasses.replace(result, state=state, ended=ended, report=report)
 
 
+def drop_unwritten_ends(result, unwritten):
+    """``result`` without the ends of tracks no written subscan holds.
+
+    A chunk's cold start at the shared subscan can hold a bubble the later
+    chunk's result there lacks (it gets a fresh id, as it may be a bubble the
+    later chunk missed); the shared subscan is written from the later chunk.
+    Where the next subscan drops that bubble too, its track never appears in
+    the outputs, so its end (a birth, forwards in time) is no event to record.
+    """
+    gone = set(result.ended) & set(unwritten)
+    if not gone:
+        return result
+    report = dict(result.report, ended={k: v for k, v in result.report.get("ended", {}).items()
+                                        if int(k) not in gone})
+    return dataclasses.replace(result, ended=tuple(i for i in result.ended if i not in gone), report=report)
+
+
 class _Fresh(dict):
     """A chunk's id mapping that gives an id it does not hold the next fresh id (a bubble the chunk's warm
     subscans found anew), through ``take``."""
@@ -198,6 +215,7 @@ class _Linker:
         self.done = {}  # (chunk, index) -> released result
         self.used = set(start_ids)
         self.links = []
+        self.unwritten = {}  # chunk -> final ids of its cold start's bubbles the written shared subscan lacks
 
     def add(self, c, res):
         """Take chunk ``c``'s result; return the results whose ids are now final (latest first per chunk)."""
@@ -216,6 +234,8 @@ class _Linker:
                     for k in sorted({*r.state.ids, *(int(j) for j in r.report.get("new", {}))}):
                         m[k]
                     r = relabel(r, m)
+                    if len(self.chunks[cc]) > 1 and i == self.chunks[cc][1]:
+                        r = drop_unwritten_ends(r, self.unwritten[cc])
                 self.used.update(r.state.ids)
                 self.done[(cc, i)] = r
                 out.append(r)
@@ -240,6 +260,7 @@ class _Linker:
                 mapping[i] = new[i] = next_id
                 next_id += 1
         self.used.update(mapping.values())
+        self.unwritten[c] = set(new.values())
         self.mapping[c] = _Fresh(mapping, self._take)
         self.links.append({"subscan": shared, "chunk": c, "matched": len(matches),
                            "overlap_min": min(overlaps.values(), default=None),

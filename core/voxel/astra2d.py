@@ -326,6 +326,7 @@ def reconstruct_2d(
     projector=None,
     backend="auto",
     x0=None,
+    upper=None,
     callback=None,
 ):
     """Voxel reconstruction of a 2D sinogram.
@@ -366,6 +367,8 @@ def reconstruct_2d(
         unless ``backend='numpy'``.
     x0 : (rows, cols), optional
         Initial image for ``sirt``, ``cgls`` and ``tv``.
+    upper : float, optional
+        Upper bound on every pixel (``bb`` only: projected onto before each gradient).
     callback : callable(k, x), optional
         Per-iteration callback (numpy solvers only: not with ASTRA's SIRT/CGLS).
 
@@ -393,12 +396,12 @@ def reconstruct_2d(
     it = METHODS_2D[method] if iterations is None else solvers.check_iterations(iterations)
     if backend == "numpy":
         op = VoxelProjector(geom, shape, extent, pixel_size=pixel_size, centre=centre)
-        return iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D)
+        return iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D, upper=upper)
     with AstraProjector2D(geom, shape, extent, pixel_size=pixel_size, centre=centre, projector=projector) as op:
-        if method == "sirt" and callback is None:
+        if method == "sirt" and callback is None and upper is None:
             return op.run_algorithm("SIRT", sino, it, x0=x0, options={"MinConstraint": 0.0} if nonneg else None)
         if method == "cgls" and callback is None and x0 is None:
             # ASTRA 2.5's CPU CGLS mishandles a non-zero initial image (its error grows), so
             # a warm start goes through bubsub.core.voxel.solvers.cgls on the same projector.
             return op.run_algorithm("CGLS", sino, it)
-        return iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D)
+        return iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D, upper=upper)

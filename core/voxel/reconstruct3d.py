@@ -35,6 +35,7 @@ def reconstruct_3d(
     detector_binning="auto",
     threads=None,
     x0=None,
+    upper=None,
     callback=None,
 ):
     """Voxel reconstruction of a 3D scan (numpy projector; also accepts 2D scans).
@@ -68,6 +69,8 @@ def reconstruct_3d(
         See :class:`VoxelProjector`.
     x0 : ndarray, optional
         Initial volume for the iterative methods.
+    upper : float, optional
+        Upper bound on every voxel (``bb`` only: projected onto before each gradient).
     callback : callable(k, x), optional
 
     Returns
@@ -82,19 +85,22 @@ def reconstruct_3d(
     op = VoxelProjector(geometry, shape, extent, pixel_size=pixel_size, centre=centre,
                         detector_binning=detector_binning, threads=threads)
     return iterate(method, op, projections, iterations, tv_weight, nonneg, isotropic, x0, callback,
-                    METHODS_3D)
+                    METHODS_3D, upper=upper)
 
 
-def iterate(method, op, projections, iterations, tv_weight, nonneg, isotropic, x0, callback, defaults):
+def iterate(method, op, projections, iterations, tv_weight, nonneg, isotropic, x0, callback, defaults, *,
+            upper=None):
     """Run an iterative method on an operator (shared by the 2D and 3D drivers)."""
     it = defaults[method] if iterations is None else iterations
     b = np.asarray(projections, dtype=_F32)
+    if upper is not None and method != "bb":
+        raise ValueError(f"an upper bound is only taken by method 'bb', not {method!r}")
     if method == "sirt":
         return solvers.sirt(op, b, it, x0=x0, nonneg=nonneg, callback=callback)
     if method == "cgls":
         return solvers.cgls(op, b, it, x0=x0, callback=callback)
     if method == "bb":
-        return solvers.pgd_bb(op, b, it, x0=x0, nonneg=nonneg, callback=callback)
+        return solvers.pgd_bb(op, b, it, x0=x0, nonneg=nonneg, upper=upper, callback=callback)
     if method == "lsqr":
         if x0 is not None:
             raise ValueError("lsqr does not take x0")

@@ -136,13 +136,16 @@ def cgls(op, b, iterations=20, *, x0=None, callback=None):
     return x
 
 
-def pgd_bb(op, b, iterations=30, *, x0=None, nonneg=True, callback=None):
+def pgd_bb(op, b, iterations=30, *, x0=None, nonneg=True, upper=None, callback=None):
     """Projected gradient descent with Barzilai-Borwein steps on ``0.5 ||A x - b||^2``.
 
     The paper's 4D voxel baseline (30 iterations, ``x >= 0``). The first step
     is the exact line-search step along the gradient, ``|g|^2 / |A g|^2``;
     later steps are BB1, ``s.s / s.y`` with ``s`` the last change of ``x``
-    and ``y`` that of the gradient (kept when ``s.y <= 0``).
+    and ``y`` that of the gradient (kept when ``s.y <= 0``). Every iterate is
+    projected onto the box before its gradient is taken: a bound applied
+    afterwards (by a callback) would leave the BB steps measuring the gradient
+    of a point the iteration never keeps, which can stall the descent.
 
     Parameters
     ----------
@@ -152,6 +155,8 @@ def pgd_bb(op, b, iterations=30, *, x0=None, nonneg=True, callback=None):
     x0 : ndarray, shape ``op.shape``, optional
     nonneg : bool
         Project onto ``x >= 0`` after every step.
+    upper : float, optional
+        Also project onto ``x <= upper`` after every step.
     callback : callable(k, x), optional
 
     Returns
@@ -160,8 +165,16 @@ def pgd_bb(op, b, iterations=30, *, x0=None, nonneg=True, callback=None):
     """
     n = check_iterations(iterations)
     b, x = _check(op, b, x0)
-    if nonneg:
-        np.maximum(x, 0.0, out=x)
+    if upper is not None and not (np.isfinite(upper) and upper > (0.0 if nonneg else -np.inf)):
+        raise ValueError(f"upper must be a finite bound above the lower one, got {upper!r}")
+
+    def project(v):
+        if nonneg:
+            np.maximum(v, 0.0, out=v)
+        if upper is not None:
+            np.minimum(v, np.float32(upper), out=v)
+
+    project(x)
     g = op.adjoint(op.forward(x) - b)
     gg = _dot(g, g)
     ag = op.forward(g)
@@ -170,8 +183,7 @@ def pgd_bb(op, b, iterations=30, *, x0=None, nonneg=True, callback=None):
         if step <= 0:
             break
         x_new = x - np.float32(step) * g
-        if nonneg:
-            np.maximum(x_new, 0.0, out=x_new)
+        project(x_new)
         g_new = op.adjoint(op.forward(x_new) - b)
         s_, y_ = x_new - x, g_new - g
         sy = _dot(s_, y_)

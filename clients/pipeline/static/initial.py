@@ -345,7 +345,7 @@ def edge_slices(data, geometry, contrast, extent, voxel):
         slice_geometry = ScanGeometry("parallel_vec", flat, None, pairs)
         sinogram = positive[:, row, :binning * pairs].reshape(len(positive), pairs, binning).mean(axis=2)
         image = reconstruct_2d("bb", sinogram, slice_geometry, (n, n), xy, iterations=EDGE_ITERATIONS,
-                               nonneg=True, callback=lambda k, x: np.minimum(x, upper, out=x))
+                               nonneg=True, upper=upper)
         if float(image.max()) < 0.5 * upper:  # no gas at full contrast: nothing cut by this edge
             centres, radii = np.zeros((0, 2)), np.zeros(0)
         else:

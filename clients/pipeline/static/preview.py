@@ -194,15 +194,16 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
     n = iterations or ((50 if box else 100) if geometry.ndim == 2 else (30 if box else 15))
 
     def step(k, x):
-        if box:  # pgd_bb projects onto x >= 0 itself; this adds the upper bound to each iterate
-            np.minimum(x, upper, out=x)
         bar.update(1)
+
+    bounds = {"upper": upper} if box else {}
 
     name = "bb" if box else "sirt"
     label = f"voxel preview ({geometry.ndim}D {'box-constrained BB' if box else 'SIRT'})"
     if geometry.ndim == 2:
         with phase(label, n, enabled=progress) as bar:
-            image = reconstruct_2d(name, positive, geometry, shape, extent, iterations=n, nonneg=True, callback=step)
+            image = reconstruct_2d(name, positive, geometry, shape, extent, iterations=n, nonneg=True, callback=step,
+                                   **bounds)
             bar.postfix["voxels"] = "x".join(map(str, shape))
         return image, extent
     # Coarse to fine: most iterations run on voxels twice as large (8x fewer, so 8x
@@ -216,10 +217,10 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
             voxel = (extent[1] - extent[0]) / shape[-1]
             shape_c, extent_c = preview_grid(geometry, 2 * voxel, extend)
             image_c = reconstruct_3d(name, positive, geometry, shape_c, extent_c, iterations=coarse, nonneg=True,
-                                     callback=step)
+                                     callback=step, **bounds)
             x0 = resample_image(image_c, extent_c, shape, extent)
         image = reconstruct_3d(name, positive, geometry, shape, extent, iterations=n - coarse, nonneg=True, x0=x0,
-                               callback=step)
+                               callback=step, **bounds)
         bar.postfix["voxels"] = "x".join(map(str, shape))
     return image, extent
 

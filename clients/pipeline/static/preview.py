@@ -145,7 +145,7 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
     Barzilai-Borwein steps (:func:`bubsub.core.voxel.solvers.pgd_bb`) onto
     ``0 <= x <= |contrast|`` (50 iterations in 2D, 30 in 3D); at few views it
     separates touching bubbles that SIRT blurs together (README example, 13
-    views: 37 of 40 bubbles found instead of 28; docs/robustness.md).
+    views: the 40 bubbles seeded instead of 34; docs/robustness.md).
     ``method="sirt"``: SIRT with ``x >= 0`` only (100 iterations in 2D, 15 in 3D).
     ``extend`` widens the grid beyond the field of view's radius by that
     factor (:func:`bubsub.clients.pipeline.inputs.fov.preview_extension`), so that

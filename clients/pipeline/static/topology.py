@@ -57,8 +57,8 @@ from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, truncated_flags, unobserved_control
 from bubsub.clients.progress import phase
 
-__all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "replace_by_two", "unknowns_cost",
-           "points_inside", "convexity", "MERGE_CONVEXITY"]
+__all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "replace_by_one", "replace_by_two",
+           "unknowns_cost", "points_inside", "convexity", "MERGE_CONVEXITY"]
 
 #: BB iterations of the 3D residual preview (half the data preview's 30): the residual's blobs are bright
 #: enough for the add step after 15 (a bubble left out of a fit is added at the same place as with 30),
@@ -223,14 +223,8 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
             projector, [[surfaces[i], surfaces[j]], [new_bubble(c, equivalent_radius(size, ndim))]], target,
             iterations)
         if f_one < f_pair + cost and (min_convexity <= 0 or convexity(one[0]) >= min_convexity):
-            # the new bubble's own projection on its window, not the whole detector's (three arrays of
-            # the scan's size would set the pipeline's peak memory on a large scan)
-            p = footprint(projector, one[0])
-            p.add_to(residual)
-            own[i].add_to(residual, -1.0)
+            replace_by_one(projector, surfaces, residual, own, i, one[0])
             own[j].add_to(residual, -1.0)
-            surfaces[i] = one[0]
-            own.set(i, one[0], p)
             gone.add(j)
             changes.append({"round": round_no, "change": "merge", "centres": [_centre(pair[0]).tolist(),
                             _centre(pair[1]).tolist()], "objective_before": f_pair, "objective_after": f_one})
@@ -273,6 +267,17 @@ def points_inside(surface, points):
         extent = tuple(np.stack([p - tiny, p + tiny], axis=1).ravel())
         out[k] = coverage(surface, (1,) * len(p), extent).item() > 0
     return out
+
+
+def replace_by_one(projector, surfaces, residual, own, k, one):
+    """Bubble ``k`` replaced by ``one`` in ``surfaces``, ``own`` and ``residual`` (in place). The new bubble's
+    own projection is taken on its window, not the whole detector's (three arrays of the scan's size would set
+    the pipeline's peak memory on a large scan)."""
+    p = footprint(projector, one)
+    p.add_to(residual)
+    own[k].add_to(residual, -1.0)
+    surfaces[k] = one
+    own.set(k, one, p)
 
 
 def replace_by_two(projector, surfaces, residual, own, k, two):

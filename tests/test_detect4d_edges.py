@@ -177,39 +177,3 @@ def test_a_neighbour_and_a_cap_beside_it_stay_two():
     projector, two, cost = _pair_and_cost(data, sphere_surface(truth["N"][0], 0.35, CONTRAST, control=42),
                                           new_round(truth["C"][0], 0.35))
     assert detect.one_round_bubble(projector, two, data, new_round, cost, np.array([0.25, 0.05, TOP - 0.025])) is None
-
-
-def _split_tried(data, bubble):
-    """split_step on ``bubble`` alone (long axis candidates, the unknowns cost from the residual): split or not."""
-    from bubsub.clients.pipeline.regions.local import Footprints, scene_residual
-    from bubsub.clients.pipeline.static.topology import split_step, unknowns_cost
-
-    projector = MeshProjector(GEOMETRY)
-    residual, own, changes = scene_residual(projector, [bubble], data), Footprints(projector, [bubble]), []
-    cost = unknowns_cost(bubble.vertices.size, residual)
-    out, _ = split_step(projector, [bubble], residual, own, data, new_round, changes, 0, ratio=1.6, iterations=15,
-                        max_tries=1, cost=cost)
-    return len(out) == 2
-
-
-@pytest.mark.parametrize("restart", [True, False])
-def test_a_bubble_cut_by_the_edge_and_fitted_long_beyond_it_is_not_split(monkeypatch, restart):
-    """One round bubble cut by the top plane, fitted as a tall ellipsoid whose unseen part stands high beyond the
-    plane: two bubbles along its long axis beat it (split without the restart), but not the round bubble
-    restarted from what the detector sees of it, so no split."""
-    from bubsub.clients.pipeline.static import topology
-
-    truth = ((0.1, 0.0, 0.62), 0.3)
-    data = _noisy([truth])
-    tall = ellipsoid((0.1, 0.0, 0.9), (0.25, 0.25, 0.7))
-    assert topology.edge_plane(tall, GEOMETRY) == (TOP, 1.0)
-    if not restart:
-        monkeypatch.setattr(topology, "edge_plane", lambda surface, geometry: None)
-    assert _split_tried(data, tall) == (not restart)
-
-
-def test_an_elongated_bubble_over_two_at_the_edge_is_still_split():
-    truth = [((0.1, -0.3, 0.55), 0.25), ((0.1, 0.3, 0.55), 0.25)]  # side by side, both cut by the top plane
-    data = _noisy(truth)
-    long = ellipsoid((0.1, 0.0, 0.6), (0.25, 0.6, 0.28))
-    assert _split_tried(data, long)

@@ -59,8 +59,7 @@ from bubsub.clients.pipeline.static.preview import (axis_pixel, preview_grid, pr
                                                     voxel_preview)
 from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.static.topology import (MERGE_CONVEXITY, adapt_bubbles, add_at, points_inside,
-                                                    replace_by_one, replace_by_two, round_from_visible, split_step,
-                                                    unknowns_cost)
+                                                    replace_by_one, replace_by_two, split_step, unknowns_cost)
 from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, reach_of, size_of
@@ -202,10 +201,12 @@ def one_round_bubble(projector, two, target, new_bubble, cost, probe):
     SubdivisionSurface or None
     """
     # started from what the detector sees of the two: the parts beyond the edge plane are unconstrained
-    one = round_from_visible(np.concatenate([t.fine().vertices for t in two]), float(probe[2]),
-                             float(np.sign(probe[2])), new_bubble)
-    if one is None:
-        return None
+    v = np.concatenate([t.fine().vertices for t in two])
+    plane, outward = float(probe[2]), float(np.sign(probe[2]))
+    seen = v[outward * (v[:, 2] - plane) <= 0]
+    radius = 0.25 * float(np.sum(seen[:, :2].max(axis=0) - seen[:, :2].min(axis=0)))
+    deepest = seen[:, 2].min() if outward > 0 else seen[:, 2].max()
+    one = new_bubble(np.array([*seen[:, :2].mean(axis=0), deepest + outward * radius]), radius)
     (_, f_two), (fitted, f_one) = local_fits(projector, [list(two), [one]], target, LOCAL_ITERATIONS)
     return fitted[0] if f_one <= f_two + cost else None
 

@@ -58,7 +58,7 @@ from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, trunca
 from bubsub.clients.progress import phase
 
 __all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "replace_by_one", "replace_by_two",
-           "unknowns_cost", "points_inside", "convexity", "edge_plane", "round_from_visible", "MERGE_CONVEXITY"]
+           "unknowns_cost", "points_inside", "convexity", "MERGE_CONVEXITY"]
 
 #: BB iterations of the 3D residual preview (half the data preview's 30): the residual's blobs are bright
 #: enough for the add step after 15 (a bubble left out of a fit is added at the same place as with 30),
@@ -310,15 +310,6 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     elongated candidates alone would fill the tries), then the most elongated.
     ``only`` (indices, optional): candidates among these bubbles only.
 
-    A bubble cut by the detector's top or bottom edge (:func:`edge_plane`) is
-    also fitted from the round bubble that its visible part spans
-    (:func:`round_from_visible`): its part beyond the edge is unseen, so its
-    own fit can stand far from that bubble (a warm start from a subscan that
-    saw only a cap of it), and two bubbles then beat it without there being
-    two. The two must beat the better of the one and its restart; where the
-    restart fits better than the one and no split is kept, it replaces the
-    one (a ``restart`` change).
-
     A split is kept when the two lower the objective by more than ``cost``,
     or, with ``neck_convexity`` > 0, when the one bubble has a neck (its
     :func:`convexity` below ``neck_convexity``), lies inside the field of
@@ -352,69 +343,16 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     for _, k, children in sorted(cand, key=lambda t: t[0])[:max_tries]:
         s = surfaces[k]
         target = others_removed(residual, own[k])
-        edge = edge_plane(s, projector.geometry)
-        restart = None if edge is None else round_from_visible(s.fine().vertices, *edge, new_bubble)
-        fits = local_fits(projector, [[s], [new_bubble(c, r) for c, r in children]]
-                          + ([] if restart is None else [[restart]]), target, iterations)
-        (single, f_single), (two, f_two) = fits[:2]
-        # a bubble cut by the detector's top or bottom: its part beyond the edge is unseen, so its fit can stand
-        # far from the round bubble that explains what the detector sees; two must beat that one too
-        f_one = f_single if restart is None else min(f_single, fits[2][1])
-        if f_two < f_one - cost or (f_two <= f_single and _has_neck(s, neck_convexity, projector.geometry)):
+        (single, f_single), (two, f_two) = local_fits(
+            projector, [[s], [new_bubble(c, r) for c, r in children]], target, iterations)
+        if f_two < f_single - cost or (f_two <= f_single and _has_neck(s, neck_convexity, projector.geometry)):
             extra.append(replace_by_two(projector, surfaces, residual, own, k, two))
             changes.append({"round": round_no, "change": "split", "centre": _centre(s).tolist(),
                             "objective_before": f_single, "objective_after": f_two})
-        elif f_one < f_single:  # the round restart explains the data better than the bubble's own fit: it stays
-            replace_by_one(projector, surfaces, residual, own, k, fits[2][0][0])
-            changes.append({"round": round_no, "change": "restart", "centre": _centre(s).tolist(),
-                            "objective_before": f_single, "objective_after": f_one})
     for s, p in extra:
         surfaces.append(s)
         own.append(s, p)
     return surfaces, own
-
-
-def edge_plane(surface, geometry):
-    """``(z, outward)`` of the detector's top (``outward`` 1) or bottom (-1) edge plane that a bubble of a 3D scan
-    reaches (one pixel's margin), or None (2D, inside, or reaching both)."""
-    if geometry.ndim != 3:
-        return None
-    half, margin = field_of_view(geometry)[1], fov_report(geometry)["margin"]
-    z = surface.fine().vertices[:, 2]
-    top, bottom = z.max() > half - margin, z.min() < -half + margin
-    if top == bottom:
-        return None
-    return (half, 1.0) if top else (-half, -1.0)
-
-
-def round_from_visible(vertices, plane, outward, new_bubble):
-    """The round bubble whose visible part ``vertices`` span: on the detector's side of an edge plane, half
-    their width across as its radius and their deepest point as its bottom (top, for the bottom edge); None
-    where no vertex is on that side.
-
-    A bubble cut by the edge is seen only up to the plane; its shape beyond is whatever its fit left there.
-
-    Parameters
-    ----------
-    vertices : (n, 3) float
-        mm.
-    plane : float
-        The edge plane's z, mm.
-    outward : float
-        1 for the top edge, -1 for the bottom.
-    new_bubble : callable(centre, radius)
-
-    Returns
-    -------
-    SubdivisionSurface or None
-    """
-    v = np.asarray(vertices, dtype=float)
-    seen = v[outward * (v[:, 2] - plane) <= 0]
-    if len(seen) < 4:
-        return None
-    radius = 0.25 * float(np.sum(np.ptp(seen[:, :2], axis=0)))
-    deepest = seen[:, 2].min() if outward > 0 else seen[:, 2].max()
-    return new_bubble(np.array([*seen[:, :2].mean(axis=0), deepest + outward * radius]), radius)
 
 
 def _has_neck(surface, min_convexity, geometry):
@@ -433,7 +371,7 @@ def _among(surfaces, ids):
 
 def _changes_words(changes):
     """A round's changes in words, for its progress line: ``"2 added, 1 merged"``."""
-    done = {"remove": "removed", "add": "added", "merge": "merged", "split": "split", "restart": "restarted"}
+    done = {"remove": "removed", "add": "added", "merge": "merged", "split": "split"}
     counts = {}
     for c in changes:
         counts[c["change"]] = counts.get(c["change"], 0) + 1

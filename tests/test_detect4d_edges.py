@@ -118,8 +118,6 @@ def test_a_caps_seed_is_kept_beside_its_neighbour_only_where_the_neighbour_gives
     calls = []
 
     def joint_wins(projector, candidates, target, iterations):
-        if len(candidates[0]) == 2:  # one round bubble in place of the two: the two win (a cap beside N)
-            return [(candidates[0], 0.0), (candidates[1], 1.0)]
         (one, (_, cap)) = candidates
         calls.append(cap)
         return [(one, 1.0), ([round_n if gives_back else swollen, cap], 0.0)]
@@ -132,48 +130,3 @@ def test_a_caps_seed_is_kept_beside_its_neighbour_only_where_the_neighbour_gives
     assert len(out) == (3 if gives_back else 2)
     assert out[1] is fitted[1]
     assert (out[0] is round_n) == gives_back and (out[-1] is calls[0]) == gives_back
-
-
-def _pair_and_cost(data, neighbour, cap):
-    """The neighbour and a cap's seed fitted together to ``data``, and one more bubble's unknowns' cost."""
-    from bubsub.clients.pipeline.dynamic4d.detect import LOCAL_ITERATIONS
-    from bubsub.clients.pipeline.regions.local import local_fits
-    from bubsub.clients.pipeline.static.topology import unknowns_cost
-
-    projector = MeshProjector(GEOMETRY)
-    ((two, _),) = local_fits(projector, [[neighbour, cap]], data, LOCAL_ITERATIONS)
-    residual = data - projector.forward([t.fine() for t in two])
-    return projector, two, unknowns_cost(cap.vertices.size, residual)
-
-
-def _noisy(balls, seed=5):
-    data = MeshProjector(GEOMETRY).forward([ball(*b) for b in balls])
-    return (data + np.random.default_rng(seed).normal(0, 0.002, data.shape)).astype(np.float32)
-
-
-def new_round(c, r):
-    return sphere_surface(tuple(c), r, CONTRAST, control=42)
-
-
-def test_one_round_bubble_cut_by_the_edge_is_not_split_by_its_bad_warm_start():
-    """One true bubble cut by the top plane; its warm start (the successor's, which saw only a cap) stands low
-    and flat, so a cap's seed at its disc and the start fitted together beat the start alone: one round bubble
-    restarted at the pair explains the data as well as the two, and takes the start's place."""
-    truth = ((0.1, 0.0, 0.62), 0.3)  # 0.18 below the plane: a disc of 0.24 mm radius at the top row
-    data = _noisy([truth])
-    start = ellipsoid((0.1, 0.0, 0.5), (0.33, 0.33, 0.2))
-    projector, two, cost = _pair_and_cost(data, start, new_round((0.1, 0.0, TOP + 0.2), 0.25))
-    one = detect.one_round_bubble(projector, two, data, new_round, cost, np.array([0.1, 0.0, TOP - 0.025]))
-    assert one is not None
-    fine = one.fine()
-    visible = fine.vertices[fine.vertices[:, 2] < TOP]
-    np.testing.assert_allclose(visible[:, :2].mean(axis=0), truth[0][:2], atol=0.05)
-    assert float(visible[:, 2].min()) == pytest.approx(truth[0][2] - truth[1], abs=0.05)
-
-
-def test_a_neighbour_and_a_cap_beside_it_stay_two():
-    truth = {"N": ((0.1, 0.0, 0.1), 0.35), "C": ((0.25, 0.05, 1.05), 0.4)}
-    data = _noisy(truth.values())
-    projector, two, cost = _pair_and_cost(data, sphere_surface(truth["N"][0], 0.35, CONTRAST, control=42),
-                                          new_round(truth["C"][0], 0.35))
-    assert detect.one_round_bubble(projector, two, data, new_round, cost, np.array([0.25, 0.05, TOP - 0.025])) is None

@@ -59,13 +59,13 @@ from bubsub.clients.pipeline.static.preview import (axis_pixel, preview_grid, pr
                                                     voxel_preview)
 from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.static.topology import (MERGE_CONVEXITY, adapt_bubbles, add_at, points_inside,
-                                                    replace_by_one, replace_by_two, split_step, unknowns_cost)
+                                                    replace_by_two, split_step, unknowns_cost)
 from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, reach_of, size_of
 
 __all__ = ["WARM_STEPS", "detect_warm", "warm_voxel", "data_preview", "preview_changes", "edge_seeds",
-           "unowned_discs", "disc_probes", "one_round_bubble"]
+           "unowned_discs", "disc_probes"]
 
 #: The topology steps of a warm subscan: no merge (a bubble that is one now and two in the successor, a split
 #: forward in time, keeps the successor's two warm starts).
@@ -100,9 +100,7 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
     standing on the cap beside it, and the topology rounds' split step then cuts a piece at the cap out of the
     neighbour: two bubbles on one cap (on the second seed of ``bubsub bench dynamic``'s flowing foam, a
     spurious bubble in each of three subscans). Such a cap is left to that split step, which restarts the
-    neighbour and a piece at the cap as two round bubbles. Where one round bubble restarted at the pair
-    explains the data as well as the two (:func:`one_round_bubble`), the neighbour and the cap are one bubble
-    cut by the edge that its warm start fitted badly: that bubble replaces the neighbour and no seed is added.
+    neighbour and a piece at the cap as two round bubbles.
 
     The seeds are then refitted with their neighbours free. The residual's discs alone miss such caps: what the
     swollen neighbour leaves of a cap a few rows deep is too faint and thin to show. Parallel-beam 3D scans only
@@ -153,62 +151,16 @@ def edge_seeds(projector, data, surfaces, settings, voxel):
             # the neighbour alone against the two, each fitted to the data less the rest; the two only where the
             # neighbour gives the disc back (else the seed stands on the cap beside it, a second bubble once the
             # rounds split the neighbour; their split step restarts both as round bubbles instead)
-            target = others_removed(residual, own[k])
-            (_, f_one), (two, f_two) = local_fits(projector, [[surfaces[k]], [surfaces[k], cand]], target,
-                                                  LOCAL_ITERATIONS)
-            if not (f_two < f_one - cost and not points_inside(two[0].fine(), probe[None])[0]):
-                continue
-            one = one_round_bubble(projector, two, target, new_bubble, cost, probe)
-            if one is None:
+            (_, f_one), (two, f_two) = local_fits(projector, [[surfaces[k]], [surfaces[k], cand]],
+                                                  others_removed(residual, own[k]), LOCAL_ITERATIONS)
+            if f_two < f_one - cost and not points_inside(two[0].fine(), probe[None])[0]:
                 seeds.append(replace_by_two(projector, surfaces, residual, own, k, two)[0])
-            else:  # one bubble, cut by the edge, that the neighbour's warm start fitted badly: restarted round
-                replace_by_one(projector, surfaces, residual, own, k, one)
     if not seeds:
         return surfaces
 
     out, _, _ = local_refit(projector, list(surfaces) + seeds, data, range(len(surfaces), len(surfaces) + len(seeds)),
                             iterations=LOCAL_ITERATIONS, touch=radius, residual=residual, rtol=_refit_rtol(settings))
     return out
-
-
-def one_round_bubble(projector, two, target, new_bubble, cost, probe):
-    """One round bubble in place of a neighbour and an edge cap fitted together, or None where the two beat it.
-
-    A neighbour that gives a cap's disc back when fitted with the cap is a split only where one bubble cannot
-    explain both: the neighbour's own warm start is no such bubble at the detector's edge, where its part
-    beyond the edge plane is unconstrained by the previous subscan (on the flowing foam of
-    ``bubsub bench dynamic`` a round bubble of 0.28 mm cut by the top edge was split in two that way and its
-    halves carried through eight subscans, a spurious bubble in each). The round bubble starts as the sphere
-    whose visible part the pair's spans (half their width across, their deepest point below the edge) and is
-    fitted on the same window as the pair (refitted from where they stand); it is kept unless the pair beats it
-    by more than ``cost``, the static split step's rule.
-
-    Parameters
-    ----------
-    projector : MeshProjector
-    two : list of SubdivisionSurface
-        The neighbour and the cap, fitted together.
-    target : ndarray
-        The data less every other bubble.
-    new_bubble : callable(centre, radius)
-    cost : float
-        The objective drop one more bubble's unknowns must bring.
-    probe : (3,) float
-        The cap's disc half a row inside its edge plane (:func:`disc_probes`), mm.
-
-    Returns
-    -------
-    SubdivisionSurface or None
-    """
-    # started from what the detector sees of the two: the parts beyond the edge plane are unconstrained
-    v = np.concatenate([t.fine().vertices for t in two])
-    plane, outward = float(probe[2]), float(np.sign(probe[2]))
-    seen = v[outward * (v[:, 2] - plane) <= 0]
-    radius = 0.25 * float(np.sum(seen[:, :2].max(axis=0) - seen[:, :2].min(axis=0)))
-    deepest = seen[:, 2].min() if outward > 0 else seen[:, 2].max()
-    one = new_bubble(np.array([*seen[:, :2].mean(axis=0), deepest + outward * radius]), radius)
-    (_, f_two), (fitted, f_one) = local_fits(projector, [list(two), [one]], target, LOCAL_ITERATIONS)
-    return fitted[0] if f_one <= f_two + cost else None
 
 
 def _refit_rtol(settings):

@@ -445,8 +445,9 @@ def test_an_upper_bound_goes_only_to_the_box_constrained_method():
     image = reconstruct_2d("bb", sino, g, (32, 32), (-16, 16, -16, 16), iterations=5, nonneg=True, upper=0.01,
                            backend="numpy")
     assert image.max() <= 0.01 + 1e-7
-    with pytest.raises(ValueError, match="only taken by method 'bb'"):
-        reconstruct_2d("sirt", sino, g, (32, 32), (-16, 16, -16, 16), iterations=5, upper=0.01, backend="numpy")
+    for method, backend in (("sirt", "numpy"), ("sirt", "astra"), ("fbp", "numpy")):
+        with pytest.raises(ValueError, match="only taken by method 'bb'"):
+            reconstruct_2d(method, sino, g, (32, 32), (-16, 16, -16, 16), iterations=5, upper=0.01, backend=backend)
 
 
 def test_track_check_catches_swapped_ids(sim, rec, tmp_path):

@@ -22,7 +22,7 @@ from bubsub.core.voxel import solvers
 from bubsub.core.voxel.grid import resolve_grid
 from bubsub.core.voxel.fdk import FILTERS, fdk
 from bubsub.core.voxel.projector3d import VoxelProjector, as_scan_geometry
-from bubsub.core.voxel.reconstruct3d import iterate
+from bubsub.core.voxel.reconstruct3d import check_upper, iterate
 
 __all__ = ["AstraProjector2D", "fbp_2d", "reconstruct_2d", "astra_vol_geom", "have_astra", "METHODS_2D"]
 
@@ -379,6 +379,7 @@ def reconstruct_2d(
     """
     if method not in METHODS_2D:
         raise ValueError(f"unknown method {method!r}; expected one of {sorted(METHODS_2D)}")
+    check_upper(method, upper)
     if backend not in ("auto", "astra", "numpy"):
         raise ValueError(f"backend must be 'auto', 'astra' or 'numpy', got {backend!r}")
     if backend == "auto":
@@ -398,7 +399,7 @@ def reconstruct_2d(
         op = VoxelProjector(geom, shape, extent, pixel_size=pixel_size, centre=centre)
         return iterate(method, op, sino, it, tv_weight, nonneg, isotropic, x0, callback, METHODS_2D, upper=upper)
     with AstraProjector2D(geom, shape, extent, pixel_size=pixel_size, centre=centre, projector=projector) as op:
-        if method == "sirt" and callback is None and upper is None:
+        if method == "sirt" and callback is None:
             return op.run_algorithm("SIRT", sino, it, x0=x0, options={"MinConstraint": 0.0} if nonneg else None)
         if method == "cgls" and callback is None and x0 is None:
             # ASTRA 2.5's CPU CGLS mishandles a non-zero initial image (its error grows), so

@@ -9,7 +9,7 @@ from bubsub.core.voxel.fdk import fdk
 from bubsub.core.voxel.grid import voxel_sizes
 from bubsub.core.voxel.projector3d import VoxelProjector
 
-__all__ = ["reconstruct_3d", "iterate", "METHODS_3D"]
+__all__ = ["reconstruct_3d", "iterate", "check_upper", "METHODS_3D"]
 
 #: Methods of :func:`reconstruct_3d` and their default iteration counts.
 METHODS_3D = {"fdk": None, "fbp": None, "sirt": 50, "cgls": 15, "lsqr": 15, "tv": 50, "bb": 30}
@@ -79,6 +79,7 @@ def reconstruct_3d(
     """
     if method not in METHODS_3D:
         raise ValueError(f"unknown method {method!r}; expected one of {sorted(METHODS_3D)}")
+    check_upper(method, upper)
     if method in ("fdk", "fbp"):
         return fdk(projections, geometry, shape, extent, pixel_size=pixel_size, centre=centre,
                    filter=filter, threads=threads)
@@ -88,13 +89,17 @@ def reconstruct_3d(
                     METHODS_3D, upper=upper)
 
 
+def check_upper(method, upper):
+    """Refuse an upper bound given to a method that does not take one (only ``bb`` does)."""
+    if upper is not None and method != "bb":
+        raise ValueError(f"an upper bound is only taken by method 'bb', not {method!r}")
+
+
 def iterate(method, op, projections, iterations, tv_weight, nonneg, isotropic, x0, callback, defaults, *,
             upper=None):
     """Run an iterative method on an operator (shared by the 2D and 3D drivers)."""
     it = defaults[method] if iterations is None else iterations
     b = np.asarray(projections, dtype=_F32)
-    if upper is not None and method != "bb":
-        raise ValueError(f"an upper bound is only taken by method 'bb', not {method!r}")
     if method == "sirt":
         return solvers.sirt(op, b, it, x0=x0, nonneg=nonneg, callback=callback)
     if method == "cgls":

@@ -183,8 +183,8 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
         raise ValueError(f"preview method must be 'box' or 'sirt', got {method!r}")
     shape, extent = preview_grid(geometry, voxel_size, extend)
     positive = np.sign(contrast) * np.asarray(data, dtype=np.float32)
-    upper = np.float32(abs(contrast))
     box = method == "box"
+    upper = np.float32(abs(contrast)) if box else None  # SIRT takes x >= 0 only
     if geometry.ndim == 2 and not box:  # ASTRA's own SIRT: about a second, no per-iteration callback
         with phase("voxel preview (2D SIRT)", 1, unit="reconstruction", enabled=progress) as bar:
             image = reconstruct_2d("sirt", positive, geometry, shape, extent, iterations=iterations or 100,
@@ -196,14 +196,12 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
     def step(k, x):
         bar.update(1)
 
-    bounds = {"upper": upper} if box else {}
-
     name = "bb" if box else "sirt"
     label = f"voxel preview ({geometry.ndim}D {'box-constrained BB' if box else 'SIRT'})"
     if geometry.ndim == 2:
         with phase(label, n, enabled=progress) as bar:
             image = reconstruct_2d(name, positive, geometry, shape, extent, iterations=n, nonneg=True, callback=step,
-                                   **bounds)
+                                   upper=upper)
             bar.postfix["voxels"] = "x".join(map(str, shape))
         return image, extent
     # Coarse to fine: most iterations run on voxels twice as large (8x fewer, so 8x
@@ -217,10 +215,10 @@ def voxel_preview(data, geometry, contrast, voxel_size=None, iterations=None, *,
             voxel = (extent[1] - extent[0]) / shape[-1]
             shape_c, extent_c = preview_grid(geometry, 2 * voxel, extend)
             image_c = reconstruct_3d(name, positive, geometry, shape_c, extent_c, iterations=coarse, nonneg=True,
-                                     callback=step, **bounds)
+                                     callback=step, upper=upper)
             x0 = resample_image(image_c, extent_c, shape, extent)
         image = reconstruct_3d(name, positive, geometry, shape, extent, iterations=n - coarse, nonneg=True, x0=x0,
-                               callback=step, **bounds)
+                               callback=step, upper=upper)
         bar.postfix["voxels"] = "x".join(map(str, shape))
     return image, extent
 

@@ -329,3 +329,39 @@ def test_a_later_round_tries_removals_only_among_the_bubbles_the_last_refit_move
     assert summary["rounds"] == 2 and weighed[0] == 3
     # round 2: only the bubbles round 1's refit moved (the added one and its neighbours), not all three
     assert weighed[1] == summary["refits"][0]["bubbles"] < len(kept) == 3
+
+
+def _spheroid(centre, axes):
+    from bubsub.core import sphere_surface
+
+    s = sphere_surface((0.0, 0.0, 0.0), 1.0, MU, control=162, levels=1)
+    return s.with_vertices(np.asarray(s.vertices) * np.asarray(axes) + np.asarray(centre))
+
+
+def test_a_cut_bubble_is_called_elongated_by_its_part_in_view_across_the_edge_plane():
+    from bubsub.clients.pipeline.static.topology import split_axis
+
+    angles = np.linspace(0, np.pi, 12, endpoint=False)
+    geometry = ScanGeometry.parallel(angles, pixel_size=0.05, cols=64, rows=32)
+    top = 0.8  # the detector's top edge plane (16 rows of 0.05 mm above the axis)
+    # a flat bubble beyond the top edge whose round cap is all the data see: no split candidate, where its whole
+    # surface (axis ratio 3) was one
+    flat = _spheroid((0.0, 0.0, top + 0.05), (0.6, 0.6, 0.2))
+    c, ratio, axis = split_axis(flat, ScanGeometry.parallel(angles, pixel_size=0.05, cols=64, rows=64))
+    assert ratio == pytest.approx(3.0, rel=0.05)  # wholly in view on a taller detector: as before
+    c, ratio, axis = split_axis(flat, geometry)
+    assert ratio < 1.1
+    # a cap longer than wide along the plane (two caps one bubble holds): elongated along x
+    long = _spheroid((0.0, 0.0, top + 0.1), (0.8, 0.3, 0.3))
+    c, ratio, axis = split_axis(long, geometry)
+    assert ratio > 2.0
+    assert abs(axis[0]) > 0.95 * np.linalg.norm(axis)
+    # a bubble swollen upright into the top edge plane: its part in view is elongated upright
+    swollen = _spheroid((0.0, 0.0, 0.3), (0.25, 0.25, 0.7))
+    c, ratio, axis = split_axis(swollen, geometry)
+    assert ratio > 1.6 and abs(axis[2]) > 0.95 * np.linalg.norm(axis)
+    # a bubble in view is measured whole: the long axis of an upright spheroid is vertical
+    upright = _spheroid((0.0, 0.0, 0.0), (0.2, 0.2, 0.5))
+    c, ratio, axis = split_axis(upright, geometry)
+    assert ratio == pytest.approx(2.5, rel=0.05) and abs(axis[2]) > 0.99 * np.linalg.norm(axis)
+    np.testing.assert_allclose(c, 0.0, atol=1e-9)

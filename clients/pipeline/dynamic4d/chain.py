@@ -57,6 +57,7 @@ from bubsub.core.validate import check_int
 
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, seen_by
+from bubsub.clients.pipeline.dynamic4d.motion import START_MARGIN, measure_steps, predict
 from bubsub.clients.pipeline.regions.local import scene_objective
 from bubsub.clients.pipeline.static.preview import preview_voxel_size
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
@@ -179,6 +180,9 @@ class BubbleState:
     next_id : int
         The first track id not used yet in the chain (new bubbles take ids from it upward, so that an id that
         ended is never given again); -1: one above the largest of ``ids``.
+    steps : tuple
+        Each bubble's step from its successor (:func:`~bubsub.clients.pipeline.dynamic4d.motion.measure_steps`),
+        which predicts the next warm start; empty where none was measured (a cold start, a resumed state).
     """
 
     ids: tuple
@@ -187,13 +191,14 @@ class BubbleState:
     attenuation: float
     levels: tuple
     next_id: int = -1
+    steps: tuple = ()
 
     def __post_init__(self):
         if self.next_id < 0:
             object.__setattr__(self, "next_id", 1 + max(self.ids, default=-1))
 
     @classmethod
-    def from_surfaces(cls, ids, surfaces, attenuation=None, next_id=-1):
+    def from_surfaces(cls, ids, surfaces, attenuation=None, next_id=-1, steps=()):
         surfaces = list(surfaces)
         if surfaces:
             attenuation = surfaces[0].attenuation if attenuation is None else attenuation
@@ -201,7 +206,7 @@ class BubbleState:
         return cls(ids, tuple(np.array(s.vertices) for s in surfaces),
                    tuple(None if s.ndim == 2 else np.array(s.control_faces) for s in surfaces),
                    float(attenuation if attenuation is not None else np.nan), tuple(int(s.levels) for s in surfaces),
-                   max(int(next_id), 1 + max(ids, default=-1)))
+                   max(int(next_id), 1 + max(ids, default=-1)), tuple(steps))
 
     def surfaces(self):
         """The bubbles as SubdivisionSurface, in ``ids`` order."""
@@ -304,18 +309,26 @@ def _cold(scan, settings):
 
 
 def _warm_starts(scan, previous, settings):
-    """The successor's bubbles shrunk and remeshed: their ids, the starts, and the ids that have none.
+    """The successor's bubbles moved, shrunk and remeshed: their ids, the starts, and the ids that have none.
 
-    A bubble cut by the detector's top or bottom row is remeshed unshrunk: its centroid lies toward the unseen
-    part, so shrinking toward it would carry the visible cap out of view, where no gradient brings it back.
+    Where the successor's tracks measured their last step, each bubble is moved by its neighbours' median
+    displacement and scaled to :data:`~bubsub.clients.pipeline.dynamic4d.motion.START_MARGIN` of its predicted
+    size (:func:`~bubsub.clients.pipeline.dynamic4d.motion.predict`; never below ``settings.shrink``, never
+    above the successor's size); elsewhere it is shrunk by ``settings.shrink`` in place. A bubble cut by the
+    detector's top or bottom row is remeshed unshrunk: its centroid lies toward the unseen part, so shrinking
+    toward it would carry the visible cap out of view, where no gradient brings it back.
     """
     fov = field_of_view(scan.geometry) if scan.ndim == 3 else None
     margin = fov_report(scan.geometry)["margin"] if fov is not None else 0.0
     ids, starts, ended = [], [], {}
-    for i, s in zip(previous.ids, previous.surfaces()):
+    surfaces = previous.surfaces()
+    shifts, ratios = predict(surfaces, previous.steps)
+    for i, s, shift, ratio in zip(previous.ids, surfaces, shifts, ratios):
         cut = fov is not None and float(np.abs(s.fine().vertices[:, 2]).max()) > fov[1] - margin
+        shrink = settings.shrink if np.isnan(ratio) else max(settings.shrink, min(1.0, START_MARGIN * ratio))
         try:
-            starts.append(warm_start(s.with_attenuation(scan.bubble_contrast), shrink=1.0 if cut else settings.shrink,
+            moved = s.with_vertices(np.asarray(s.vertices) + shift) if np.any(shift) else s
+            starts.append(warm_start(moved.with_attenuation(scan.bubble_contrast), shrink=1.0 if cut else shrink,
                                      control_points=settings.control_points))
             ids.append(i)
         except ValueError as exc:
@@ -412,13 +425,14 @@ def _warm(scan, previous, settings):
     else:
         lineage = {"new": {}, "coalescences": []}
     kept_ids, kept = _survivors(ids, fitted, scan, settings, ended)
+    steps = measure_steps(previous.ids, previous.surfaces(), kept_ids, kept, scan.geometry)
     # a bubble found here that is too small to keep has no track: only the successor's tracks end
     known = set(previous.ids)
     ended = {i: why for i, why in ended.items() if i in known}
     alive = set(kept_ids)
     report["new"] = {str(i): v for i, v in sorted(lineage["new"].items()) if i in alive}
     report["coalescences"] = [c for c in lineage["coalescences"] if set(c["children"]) <= alive]
-    return BubbleState.from_surfaces(kept_ids, kept, scan.bubble_contrast, next_id), report, ended
+    return BubbleState.from_surfaces(kept_ids, kept, scan.bubble_contrast, next_id, steps), report, ended
 
 
 def _detect(scan, previous, ids, fitted, settings):

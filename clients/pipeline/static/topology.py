@@ -20,7 +20,7 @@ improves:
   has no neck (:data:`MERGE_CONVEXITY`);
 * **split**: a bubble that holds two blobs of the voxel preview (a neighbour
   grown over a bubble the initialisation missed), or an elongated one
-  (second-moment axis ratio above ``split_ratio``), is replaced by two round
+  (second-moment axis ratio above ``split_ratio``, :func:`split_axis`), is replaced by two round
   bubbles (at the blobs, or along its long axis), fitted the same way, kept
   when better than the bubble itself.
 
@@ -244,11 +244,45 @@ def _at_edge(surfaces, geometry):
                                              fov_report(geometry)["margin"])]
 
 
-def _axes(s):
+def split_axis(s, geometry):
+    """A bubble's elongation for the split step: its second-moment axis ratio and its long axis (one standard
+    deviation long).
+
+    A 3D bubble cut by the detector's top or bottom edge plane is measured by
+    its part in view, long axis over middle one: its shape beyond the edge is
+    unseen (the fit leaves it as its start made it), and the part in view of
+    a round bubble's cap is flat, so the long over the short axis calls every
+    large bubble's cap elongated. Two caps that one bubble holds (side by side
+    along the plane) and a neighbour swollen up into a cap (upright) are
+    elongated by this ratio too.
+
+    Parameters
+    ----------
+    s : SubdivisionSurface
+    geometry : ScanGeometry
+
+    Returns
+    -------
+    centre : (ndim,) float
+        The mean of the refined surface's vertices.
+    ratio : float
+        1 for a degenerate bubble (no second split candidate).
+    axis : (ndim,) float
+    """
     v = s.fine().vertices
     c = v.mean(axis=0)
     w, u = np.linalg.eigh(np.cov((v - c).T))
-    return c, w, u
+    if geometry.ndim == 3:
+        half = field_of_view(geometry)[1]
+        seen = np.abs(v[:, 2]) <= half
+        if 4 <= seen.sum() < len(v):
+            w2, u2 = np.linalg.eigh(np.cov((v[seen] - v[seen].mean(axis=0)).T))
+            if w2[1] <= 0:
+                return c, 1.0, np.zeros(3)
+            return c, float(np.sqrt(w2[-1] / w2[1])), u2[:, -1] * np.sqrt(w2[-1])
+    if w[0] <= 0:
+        return c, 1.0, np.zeros(len(c))
+    return c, float(np.sqrt(w[-1] / w[0])), u[:, -1] * np.sqrt(w[-1])
 
 
 def points_inside(surface, points):
@@ -333,11 +367,10 @@ def split_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
                 scale = min(1.0, 0.95 * gap / (ra + rb))
                 cand.append((-np.inf, k, [(a, ra * scale), (b, rb * scale)]))
                 continue
-        c, w, u = _axes(s)
-        if w[0] > 0 and np.sqrt(w[-1] / w[0]) > ratio:
-            axis = u[:, -1] * np.sqrt(w[-1])  # one standard deviation along the long axis
+        c, elongation, axis = split_axis(s, projector.geometry)
+        if elongation > ratio:
             half = min(equivalent_radius(_size(s) / 2, s.ndim), 0.95 * float(np.linalg.norm(axis)))
-            cand.append((-np.sqrt(w[-1] / w[0]), k, [(c - axis, half), (c + axis, half)]))
+            cand.append((-elongation, k, [(c - axis, half), (c + axis, half)]))
     surfaces = list(surfaces)
     extra = []
     for _, k, children in sorted(cand, key=lambda t: t[0])[:max_tries]:

@@ -10,8 +10,8 @@ against its successor (bubbles wholly in view only: a cut bubble's centroid
 lies toward its unseen part); :func:`predict` gives each bubble of the next
 warm start the median displacement of its nearest measured neighbours and
 its own radius ratio (else theirs). On the flowing foam of ``bubsub bench
-dynamic`` this lowers a warm fit's initial objective about four times and
-its iterations by a fifth.
+dynamic`` this lowers a warm fit's initial objective five to six times and
+its median iterations from 65 to 57.
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ from bubsub.core.projection.remesh import SHRINK, warm_start
 from bubsub.core.validate import check_int
 
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
-from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, seen_by
+from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, reaches_edge_rows, seen_by
 from bubsub.clients.pipeline.dynamic4d.motion import START_MARGIN, measure_steps, predict
 from bubsub.clients.pipeline.regions.local import scene_objective
 from bubsub.clients.pipeline.static.preview import preview_voxel_size
@@ -324,7 +324,7 @@ def _warm_starts(scan, previous, settings):
     surfaces = previous.surfaces()
     shifts, ratios = predict(surfaces, previous.steps)
     for i, s, shift, ratio in zip(previous.ids, surfaces, shifts, ratios):
-        cut = fov is not None and float(np.abs(s.fine().vertices[:, 2]).max()) > fov[1] - margin
+        cut = fov is not None and reaches_edge_rows(s.fine().vertices, fov[1], margin)
         shrink = settings.shrink if np.isnan(ratio) else max(settings.shrink, min(1.0, START_MARGIN * ratio))
         try:
             moved = s.with_vertices(np.asarray(s.vertices) + shift) if np.any(shift) else s

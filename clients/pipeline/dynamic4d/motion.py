@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bubsub.clients.pipeline.inputs.fov import field_of_view
+from bubsub.clients.pipeline.inputs.fov import field_of_view, reaches_edge_rows
 
 __all__ = ["STEP_NEIGHBOURS", "MIN_STEPS", "START_MARGIN", "measure_steps", "predict"]
 
@@ -36,7 +36,7 @@ START_MARGIN = 0.95
 
 def _in_view(surface, half):
     """Whether a bubble lies between the detector's top and bottom planes (always in 2D: ``half`` None)."""
-    return half is None or float(np.abs(surface.fine().vertices[:, 2]).max()) < half
+    return half is None or not reaches_edge_rows(surface.fine().vertices, half)
 
 
 def _centroid_radius(surface):

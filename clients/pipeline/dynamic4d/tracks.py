@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from bubsub.core.projection.masks import coverage
-from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, truncated_flags
+from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, reaches_edge_rows, truncated_flags
 
 __all__ = ["CONTINUES", "COALESCENCE_SHARE", "assign_tracks", "coalesces", "overlap_fraction", "edge_side",
            "size_of", "centre_of", "reach_of"]
@@ -73,7 +73,7 @@ def edge_side(surface, geometry):
     if not truncated_flags([fine], fov, fov_report(geometry)["margin"])[0]:
         return None
     v = np.asarray(fine.vertices)
-    if v.shape[1] == 3 and np.abs(v[:, 2]).max() > fov[1] - fov_report(geometry)["margin"]:
+    if reaches_edge_rows(v, fov[1], fov_report(geometry)["margin"]):
         return "top" if float(np.mean(v[:, 2])) > 0 else "bottom"
     return "side"
 

@@ -6,8 +6,8 @@ Real scans cut bubbles: the detector's top and bottom, and the cylinder
 * :func:`field_of_view`, :func:`inside_fov`, :func:`fov_mask`: that region.
 * :func:`seen_by`: how many projections see a point; :func:`unobserved_control`:
   control vertices no ray sees (the fit leaves them where they started).
-* :func:`truncated_flags`, :func:`size_inside_fov`, :func:`fov_columns`: the
-  ``bubbles.csv`` columns of cut bubbles (flag, measured part, whole size left empty).
+* :func:`truncated_flags` (with :func:`reaches_edge_rows`, the detector's top and bottom), :func:`size_inside_fov`,
+  :func:`fov_columns`: the ``bubbles.csv`` columns of cut bubbles (flag, measured part, whole size left empty).
 * :func:`preview_extension`: the preview beyond the field of view's cylinder
   where the data show bubbles there (the field-of-view model,
   ``ReconstructionSettings(fov_model=True)``, the default; ``--no-fov-model``
@@ -40,8 +40,8 @@ from bubsub.core.io.tables import FOV_COLUMN_INFO
 from bubsub.core.projection.mesh import volume_in_slab
 from bubsub.core.projection.masks import coverage, pixel_centres
 
-__all__ = ["field_of_view", "fov_report", "local_tomography", "truncated_flags", "TRUNCATED_INFO", "inside_fov",
-           "preview_extension", "FOV_EXTEND", "LOCAL_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns",
+__all__ = ["field_of_view", "fov_report", "local_tomography", "truncated_flags", "reaches_edge_rows", "TRUNCATED_INFO",
+           "inside_fov", "preview_extension", "FOV_EXTEND", "LOCAL_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns",
            "FOV_COLUMN_INFO", "WHOLE_SIZE_COLUMNS", "fov_mask"]
 
 #: Radius of the voxel preview's grid over the field of view's radius when the boundary is modelled: a point
@@ -163,11 +163,25 @@ def truncated_flags(items, fov, margin):
     flags = []
     for it in items:
         v = np.asarray(it.vertices, dtype=float)
-        out = np.hypot(v[:, 0], v[:, 1]).max() > r_xy - margin
-        if v.shape[1] == 3:
-            out = out or np.abs(v[:, 2]).max() > half_z - margin
-        flags.append(int(out))
+        flags.append(int(np.hypot(v[:, 0], v[:, 1]).max() > r_xy - margin or reaches_edge_rows(v, half_z, margin)))
     return flags
+
+
+def reaches_edge_rows(vertices, half_z, margin=0.0):
+    """Whether a 3D bubble's vertices reach the detector's top or bottom edge plane (within ``margin``, mm); False
+    in 2D.
+
+    Parameters
+    ----------
+    vertices : (n, 2) or (n, 3) float
+        mm.
+    half_z : float
+        :func:`field_of_view`'s half height, mm.
+    margin : float
+        mm.
+    """
+    v = np.asarray(vertices, dtype=float)
+    return bool(v.shape[1] == 3 and np.abs(v[:, 2]).max() > half_z - margin)
 
 
 

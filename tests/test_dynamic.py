@@ -281,6 +281,9 @@ def test_resume_continues_from_complete_subscans(sim, rec, tmp_path, capsys):
     old = json.loads((rec / "subscan_0001" / "report.json").read_text())
     new = json.loads((out / "subscan_0001" / "report.json").read_text())
     assert new["seconds"] == old["seconds"]  # kept, not redone
+    # the kept subscans' steps are measured again: the redone subscan starts where the uninterrupted run's did
+    old, new = (json.loads((d / "subscan_0000" / "report.json").read_text()) for d in (rec, out))
+    assert new["initial_objective"] == pytest.approx(old["initial_objective"], rel=1e-3)
     assert main(["reconstruct4d", str(sim / "scan.h5"), "--out", str(out), "--holdout", "even", "--resume",
                  "--quiet"]) == 2  # different settings: refused
     assert main(["reconstruct4d", str(sim / "scan.h5"), "--out", str(out), "--quiet"]) == 2  # neither flag

@@ -104,6 +104,31 @@ def test_topology_adds_the_missed_bubble_and_removes_the_spurious_one():
         assert c["objective_after"] < c["objective_before"] or c["change"] == "remove"
 
 
+def test_a_round_that_only_removed_bubbles_ends_the_rounds_when_asked():
+    truth = [circle_surface([-1.0, 0.5], 0.6, MU, control=32, levels=3)]
+    geometry, data = _scan(truth)
+    start = [circle_surface([-1.0, 0.5], 0.6, MU), circle_surface([0.5, 1.8], 0.3, MU)]  # one spurious
+    calls = []
+
+    def counted(p):
+        calls.append(1)
+        return voxel_preview(p, geometry, MU, voxel_size=0.05)
+
+    def adapt(**kw):
+        calls.clear()
+        kept, summary = adapt_topology(MeshProjector(geometry), start, data, preview=counted,
+                                       new_bubble=lambda c, r: circle_surface(c, r, MU), min_radius=0.15,
+                                       max_radius=1.0, rounds=2, iterations=15, steps=("remove", "add"), **kw)
+        return kept, summary, len(calls)
+
+    kept, summary, previews = adapt(after_removals=False)
+    assert [c["change"] for c in summary["changes"]] == ["remove"] and len(kept) == 1
+    assert summary["rounds"] == 1 and previews == 1
+    kept, summary, previews = adapt()  # the default: a second round looks again, and finds nothing
+    assert [c["change"] for c in summary["changes"]] == ["remove"] and len(kept) == 1
+    assert summary["rounds"] == 2 and previews == 2
+
+
 def test_topology_splits_a_bubble_that_covers_two():
     truth = [circle_surface([-0.6, 0.0], 0.55, MU, control=32, levels=3),
              circle_surface([0.6, 0.0], 0.55, MU, control=32, levels=3)]
@@ -207,6 +232,8 @@ def test_footprint_matches_the_dense_projection_it_replaces():
     assert fp.removal_gain(residual) == pytest.approx(dense_gain, rel=1e-12)
     dense_gain = 0.5 * np.sum((residual + p) ** 2) - 0.5 * np.sum(residual ** 2)
     assert fp.addition_gain(residual) == pytest.approx(dense_gain, rel=1e-12)
+    per_view = 0.5 * ((residual - p) ** 2 - residual ** 2).reshape(len(residual), -1).sum(axis=1)
+    np.testing.assert_allclose(fp.removal_gains(residual), per_view, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(others_removed(residual, fp, fq), p + q - residual, rtol=0, atol=1e-12)
     r = residual.copy()
     fp.add_to(r, -1.0)

@@ -23,6 +23,7 @@ from bubsub.clients.cluster.engine import workers_of
 from bubsub.clients.pipeline.dynamic4d import outputs4d as outputs
 from bubsub.clients.pipeline.inputs.checks import check_bubble_signal
 from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings, reconstruct_subscan, run_chain
+from bubsub.clients.pipeline.dynamic4d.motion import measure_steps
 
 __all__ = ["reconstruct_dynamic"]
 
@@ -34,6 +35,20 @@ def _run_record(scan, layout, settings):
             "dimension": scan.ndim, "levels": settings.levels, "iterations": settings.iterations,
             "warm_rtol": settings.warm_rtol, "warm_window": settings.warm_window, "slabs": settings.slabs,
             "slab_halo": settings.slab_halo, "detect": settings.detect}
+
+
+def _kept_steps(prior, order, n_done, scan):
+    """The steps of the last kept subscan's tracks (:func:`~bubsub.clients.pipeline.dynamic4d.motion.measure_steps`),
+    measured again from it and its successor, both on disk, so that a resumed run's next warm start is predicted as
+    the uninterrupted run's is; none where it was the chain's first (cold) subscan."""
+    if n_done < 2:
+        return ()
+    by_index = {r.index: r for r in prior}
+    last, successor = by_index[order[n_done - 1]], by_index[order[n_done - 2]]
+    if last.report.get("start") != "warm":
+        return ()
+    return measure_steps(successor.state.ids, successor.state.surfaces(), last.state.ids, last.state.surfaces(),
+                         scan.geometry)
 
 
 def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False,
@@ -101,7 +116,8 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
     start = min(prior, key=lambda r: r.index).state if prior else None
     if start is not None:  # new bubbles take ids above every id of the kept subscans, ended tracks' too
         used = {i for r in prior for i in (*r.state.ids, *r.ended)}
-        start = dataclasses.replace(start, next_id=1 + max(used, default=-1))
+        start = dataclasses.replace(start, next_id=1 + max(used, default=-1),
+                                    steps=_kept_steps(prior, order, len(done), subscan(scan, layout, order[0])))
 
     def write(result):
         outputs.write_subscan(out, result, scan.ndim, scan.path)

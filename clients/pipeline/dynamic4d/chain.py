@@ -182,7 +182,8 @@ class BubbleState:
         ended is never given again); -1: one above the largest of ``ids``.
     steps : tuple
         Each bubble's step from its successor (:func:`~bubsub.clients.pipeline.dynamic4d.motion.measure_steps`),
-        which predicts the next warm start; empty where none was measured (a cold start, a resumed state).
+        which predicts the next warm start; empty where none was measured (a cold start; ``--resume`` measures
+        them again from the kept subscans).
     """
 
     ids: tuple

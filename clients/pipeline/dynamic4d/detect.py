@@ -39,7 +39,11 @@ bubbles, with the preview and the steps :data:`WARM_STEPS`:
   backwards, keeps only a sliver in view).
 
 :func:`~bubsub.clients.pipeline.dynamic4d.tracks.assign_tracks` then gives every bubble its track
-(continuations, coalescences seen backwards, new tracks).
+(continuations, coalescences seen backwards, new tracks), and a coalescence whose pair was already one bubble at
+the subscan's mid-time (its film broke early in the subscan's projections) is undone
+(:func:`~bubsub.clients.pipeline.dynamic4d.midtime.merged_at_midtime`): the pair then splits in the subscan before.
+A new bubble that only views away from the mid-time see (one that vanished early in the subscan) goes
+(:func:`~bubsub.clients.pipeline.dynamic4d.midtime.absent_at_midtime`).
 """
 
 from __future__ import annotations
@@ -62,6 +66,7 @@ from bubsub.clients.pipeline.static.topology import (MERGE_CONVEXITY, adapt_bubb
                                                     replace_by_two, split_step, unknowns_cost)
 from bubsub.core import MeshProjector
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
+from bubsub.clients.pipeline.dynamic4d.midtime import absent_at_midtime, merged_at_midtime
 from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, reach_of, size_of
 
 __all__ = ["WARM_STEPS", "detect_warm", "warm_voxel", "data_preview", "preview_changes", "edge_seeds",
@@ -430,30 +435,44 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
                                    facet_pixels=settings.facet_pixels, voxel_size=settings.voxel_size,
                                    method=settings.preview, fov_model=settings.fov_model, image=image, extent=extent,
                                    progress=settings.progress, steps=WARM_STEPS, unexplained_only=True,
-                                   refit_rtol=_refit_rtol(settings))
+                                   refit_rtol=_refit_rtol(settings), after_removals=False)
     seconds["rounds"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     summary["changes"] = preview_log + summary["changes"]
     new_ids, lineage, next_id = assign_tracks(ids, surfaces, after, successor_sizes, geometry, next_id)
+    # a pair that coalesced before the subscan's mid-time is one bubble here: the warm fit's, refitted below;
+    # a bubble that only views away from the mid-time see is none
+    new_ids, after, lineage, undone = merged_at_midtime(projector, data, ids, surfaces, new_ids, after, lineage)
+    residual = scene_residual(projector, after, data)
+    new_ids, after, lineage, absent = absent_at_midtime(projector, residual, ids, new_ids, after, lineage)
     known = set(ids)
     born = [k for k, i in enumerate(new_ids) if i not in known]
-    if born:
-        # the new bubbles with every neighbour within their size free: a neighbour whose warm fit grew into a
-        # new bubble's gas (the rounds refit only bubbles within a few voxels) gives it back; that refit of many
-        # bubbles stops at the warm fit's test, then the new bubbles and the bubbles they touch go on to
-        # LOCAL_RTOL (an edge cap seeded here needs its iterations): on subscans 7 and 6 of the flowing foam the
-        # same bubbles found, missed and merged as one refit of all to LOCAL_RTOL, for half its CPU seconds
+    restored = [k for k, i in enumerate(new_ids) if i in {u["parent"] for u in undone}]
+    if born or restored:
+        changed = born + restored
+        # the new bubbles (and a pair's bubble restored) with every neighbour within their size free: a
+        # neighbour whose warm fit grew into a new bubble's gas (the rounds refit only bubbles within a few
+        # voxels) gives it back; that refit of many bubbles stops at the warm fit's test, then the new bubbles
+        # and the bubbles they touch go on to LOCAL_RTOL (an edge cap seeded here needs its iterations): on
+        # subscans 7 and 6 of the flowing foam the same bubbles found, missed and merged as one refit of all to
+        # LOCAL_RTOL, for half its CPU seconds
         iterations = max(10, settings.iterations // 2)
-        after, residual, _ = local_refit(projector, after, data, born, iterations=iterations,
-                                         touch=2 * max(reach_of(after[k]) for k in born), rtol=_refit_rtol(settings))
-        after, residual, _ = local_refit(projector, after, data, born, iterations=iterations, touch=0.0,
+        after, residual, _ = local_refit(projector, after, data, changed, iterations=iterations,
+                                         touch=2 * max(reach_of(after[k]) for k in changed), residual=residual,
+                                         rtol=_refit_rtol(settings))
+        after, residual, _ = local_refit(projector, after, data, changed, iterations=iterations, touch=0.0,
                                          residual=residual)
+    if born or restored or absent:
         summary["objective"] = 0.5 * float(np.vdot(residual, residual))
     seconds["tracks_and_refit"] = time.perf_counter() - t0
     counts = {}
     for c in summary["changes"]:
         counts[c["change"]] = counts.get(c["change"], 0) + 1
     counts["edge_seed"] = len(seeded) - len(previewed)
+    if undone:
+        counts["coalescence_before_midtime"] = len(undone)
+    if absent:
+        counts["absent_at_midtime"] = len(absent)
     return new_ids, after, lineage, {"rounds": summary["rounds"], "changes": counts,
                                      "objective": summary["objective"], "voxel_mm": voxel,
                                      "preview": {"voxel_mm": preview_voxel, "shape": list(image.shape),

@@ -60,6 +60,12 @@ class Footprint:
         """``0.5 ||r - p||^2 - 0.5 ||r||^2`` without forming ``r - p``."""
         return 0.5 * float(self.values @ self.values) - float(residual.reshape(-1)[self.index] @ self.values)
 
+    def removal_gains(self, residual):
+        """:meth:`removal_gain` per projection (the residual's first axis): ``(views,)`` float."""
+        per_view = int(np.prod(residual.shape[1:]))
+        term = self.values * (0.5 * self.values - residual.reshape(-1)[self.index])
+        return np.bincount(self.index // per_view, weights=term, minlength=residual.shape[0])
+
     def addition_gain(self, residual):
         """``0.5 ||r + p||^2 - 0.5 ||r||^2`` without forming ``r + p``."""
         return 0.5 * float(self.values @ self.values) + float(residual.reshape(-1)[self.index] @ self.values)

@@ -415,7 +415,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
                    iterations=30, threshold=0.15, touch=0.0, split_ratio=1.6, local_iterations=15, max_add=20,
                    max_tries=8, steps=("remove", "add", "merge", "split"), complexity=1.0, image=None,
                    progress=False, penalty=None, fov_edge=False, merge_convexity=MERGE_CONVEXITY,
-                   refit_rtol=LOCAL_RTOL):
+                   refit_rtol=LOCAL_RTOL, after_removals=True):
     """Alternate topology changes and joint BFGS fits.
 
     Parameters
@@ -472,6 +472,10 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     refit_rtol : float
         The convergence test of each round's refit (:func:`~bubsub.clients.pipeline.regions.local.local_refit`'s
         ``rtol``).
+    after_removals : bool
+        Whether a round that only removed bubbles is followed by another. A removed bubble explained less than
+        its unknowns cost, so what it leaves in the residual cannot pay for a new one, and the next round finds
+        what this one did not only where the refit of its neighbours moves them.
 
     Returns
     -------
@@ -543,6 +547,8 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
             refits.append(dict(summary, round=r))
             bar.update(1)
             bar.close(_changes_words(changes[n_before:]))
+            if not after_removals and all(c["change"] == "remove" for c in changes[n_before:]):
+                break
     # the last round's residual is the returned scene's (kept up to date by every change and refit)
     objective = _half_sq(residual) if residual is not None else scene_objective(projector, surfaces, data)
     return surfaces, {"changes": changes, "objective": objective, "rounds": done, "refits": refits}
@@ -551,7 +557,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
 def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterations, levels, facet_pixels,
                   voxel_size=None, method="box", fov_model=True, image=None, extent=None, penalty=None,
                   progress=False, steps=("remove", "add", "merge", "split"), unexplained_only=False,
-                  refit_rtol=LOCAL_RTOL):
+                  refit_rtol=LOCAL_RTOL, after_removals=True):
     """:func:`adapt_topology` as the reconstruction pipeline runs it (its preview's grid and new bubbles).
 
     Parameters
@@ -581,7 +587,7 @@ def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterati
         rest set to 0: where fitted bubbles stand a little too large, the residual's other sign, which the
         preview's ``x >= 0`` cannot hold, washes out the blobs beside them (a warm fit's neighbours that grew
         toward a bubble they have no start for).
-    refit_rtol : float
+    refit_rtol, after_removals
         As :func:`adapt_topology`'s.
 
     Returns
@@ -625,4 +631,4 @@ def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterati
     return adapt_topology(projector, surfaces, data, preview=preview, new_bubble=new_bubble, min_radius=3 * voxel,
                           max_radius=size / 8, rounds=rounds, iterations=max(10, iterations // 2), touch=2 * voxel,
                           image=None if image is None else (image, extent), progress=progress, penalty=penalty,
-                          fov_edge=fov_model, steps=steps, refit_rtol=refit_rtol)
+                          fov_edge=fov_model, steps=steps, refit_rtol=refit_rtol, after_removals=after_removals)

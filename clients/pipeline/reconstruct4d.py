@@ -37,7 +37,7 @@ def _run_record(scan, layout, settings):
             "slab_halo": settings.slab_halo, "detect": settings.detect}
 
 
-def _kept_steps(prior, order, n_done, scan):
+def _kept_steps(prior, order, n_done, geometry):
     """The steps of the last kept subscan's tracks (:func:`~bubsub.clients.pipeline.dynamic4d.motion.measure_steps`),
     measured again from it and its successor, both on disk, so that a resumed run's next warm start is predicted as
     the uninterrupted run's is; none where it was the chain's first (cold) subscan."""
@@ -48,7 +48,7 @@ def _kept_steps(prior, order, n_done, scan):
     if last.report.get("start") != "warm":
         return ()
     return measure_steps(successor.state.ids, successor.state.surfaces(), last.state.ids, last.state.surfaces(),
-                         scan.geometry)
+                         geometry)
 
 
 def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=None, subscans=None, resume=False,
@@ -117,7 +117,8 @@ def reconstruct_dynamic(scan, out, settings=None, *, projections_per_subscan=Non
     if start is not None:  # new bubbles take ids above every id of the kept subscans, ended tracks' too
         used = {i for r in prior for i in (*r.state.ids, *r.ended)}
         start = dataclasses.replace(start, next_id=1 + max(used, default=-1),
-                                    steps=_kept_steps(prior, order, len(done), subscan(scan, layout, order[0])))
+                                    steps=_kept_steps(prior, order, len(done),
+                                                      scan.geometry[layout.projections(order[0])]))
 
     def write(result):
         outputs.write_subscan(out, result, scan.ndim, scan.path)

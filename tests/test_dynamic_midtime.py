@@ -13,6 +13,7 @@ from bubsub.core.io.scanfile import Scan
 from bubsub.core.projection.mesh import Polygon
 from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings, reconstruct_subscan
 from bubsub.clients.pipeline.dynamic4d.midtime import MIDTIME_DROP, midtime_drop, spans_a_period
+from bubsub.clients.pipeline.regions.local import scene_objective
 
 CONTRAST = -0.1
 VIEWS = 20
@@ -80,6 +81,10 @@ def test_a_film_broken_early_in_the_subscan_leaves_one_bubble_there():
     bubble = dict(zip(res.state.ids, res.state.surfaces()))[10].fine()
     assert abs(bubble.area) == pytest.approx(2 * np.pi * 0.45 ** 2, rel=0.1)
     assert np.asarray(bubble.centroid) == pytest.approx([0.0, -0.6], abs=0.05)
+    # the residual the undo kept up to date is the scene's: the reported objective is the result's own
+    scan = coalescing_scan(4)
+    own = scene_objective(MeshProjector(scan.geometry), res.state.surfaces(), scan.bubble_data)
+    assert res.report["objective"] == pytest.approx(own, rel=1e-4)
 
 
 def test_a_film_broken_late_in_the_subscan_is_a_coalescence_after_it():

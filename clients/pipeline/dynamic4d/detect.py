@@ -442,12 +442,12 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
     new_ids, lineage, next_id = assign_tracks(ids, surfaces, after, successor_sizes, geometry, next_id)
     # a pair that coalesced before the subscan's mid-time is one bubble here: the warm fit's, refitted below;
     # a bubble that only views away from the mid-time see is none
-    new_ids, after, lineage, undone = merged_at_midtime(projector, data, ids, surfaces, new_ids, after, lineage)
     residual = scene_residual(projector, after, data)
+    new_ids, after, lineage, undone = merged_at_midtime(projector, residual, ids, surfaces, new_ids, after, lineage)
     new_ids, after, lineage, absent = absent_at_midtime(projector, residual, ids, new_ids, after, lineage)
-    known = set(ids)
+    known, parents = set(ids), {u["parent"] for u in undone}
     born = [k for k, i in enumerate(new_ids) if i not in known]
-    restored = [k for k, i in enumerate(new_ids) if i in {u["parent"] for u in undone}]
+    restored = [k for k, i in enumerate(new_ids) if i in parents]
     if born or restored:
         changed = born + restored
         # the new bubbles (and a pair's bubble restored) with every neighbour within their size free: a

@@ -142,15 +142,16 @@ def event_view(gains):
     return best, float(g[:best].mean()), float(g[best:].mean())
 
 
-def merged_at_midtime(projector, data, ids, before, new_ids, after, lineage, residual=None):
+def merged_at_midtime(projector, residual, ids, before, new_ids, after, lineage):
     """Undo the coalescences (splits going backwards) whose pair was already one bubble at the subscan's mid-time.
 
     Parameters
     ----------
     projector : MeshProjector
-        Of ``data``.
-    data : ndarray
-        The subscan's bubble signal, views in acquisition order.
+        Of the subscan's bubble signal, views in acquisition order.
+    residual : ndarray float64, ``projector.geometry.shape``
+        ``Proj(after) - data`` (:func:`~bubsub.clients.pipeline.regions.local.scene_residual`); updated in place
+        for the pairs undone.
     ids : sequence of int
         Track ids of ``before``.
     before : list of SubdivisionSurface
@@ -160,8 +161,6 @@ def merged_at_midtime(projector, data, ids, before, new_ids, after, lineage, res
         The bubbles after the detection, with their track ids.
     lineage : dict
         :func:`~bubsub.clients.pipeline.dynamic4d.tracks.assign_tracks`'s.
-    residual : ndarray, optional
-        ``Proj(after) - data``; computed when needed.
 
     Returns
     -------
@@ -174,11 +173,10 @@ def merged_at_midtime(projector, data, ids, before, new_ids, after, lineage, res
     """
     if not lineage["coalescences"] or not spans_a_period(projector.geometry):
         return new_ids, after, lineage, []
-    if residual is None:
-        residual = np.asarray(projector.forward(after), dtype=np.float64) - np.asarray(data, dtype=np.float64)
+    warm = {int(i): s for i, s in zip(ids, before)}
     index, undone, kept = {int(i): k for k, i in enumerate(new_ids)}, [], []
     for c in lineage["coalescences"]:
-        one = before[list(map(int, ids)).index(int(c["parent"]))]
+        one = warm[int(c["parent"])]
         two = [after[index[int(i)]] for i in c["children"]]
         gains = view_gains(projector, residual, one, two)
         drop = midtime_drop(gains)
@@ -191,10 +189,14 @@ def merged_at_midtime(projector, data, ids, before, new_ids, after, lineage, res
     if not undone:
         return new_ids, after, lineage, []
     gone = {i for u in undone for i in u["children"]}
-    keep = [k for k, i in enumerate(new_ids) if int(i) not in gone]
+    for i in gone:
+        footprint(projector, after[index[i]]).add_to(residual, -1.0)
     parents = [u["parent"] for u in undone]
+    for p in parents:
+        footprint(projector, warm[p]).add_to(residual)
+    keep = [k for k, i in enumerate(new_ids) if int(i) not in gone]
     new_ids = [new_ids[k] for k in keep] + parents
-    after = [after[k] for k in keep] + [before[list(map(int, ids)).index(p)] for p in parents]
+    after = [after[k] for k in keep] + [warm[p] for p in parents]
     return new_ids, after, dict(lineage, coalescences=kept), undone
 
 

@@ -12,8 +12,9 @@ from bubsub.core import MeshProjector, ScanGeometry, SubdivisionSurface, sphere_
 from bubsub.core.projection.mesh import Mesh
 from bubsub.core.metrics import label_image
 from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings
-from bubsub.clients.pipeline.dynamic4d import detect
-from bubsub.clients.pipeline.dynamic4d.detect import detect_warm, unowned_discs
+from bubsub.clients.pipeline.dynamic4d import caps
+from bubsub.clients.pipeline.dynamic4d.caps import unowned_discs
+from bubsub.clients.pipeline.dynamic4d.detect import detect_warm
 from bubsub.clients.pipeline.static.initial import row_pixel
 
 CONTRAST = -0.1
@@ -122,9 +123,9 @@ def test_a_caps_seed_is_kept_beside_its_neighbour_only_where_the_neighbour_gives
         calls.append(cap)
         return [(one, 1.0), ([round_n if gives_back else swollen, cap], 0.0)]
 
-    monkeypatch.setattr(detect, "local_fits", joint_wins)
-    monkeypatch.setattr(detect, "local_refit", lambda projector, surfaces, *a, **k: (surfaces, None, {}))
-    out = detect.edge_seeds(MeshProjector(GEOMETRY), data, fitted, DynamicSettings(iterations=20, progress=False),
+    monkeypatch.setattr(caps, "local_fits", joint_wins)
+    monkeypatch.setattr(caps, "local_refit", lambda projector, surfaces, *a, **k: (surfaces, None, {}))
+    out = caps.edge_seeds(MeshProjector(GEOMETRY), data, fitted, DynamicSettings(iterations=20, progress=False),
                             0.05)
     assert len(calls) == 1  # one disc, held by N, whose seed alone does not pay
     assert len(out) == (3 if gives_back else 2)

@@ -490,7 +490,8 @@ def test_fig6_quick(tmp_path, capsys):
 def test_a_warm_fit_stops_at_the_objective_plateau(small):
     sub, truth, starts = small
     state = BubbleState.from_surfaces([0, 1, 2], starts)
-    early = reconstruct_subscan(sub, state, DynamicSettings(iterations=80, progress=False))
+    # the plateau test at 0.1 % (the default, 0.2 %, is set on noisy scans: bubsub bench dynamic, docs/dynamic.md)
+    early = reconstruct_subscan(sub, state, DynamicSettings(iterations=80, warm_rtol=1e-3, progress=False))
     assert early.report["stop_reason"] == "objective plateau" and early.report["iterations"] < 80
     full = reconstruct_subscan(sub, state, DynamicSettings(iterations=early.report["iterations"] + 10,
                                                            warm_rtol=0, progress=False))

@@ -59,8 +59,8 @@ def test_a_warm_start_is_moved_by_the_predicted_step_and_scaled_to_its_predicted
     settings = DynamicSettings(progress=False)
     plain = BubbleState.from_surfaces([1, 2, 3, 4], surfaces, MU)
     moving = BubbleState.from_surfaces([1, 2, 3, 4], surfaces, MU, steps=(step,) * 4)
-    _, starts, _ = _warm_starts(Scan, plain, settings)
-    _, moved, _ = _warm_starts(Scan, moving, settings)
+    _, starts, _ = _warm_starts(Scan, plain, plain.surfaces(), settings)
+    _, moved, _ = _warm_starts(Scan, moving, moving.surfaces(), settings)
     for s, a, b in zip(surfaces, starts, moved):
         c, r = np.asarray(s.fine().centroid), s.fine().equivalent_radius
         np.testing.assert_allclose(a.fine().centroid, c, atol=2e-3)  # shrunk in place

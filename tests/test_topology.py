@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from bubsub.clients.pipeline.regions.local import scene_residual
 from bubsub.clients.pipeline.static.blobs import log_blobs
 from bubsub.clients.pipeline.static.preview import voxel_preview
 from bubsub.clients.pipeline.static.topology import adapt_topology
@@ -102,6 +103,23 @@ def test_topology_adds_the_missed_bubble_and_removes_the_spurious_one():
     assert np.allclose(centres, [(-1.0, 0.5), (1.0, -0.5)], atol=0.1)
     for c in summary["changes"]:
         assert c["objective_after"] < c["objective_before"] or c["change"] == "remove"
+
+
+def test_a_residual_given_is_kept_up_to_date_through_the_rounds():
+    # two rounds (an add, then a look that finds nothing more), each started from the residual the last kept
+    truth = [circle_surface([-1.0, 0.5], 0.6, MU, control=32, levels=3),
+             circle_surface([1.0, -0.5], 0.5, MU, control=32, levels=3)]
+    geometry, data = _scan(truth)
+    start = [circle_surface([-1.0, 0.5], 0.6, MU), circle_surface([0.5, 1.8], 0.3, MU)]
+    projector = MeshProjector(geometry)
+    residual = scene_residual(projector, start, data)
+    kept, summary = _adapt(start, data, geometry, steps=("remove", "add"), residual=residual)
+    assert summary["rounds"] == 2 and len(kept) == 2
+    fresh = scene_residual(projector, kept, data)
+    np.testing.assert_allclose(residual, fresh, atol=1e-6 * np.abs(data).max())  # float32 projections
+    assert summary["objective"] == pytest.approx(0.5 * float(np.vdot(fresh, fresh)), rel=1e-6)
+    again, summary_again = _adapt(start, data, geometry, steps=("remove", "add"))  # the residual projected
+    assert summary_again["objective"] == pytest.approx(summary["objective"], rel=1e-6)
 
 
 def test_a_round_that_only_removed_bubbles_ends_the_rounds_when_asked():

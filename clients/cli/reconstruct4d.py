@@ -60,9 +60,9 @@ def register(sub):
                    help="projections per subscan (default: the file's root attribute projections_per_subscan)")
     p.add_argument("--subscans", metavar="A:B", help="A:B reconstructs subscans A..B-1 (default all)")
     add_fit_arguments(p, "each subscan")
-    p.add_argument("--warm-rtol", type=non_negative_float, default=1e-3, metavar="R",
+    p.add_argument("--warm-rtol", type=non_negative_float, default=2e-3, metavar="R",
                    help="a warm-started fit stops once 5 iterations lowered the objective by less than this "
-                        "fraction (default 1e-3; 0 runs all --iterations)")
+                        "fraction (default 2e-3; 0 runs all --iterations)")
     p.add_argument("--voxel-baseline", action="store_true",
                    help="also run the voxel baseline (30 Barzilai-Borwein iterations, x >= 0) per subscan "
                         "and plot its held-out MSE")

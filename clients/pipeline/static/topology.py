@@ -415,7 +415,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
                    iterations=30, threshold=0.15, touch=0.0, split_ratio=1.6, local_iterations=15, max_add=20,
                    max_tries=8, steps=("remove", "add", "merge", "split"), complexity=1.0, image=None,
                    progress=False, penalty=None, fov_edge=False, merge_convexity=MERGE_CONVEXITY,
-                   refit_rtol=LOCAL_RTOL, after_removals=True):
+                   refit_rtol=LOCAL_RTOL, after_removals=True, residual=None):
     """Alternate topology changes and joint BFGS fits.
 
     Parameters
@@ -476,6 +476,9 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         Whether a round that only removed bubbles is followed by another. A removed bubble explained less than
         its unknowns cost, so what it leaves in the residual cannot pay for a new one, and the next round finds
         what this one did not only where the refit of its neighbours moves them.
+    residual : ndarray float64, optional
+        ``Proj(surfaces) - data`` if known (updated in place); else computed with one projection. Each round
+        after the first starts from the residual its predecessor's changes and refit kept up to date.
 
     Returns
     -------
@@ -496,7 +499,6 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     unknowns = new_bubble(np.zeros(surfaces[0].ndim if surfaces else data.ndim), 1.0).vertices.size
     refits = []
     fresh = None  # after the first round: the bubbles the last refit moved (ids)
-    residual = None
 
     for r in range(rounds):
         n_before = len(changes)
@@ -505,7 +507,8 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
         # split trials) take most of its time, the refit of what they changed (a phase of its own) the rest
         with phase(f"topology round {r + 1}", len(steps) + 1, unit="step", enabled=progress) as bar:
             own = Footprints(projector, surfaces)
-            residual = scene_residual(projector, surfaces, data)
+            if residual is None:
+                residual = scene_residual(projector, surfaces, data)
             cost = unknowns_cost(complexity * unknowns, residual)
             if "remove" in steps:
                 # unknowns no ray sees cost nothing to remove: a cut bubble is charged for its visible ones only
@@ -557,7 +560,7 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
 def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterations, levels, facet_pixels,
                   voxel_size=None, method="box", fov_model=True, image=None, extent=None, penalty=None,
                   progress=False, steps=("remove", "add", "merge", "split"), unexplained_only=False,
-                  refit_rtol=LOCAL_RTOL, after_removals=True):
+                  refit_rtol=LOCAL_RTOL, after_removals=True, residual=None):
     """:func:`adapt_topology` as the reconstruction pipeline runs it (its preview's grid and new bubbles).
 
     Parameters
@@ -587,7 +590,7 @@ def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterati
         rest set to 0: where fitted bubbles stand a little too large, the residual's other sign, which the
         preview's ``x >= 0`` cannot hold, washes out the blobs beside them (a warm fit's neighbours that grew
         toward a bubble they have no start for).
-    refit_rtol, after_removals
+    refit_rtol, after_removals, residual
         As :func:`adapt_topology`'s.
 
     Returns
@@ -631,4 +634,5 @@ def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterati
     return adapt_topology(projector, surfaces, data, preview=preview, new_bubble=new_bubble, min_radius=3 * voxel,
                           max_radius=size / 8, rounds=rounds, iterations=max(10, iterations // 2), touch=2 * voxel,
                           image=None if image is None else (image, extent), progress=progress, penalty=penalty,
-                          fov_edge=fov_model, steps=steps, refit_rtol=refit_rtol, after_removals=after_removals)
+                          fov_edge=fov_model, steps=steps, refit_rtol=refit_rtol, after_removals=after_removals,
+                          residual=residual)

@@ -12,7 +12,6 @@ field-of-view model only (rows are slices there). Also the warm detection's help
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from bubsub.core.projection.mesh import equivalent_radius
 from bubsub.core.projection.subdivision import circle_surface, sphere_surface
@@ -22,8 +21,9 @@ from bubsub.clients.pipeline.static.preview import preview_grid
 from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.regions.local import (LOCAL_RTOL, Footprints, footprint, local_fits, local_refit,
                                                    others_removed, scene_residual)
-from bubsub.clients.pipeline.static.topology import points_inside, replace_by_one, replace_by_two, unknowns_cost
-from bubsub.clients.pipeline.dynamic4d.tracks import centre_of, edge_side, size_of
+from bubsub.clients.pipeline.static.topology import (merge_trial, points_inside, replace_by_one, replace_by_two,
+                                                    touching_pairs, unknowns_cost)
+from bubsub.clients.pipeline.dynamic4d.tracks import edge_side, size_of
 
 __all__ = ["LOCAL_ITERATIONS", "CAP_ITERATIONS", "edge_seeds", "unowned_discs", "disc_probes", "merged_caps",
            "new_bubble_like", "refit_rtol"]
@@ -259,32 +259,18 @@ def merged_caps(projector, residual, ids, new_ids, after, lineage, settings, *, 
     skip = {int(i) for i in ids} | {int(i) for c in lineage["coalescences"] for i in c["children"]}
     if g.ndim != 3 or not settings.fov_model:
         return new_ids, after, lineage, []
-    caps = {}
-    for k, (i, s) in enumerate(zip(new_ids, after)):
-        side = None if int(i) in skip else edge_side(s, g)
-        if side in ("top", "bottom"):
-            caps.setdefault(side, []).append(k)
-    pairs = []
-    for ks in caps.values():
-        for a, i in enumerate(ks):
-            for j in ks[a + 1:]:
-                d = float(cKDTree(after[i].fine().vertices).query(after[j].fine().vertices)[0].min())
-                if d <= touch:
-                    pairs.append((d, i, j))
+    sides = [None if int(i) in skip else edge_side(s, g) for i, s in zip(new_ids, after)]
+    pairs = touching_pairs(after, touch, lambda i, j: sides[i] in ("top", "bottom") and sides[i] == sides[j])
     if not pairs:
         return new_ids, after, lineage, []
     after, own, merged, gone = list(after), Footprints(projector, after), [], set()
     new_bubble = new_bubble_like(after, g, settings)
     cost = unknowns_cost(new_bubble(np.zeros(3), 1.0).vertices.size, residual)
     fov = field_of_view(g)
-    for _, i, j in sorted(pairs):
+    for _, i, j in pairs:
         if i in gone or j in gone:
             continue
-        size = size_of(after[i]) + size_of(after[j])
-        centre = (centre_of(after[i]) * size_of(after[i]) + centre_of(after[j]) * size_of(after[j])) / size
-        (_, f_two), (one, f_one) = local_fits(projector, [[after[i], after[j]], [new_bubble(centre,
-                                              equivalent_radius(size, 3))]],
-                                              others_removed(residual, own[i], own[j]), CAP_ITERATIONS)
+        (_, f_two), (one, f_one) = merge_trial(projector, after, residual, own, i, j, new_bubble, CAP_ITERATIONS)
         if f_one < f_two + cost:
             big, small = (i, j) if size_inside_fov(after[i].fine(), fov) >= size_inside_fov(after[j].fine(), fov) \
                 else (j, i)

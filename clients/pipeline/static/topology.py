@@ -58,7 +58,7 @@ from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, trunca
 from bubsub.clients.progress import phase
 
 __all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "replace_by_one", "replace_by_two",
-           "unknowns_cost", "points_inside", "convexity", "MERGE_CONVEXITY"]
+           "unknowns_cost", "points_inside", "convexity", "touching_pairs", "merge_trial", "MERGE_CONVEXITY"]
 
 #: BB iterations of the 3D residual preview (half the data preview's 30): the residual's blobs are bright
 #: enough for the add step after 15 (a bubble left out of a fit is added at the same place as with 30),
@@ -179,6 +179,50 @@ def convexity(surface):
     return abs(fine.size) / ConvexHull(np.asarray(fine.vertices, dtype=float)).volume
 
 
+def touching_pairs(surfaces, touch, tried=None):
+    """The pairs of bubbles whose fine surfaces come within ``touch`` (mm) of each other, nearest first.
+
+    Parameters
+    ----------
+    surfaces : list of SubdivisionSurface
+    touch : float
+        mm.
+    tried : callable(i, j) -> bool, optional
+        Only the pairs it accepts are measured (``i < j``).
+
+    Returns
+    -------
+    list of (float, int, int)
+        ``(distance, i, j)``, sorted.
+    """
+    if len(surfaces) < 2:
+        return []
+    fines = [s.fine().vertices for s in surfaces]
+    centres = np.array([v.mean(axis=0) for v in fines])
+    radii = np.array([np.linalg.norm(v - c, axis=1).max() for v, c in zip(fines, centres)])
+    pairs = []
+    for i, j in cKDTree(centres).query_pairs(2 * float(radii.max()) + touch):
+        if np.linalg.norm(centres[i] - centres[j]) > radii[i] + radii[j] + touch:
+            continue
+        if tried is not None and not tried(i, j):
+            continue
+        d = float(cKDTree(fines[i]).query(fines[j])[0].min())
+        if d <= touch:
+            pairs.append((d, i, j))
+    return sorted(pairs)
+
+
+def merge_trial(projector, surfaces, residual, own, i, j, new_bubble, iterations):
+    """Bubbles ``i`` and ``j`` against one round bubble of their joint size at their size-weighted centre, each fitted
+    to the data less the rest of the scene on one detector window: ``((pair, f_pair), (one, f_one))``, as
+    :func:`~bubsub.clients.pipeline.regions.local.local_fits` returns them."""
+    size = _size(surfaces[i]) + _size(surfaces[j])
+    c = (_centre(surfaces[i]) * _size(surfaces[i]) + _centre(surfaces[j]) * _size(surfaces[j])) / size
+    one = new_bubble(c, equivalent_radius(size, surfaces[i].ndim))
+    return local_fits(projector, [[surfaces[i], surfaces[j]], [one]], others_removed(residual, own[i], own[j]),
+                      iterations)
+
+
 def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, round_no, *, touch, iterations,
                max_tries, cost=0.0, at_edge=None, only=None, min_convexity=MERGE_CONVEXITY):
     """Replace touching pairs by one bubble when that fits the data better than the pair.
@@ -196,32 +240,17 @@ def merge_step(projector, surfaces, residual, own, data, new_bubble, changes, ro
     """
     if len(surfaces) < 2:
         return surfaces, own
-    fines = [s.fine().vertices for s in surfaces]
-    centres = np.array([v.mean(axis=0) for v in fines])
-    radii = np.array([np.linalg.norm(v - c, axis=1).max() for v, c in zip(fines, centres)])
-    pairs = []
-    for i, j in cKDTree(centres).query_pairs(2 * float(radii.max()) + touch):
-        if np.linalg.norm(centres[i] - centres[j]) > radii[i] + radii[j] + touch:
-            continue
-        if at_edge is not None and (at_edge[i] or at_edge[j]):
-            continue
-        if only is not None and i not in only and j not in only:
-            continue
-        d = float(cKDTree(fines[i]).query(fines[j])[0].min())
-        if d <= touch:
-            pairs.append((d, i, j))
+
+    def tried(i, j):
+        return (at_edge is None or not (at_edge[i] or at_edge[j])) and (only is None or i in only or j in only)
+
+    pairs = touching_pairs(surfaces, touch, tried)
     surfaces = list(surfaces)
     gone = set()
-    for _, i, j in sorted(pairs)[:max_tries]:
+    for _, i, j in pairs[:max_tries]:
         if i in gone or j in gone:
             continue
-        target = others_removed(residual, own[i], own[j])
-        ndim = surfaces[i].ndim
-        size = _size(surfaces[i]) + _size(surfaces[j])
-        c = (_centre(surfaces[i]) * _size(surfaces[i]) + _centre(surfaces[j]) * _size(surfaces[j])) / size
-        (pair, f_pair), (one, f_one) = local_fits(
-            projector, [[surfaces[i], surfaces[j]], [new_bubble(c, equivalent_radius(size, ndim))]], target,
-            iterations)
+        (pair, f_pair), (one, f_one) = merge_trial(projector, surfaces, residual, own, i, j, new_bubble, iterations)
         if f_one < f_pair + cost and (min_convexity <= 0 or convexity(one[0]) >= min_convexity):
             replace_by_one(projector, surfaces, residual, own, i, one[0])
             own[j].add_to(residual, -1.0)

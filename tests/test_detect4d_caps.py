@@ -1,15 +1,17 @@
-"""Two new bubbles on one cap at the detector's top edge are made one; two caps side by side stay two (3D).
+"""Two new bubbles on one cap at the detector's top edge are made one; two caps side by side stay two (3D); the
+cold start's bubbles likewise.
 
 The data are projected from icospheres (not the fitted subdivision model) with Gaussian noise of a fixed seed.
 """
 
 import numpy as np
+import pytest
 import trimesh
 
 from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
 from bubsub.core.projection.mesh import Mesh
 from bubsub.clients.pipeline.dynamic4d.chain import DynamicSettings
-from bubsub.clients.pipeline.dynamic4d.caps import merged_caps
+from bubsub.clients.pipeline.dynamic4d.caps import merged_caps, merged_cold_caps, stacked
 from bubsub.clients.pipeline.regions.local import scene_residual
 
 CONTRAST = -0.1
@@ -78,3 +80,36 @@ def test_a_warm_fit_bubble_at_the_edge_is_never_merged():
     # one half is the successor's bubble (a track that goes on): no pair of new bubbles to try
     _, _, (ids, after, lineage, merged) = merge(data, halves[:1], halves[1:])
     assert merged == [] and ids == [1, 10]
+
+
+def test_a_cold_start_cap_taken_twice_becomes_one_and_is_refitted():
+    cap = ((0.1, 0.0, 0.95), 0.45)
+    below = ((-0.6, 0.3, -0.3), 0.35)
+    data = scan([cap, below])
+    # the cold start's bubbles: the one below, a large piece of the cap and a small one on its top
+    cold = [sphere_surface(below[0], below[1], CONTRAST, control=42),
+            sphere_surface((0.05, 0.0, 0.9), 0.38, CONTRAST, control=42),
+            sphere_surface((0.35, 0.0, 0.82), 0.12, CONTRAST, control=42)]
+    projector = MeshProjector(GEOMETRY)
+    after, merged, objective = merged_cold_caps(projector, data, cold, SETTINGS, touch=0.1)
+    assert merged == [{"id": 1, "with": 2}] and len(after) == 2 and after[0] is cold[0]
+    one = after[1].fine().vertices
+    inside = one[one[:, 2] < TOP]
+    np.testing.assert_allclose(inside[:, :2].mean(axis=0), cap[0][:2], atol=0.06)
+    assert abs(float(inside[:, 2].min()) - 0.5) < 0.06
+    assert objective == pytest.approx(0.5 * float(np.sum(scene_residual(projector, after, data) ** 2)), rel=1e-4)
+    assert objective < 0.5 * float(np.sum(scene_residual(projector, cold, data) ** 2))
+
+
+def test_cold_start_caps_side_by_side_are_not_tried_and_a_small_one_above_stays():
+    caps = [((-0.27, 0.0, 0.95), 0.26), ((0.27, 0.0, 0.95), 0.26)]
+    cold = [sphere_surface(c, r, CONTRAST, control=42) for c, r in caps]
+    assert not stacked(*cold) and not stacked(*cold[::-1])
+    after, merged, objective = merged_cold_caps(MeshProjector(GEOMETRY), scan(caps), cold, SETTINGS, touch=0.1)
+    assert merged == [] and objective is None and after == cold
+    # a small bubble above a large one at the top edge, a film of 0.02 mm between them: tried, and kept two
+    pair = [((0.0, 0.0, 0.4), 0.45), ((0.38, 0.0, 0.85), 0.12)]
+    cold = [sphere_surface(c, r, CONTRAST, control=42) for c, r in pair]
+    assert stacked(*cold)
+    after, merged, objective = merged_cold_caps(MeshProjector(GEOMETRY), scan(pair), cold, SETTINGS, touch=0.1)
+    assert merged == [] and objective is None and after == cold

@@ -68,7 +68,8 @@ def register(sub):
                         "and plot its held-out MSE")
     p.add_argument("--no-detect", action="store_true",
                    help="warm subscans only refit their successor's bubbles: no search for bubbles the successor "
-                        "lacks or for coalescences (lineage.csv then holds only the tracks that end)")
+                        "lacks or for coalescences (lineage.csv then holds only the tracks that end), and the cold "
+                        "start keeps two bubbles on one edge cap")
     p.add_argument("--resume", action="store_true", help="continue from the complete subscan folders in --out")
     p.add_argument("--chunks", type=positive_int, default=1, metavar="K",
                    help="cut the subscan chain into K chunks run in parallel, each cold-started at its last "

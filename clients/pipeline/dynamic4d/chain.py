@@ -1,7 +1,9 @@
 """4D BubSub: a dynamic scan reconstructed subscan by subscan, backwards in time.
 
 The last selected subscan is reconstructed as a static scan (voxel preview,
-centres, radius estimation, BFGS: :func:`bubsub.clients.pipeline.reconstruct.reconstruct`).
+centres, radius estimation, BFGS: :func:`bubsub.clients.pipeline.reconstruct.reconstruct`), and two of its
+bubbles on one cap at the detector's top or bottom edge made one
+(:func:`bubsub.clients.pipeline.dynamic4d.caps.merged_cold_caps`).
 Every earlier subscan starts from its successor's bubbles, each control mesh
 shrunk toward its centroid and remeshed (:func:`bubsub.core.projection.remesh.warm_start`),
 then BFGS. After the warm fit, a voxel preview of the data as the cold
@@ -65,7 +67,8 @@ from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.regions.slabs import (OBJECTIVE_NOTE, fit_known, known_halo, plan_slabs, reconstruct_slabs,
                                                    slab_count, slab_totals)
 from bubsub.clients.pipeline.evaluation.voxel_baseline import voxel_baseline
-from bubsub.clients.pipeline.dynamic4d.detect import detect_warm
+from bubsub.clients.pipeline.dynamic4d.caps import merged_cold_caps
+from bubsub.clients.pipeline.dynamic4d.detect import detect_warm, warm_voxel
 from bubsub.clients.pipeline.dynamic4d.tracks import size_of
 from bubsub.clients.progress import phase
 
@@ -105,7 +108,9 @@ class DynamicSettings:
         on each subscan and record its held-out MSE.
     detect : bool
         After each warm fit, look for bubbles the successor lacks and for coalescences
-        (:mod:`~bubsub.clients.pipeline.dynamic4d.detect`; ``--no-detect``: only refit the successor's bubbles).
+        (:mod:`~bubsub.clients.pipeline.dynamic4d.detect`), and make one of a cold start's two bubbles on one cap
+        (:func:`~bubsub.clients.pipeline.dynamic4d.caps.merged_cold_caps`); ``--no-detect``: only refit the
+        successor's bubbles, and the cold start is the static pipeline's.
     warm_rtol, warm_window : float, int
         A warm-started fit stops early once ``warm_window`` iterations have
         lowered the objective by less than ``warm_rtol`` of its value (it
@@ -254,11 +259,11 @@ class SubscanResult:
         ``seconds_parts`` and ``cpu_seconds_parts`` (wall and CPU seconds of
         each phase; cold: the static pipeline's phases, ``preview``,
         ``initial_bubbles``, ``radius_estimation``, ``fit``, ``topology``,
-        ``validity``, ...; warm: ``remesh``, ``fit``, ``detect``,
+        ``validity``, ..., ``caps``; warm: ``remesh``, ``fit``, ``detect``,
         ``holdout``; ``voxel_baseline`` when run),
         ``holdout_mse`` (with a holdout), ``bubbles``, ``diverged``,
         ``interrupted`` and for the cold start the static pipeline's report
-        fields.
+        fields and ``caps_merged`` (with ``detect``).
     preview, preview_extent : ndarray, tuple, optional
         The voxel preview of a cold start (for ``overlay.png``).
     """
@@ -308,8 +313,18 @@ def _cold(scan, settings):
               "seconds_parts": dict(r["seconds_parts"]), "cpu_seconds_parts": dict(r["cpu_seconds_parts"])}
     if slabs > 1:
         report.update({k: r[k] for k in ("slabs", "slab_halo_rows", "stitch", "objective_note")})
-    ids = range(len(rec.surfaces))
-    return BubbleState.from_surfaces(ids, rec.surfaces, scan.bubble_contrast), report, \
+    surfaces = rec.surfaces
+    if settings.detect and surfaces:
+        t0 = _time.perf_counter(), _time.process_time()
+        geometry, data = _split(scan, settings.holdout)[:2]
+        touch = 2 * warm_voxel(geometry, data, scan.bubble_contrast, settings, surfaces)
+        surfaces, merged, objective = merged_cold_caps(MeshProjector(geometry, supersampling=settings.supersampling),
+                                                       data, surfaces, settings, touch=touch)
+        report["caps_merged"] = len(merged)
+        if objective is not None:
+            report["objective"] = objective
+        _mark(report, "caps", t0)
+    return BubbleState.from_surfaces(range(len(surfaces)), surfaces, scan.bubble_contrast), report, \
         rec.preview, rec.preview_extent
 
 

@@ -1,11 +1,14 @@
-"""Warm starts predicted from each track's last step: displacement and growth measured at a warm fit."""
+"""Warm starts predicted from each track's last step: displacement and growth measured at a warm fit; the flow
+followed during a subscan."""
 
 import numpy as np
 import pytest
 
 from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings, _warm_starts
-from bubsub.clients.pipeline.dynamic4d.motion import MIN_STEPS, START_MARGIN, measure_steps, predict
-from bubsub.core import ScanGeometry, sphere_surface
+from bubsub.clients.optimise.fit import fit
+from bubsub.clients.pipeline.dynamic4d.motion import MIN_STEPS, START_MARGIN, flow_during, measure_steps, predict
+from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
+from bubsub.core.projection.mesh import Mesh
 
 MU = -0.1
 # 32 rows of 0.05 mm: the detector's top and bottom planes at z = +-0.8 mm
@@ -67,3 +70,36 @@ def test_a_warm_start_is_moved_by_the_predicted_step_and_scaled_to_its_predicted
         np.testing.assert_allclose(b.fine().centroid, c + step[:3], atol=2e-3)
         assert a.fine().equivalent_radius == pytest.approx(settings.shrink * r, rel=0.03)
         assert b.fine().equivalent_radius == pytest.approx(START_MARGIN * r, rel=0.03)
+
+
+def test_the_flow_during_a_subscan_is_minus_the_median_step_spread_over_its_projections():
+    step = (0.0, 0.01, -0.15, 1.0)  # going backwards in time the foam moved 0.15 mm down
+    steps = (step, None, step, (0.3, 0.0, -0.15, 1.0), step)
+    flow = flow_during(steps, 10)
+    assert flow.shape == (10, 3)
+    fraction = (np.arange(10) - 4.5) / 10  # the subscan spans ten projection intervals, its middle at 4.5
+    np.testing.assert_allclose(flow, fraction[:, None] * np.array([[0.0, -0.01, 0.15]]), atol=1e-12)
+    # the times decide where each projection stands in the subscan
+    times = np.array([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 18.0])  # a pause before the last
+    uneven = flow_during(steps, 10, times)
+    np.testing.assert_allclose(uneven[:, 2], 0.15 * (times - 9.0) / 20.0, atol=1e-12)
+    assert flow_during(steps[:1] + (None,) * 4, 10) is None  # fewer than MIN_STEPS measured
+    assert flow_during((), 10) is None
+
+
+def test_a_bubble_moving_during_a_subscan_is_fitted_where_it_stands_at_the_mid_time():
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 24, endpoint=False), pixel_size=0.05, cols=64, rows=32)
+    centre = np.array([0.1, 0.0, 0.55])  # near the top plane (z = 0.8), rising 0.15 mm over the subscan
+    steps = ((0.0, 0.0, -0.15, 1.0),) * MIN_STEPS
+    flow = flow_during(steps, 24)
+    ico = __import__("trimesh").creation.icosphere(subdivisions=3)
+    rng = np.random.default_rng(3)
+    data = np.stack([MeshProjector(g[k:k + 1]).forward(
+        Mesh(np.asarray(ico.vertices) * 0.3 + centre + flow[k], np.asarray(ico.faces), MU))[0] for k in range(24)])
+    data = (data + rng.normal(0, 0.002, data.shape)).astype(np.float32)
+    start = [sphere_surface(centre - [0.0, 0.0, 0.05], 0.27, MU, control=42, levels=2)]
+    followed = fit(MeshProjector(g.moved(flow)), start, data, iterations=60, progress=False)
+    still = fit(MeshProjector(g), start, data, iterations=60, progress=False)
+    np.testing.assert_allclose(followed.surfaces[0].fine().centroid, centre, atol=0.01)
+    assert followed.surfaces[0].fine().equivalent_radius == pytest.approx(0.3, rel=0.03)
+    assert followed.objective < 0.5 * still.objective  # standing still, the fit cannot explain the motion

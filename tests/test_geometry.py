@@ -135,3 +135,30 @@ def test_a_detector_window_projects_what_the_whole_detector_shows_there(kind):
         np.testing.assert_allclose(row_full[:, 0] + g.det_rows / 2, row_w[:, 0] + rows / 2 + r0, atol=1e-9)
     with pytest.raises(ValueError, match="leave the detector"):
         g.window(r0, c0 + 40, rows, cols)
+
+
+@pytest.mark.parametrize("kind", ["cone", "parallel", "fan"])
+def test_a_moved_geometry_projects_a_moving_sample_standing_still(kind):
+    from bubsub.core import MeshProjector, circle_surface, sphere_surface
+
+    angles = np.linspace(0, np.pi, 6, endpoint=False)
+    nd = 2 if kind == "fan" else 3
+    if kind == "fan":
+        g = ScanGeometry.cone(angles, source_origin=40.0, origin_detector=10.0, pixel_size=0.05, cols=64)
+    elif kind == "cone":
+        g = ScanGeometry.cone(angles, source_origin=40.0, origin_detector=10.0, pixel_size=0.05, cols=64, rows=48)
+    else:
+        g = ScanGeometry.parallel(angles, pixel_size=0.05, cols=64, rows=48)
+    centre = np.array([0.2, -0.1, 0.1][:nd])
+    make = (lambda c: circle_surface(c, 0.5, -0.3)) if nd == 2 else (lambda c: sphere_surface(c, 0.5, -0.3))
+    # the sample moves 0.02 mm per view, mostly along the rotation axis (across the rows in 2D)
+    d = np.outer(np.arange(6) - 2.5, [0.004, 0.0, 0.02][:nd] if nd == 3 else [0.004, 0.02])
+    moving = np.stack([MeshProjector(g[k:k + 1]).forward(make(centre + d[k]))[0] for k in range(6)])
+    assert np.abs(moving).max() > 0.1
+    still = MeshProjector(g.moved(d)).forward(make(centre))
+    np.testing.assert_allclose(still, moving, atol=1e-5)
+    # against the geometry that does not follow, the moving sample differs
+    assert np.abs(MeshProjector(g).forward(make(centre)) - moving).max() > 0.05
+    assert repr(g.moved(d)).endswith(".moved(<6 x %d displacements>)" % nd)
+    with pytest.raises(ValueError, match="displacements must be"):
+        g.moved(d[:5])

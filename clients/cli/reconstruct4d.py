@@ -23,6 +23,7 @@ def cmd_reconstruct4d(args):
                                facet_pixels=args.facet_pixels, holdout=args.holdout,
                                voxel_baseline=args.voxel_baseline, warm_rtol=args.warm_rtol,
                                slabs=args.slabs, slab_halo=args.slab_halo, detect=not args.no_detect,
+                               follow_flow=not args.no_follow_flow,
                                progress=not args.quiet)
     with open_client(spec_from_args(args)) as dask_client:
         report = reconstruct_dynamic(scan, out, settings, projections_per_subscan=args.projections_per_subscan,
@@ -70,6 +71,9 @@ def register(sub):
                    help="warm subscans only refit their successor's bubbles: no search for bubbles the successor "
                         "lacks or for coalescences (lineage.csv then holds only the tracks that end), and the cold "
                         "start keeps two bubbles on one edge cap")
+    p.add_argument("--no-follow-flow", action="store_true",
+                   help="fit each warm subscan as if its foam stood still during it (default: in the frame of the "
+                        "flow its tracks measured, so that its bubbles stand where they are at its mid-time)")
     p.add_argument("--resume", action="store_true", help="continue from the complete subscan folders in --out")
     p.add_argument("--chunks", type=positive_int, default=1, metavar="K",
                    help="cut the subscan chain into K chunks run in parallel, each cold-started at its last "

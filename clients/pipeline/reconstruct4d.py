@@ -34,7 +34,7 @@ def _run_record(scan, layout, settings):
             "subscans": [layout.selected.start, layout.selected.stop], "holdout": settings.holdout,
             "dimension": scan.ndim, "levels": settings.levels, "iterations": settings.iterations,
             "warm_rtol": settings.warm_rtol, "warm_window": settings.warm_window, "slabs": settings.slabs,
-            "slab_halo": settings.slab_halo, "detect": settings.detect}
+            "slab_halo": settings.slab_halo, "detect": settings.detect, "follow_flow": settings.follow_flow}
 
 
 def _kept_steps(prior, order, n_done, geometry):

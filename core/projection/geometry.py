@@ -363,6 +363,27 @@ class ScanGeometry:
         return ScanGeometry(self._kind, v, self._rows, self._cols,
                             _repr=f"{self!r}.translated({o.tolist()!r})")
 
+    def moved(self, displacements):
+        """The scan of a sample that moves between projections, seen from the sample: its position at projection
+        ``k`` is ``displacements[k]`` from where this geometry's world has it, and the result projects the
+        sample standing still there (each view's rays translated by ``-displacements[k]``, :meth:`translated`).
+
+        Parameters
+        ----------
+        displacements : (n_angles, ndim) float
+            mm.
+        """
+        nd = self.ndim
+        d = np.asarray(displacements, dtype=float)
+        if d.shape != (self.n_angles, nd) or not np.all(np.isfinite(d)):
+            raise ValueError(f"displacements must be ({self.n_angles}, {nd}) finite mm, got shape {d.shape}")
+        v = np.array(self._vectors)
+        v[:, nd:2 * nd] -= d
+        if self.is_cone:
+            v[:, :nd] -= d
+        return ScanGeometry(self._kind, v, self._rows, self._cols,
+                            _repr=f"{self!r}.moved(<{self.n_angles} x {nd} displacements>)")
+
     @staticmethod
     def window_of(projections, row_start, col_start, rows=None, cols=None):
         """``projections[p, r0[p]:r0[p] + rows, c0[p]:c0[p] + cols]`` for every p (see :meth:`window`)."""

@@ -59,7 +59,7 @@ from bubsub.core.validate import check_int
 
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, reaches_edge_rows, seen_by
-from bubsub.clients.pipeline.dynamic4d.motion import START_MARGIN, measure_steps, predict
+from bubsub.clients.pipeline.dynamic4d.motion import START_MARGIN, flow_during, measure_steps, predict
 from bubsub.clients.pipeline.regions.local import scene_objective
 from bubsub.clients.pipeline.static.preview import preview_voxel_size
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
@@ -126,6 +126,11 @@ class DynamicSettings:
         Halo rows of the slabs (``--slab-halo``); None: the cold start's
         :func:`~bubsub.clients.pipeline.regions.slabs.estimate_halo`, a warm start's
         :func:`~bubsub.clients.pipeline.regions.slabs.known_halo` of its successor's bubbles.
+    follow_flow : bool
+        A warm subscan is fitted in the frame of its foam's flow
+        (:func:`~bubsub.clients.pipeline.dynamic4d.motion.flow_during`: the tracks' median step spread over the
+        projections; ``ScanGeometry.moved``), so that its bubbles stand where they are at its mid-time; False
+        (``--no-follow-flow``): the foam taken to stand still during a subscan.
     """
 
     static: ReconstructionSettings
@@ -137,9 +142,10 @@ class DynamicSettings:
     slabs: int | None = None
     slab_halo: int | None = None
     detect: bool = True
+    follow_flow: bool = True
 
     def __init__(self, static=None, *, shrink=SHRINK, min_radius=None, voxel_baseline=False, warm_rtol=2e-3,
-                 warm_window=5, slabs=None, slab_halo=None, detect=True, **static_fields):
+                 warm_window=5, slabs=None, slab_halo=None, detect=True, follow_flow=True, **static_fields):
         # the one thing a generated __init__ cannot do: take the static settings' fields as keywords too
         unknown = sorted(set(static_fields) - STATIC_FIELDS)
         if unknown:
@@ -149,7 +155,7 @@ class DynamicSettings:
             static = dataclasses.replace(static, **static_fields)
         values = {"static": static, "shrink": shrink, "min_radius": min_radius, "voxel_baseline": voxel_baseline,
                   "warm_rtol": warm_rtol, "warm_window": warm_window, "slabs": slabs, "slab_halo": slab_halo,
-                  "detect": bool(detect)}
+                  "detect": bool(detect), "follow_flow": bool(follow_flow)}
         for f in dataclasses.fields(self):
             object.__setattr__(self, f.name, values[f.name])
         self.__post_init__()
@@ -541,7 +547,12 @@ def reconstruct_subscan(scan, previous, settings, index=0, time=0.0):
         ended = {}
         report["diverged"] = False
     else:
+        flow = flow_during(previous.steps, scan.n_angles, scan.time, scan.ndim) if settings.follow_flow else None
+        if flow is not None:  # the bubbles fitted where they stand at the mid-time
+            scan = dataclasses.replace(scan, geometry=scan.geometry.moved(flow))
         state, report, ended = _warm(scan, previous, settings)
+        # the foam's displacement over a subscan forward in time, as followed (None: not followed)
+        report["flow_mm"] = None if flow is None else ((flow[-1] - flow[0]) * len(flow) / (len(flow) - 1)).tolist()
     _, _, g_val, d_val = _split(scan, settings.holdout)
     if g_val is not None and report.get("holdout_mse") is None:
         t1 = _time.perf_counter(), _time.process_time()

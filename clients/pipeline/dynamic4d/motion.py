@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from bubsub.clients.pipeline.inputs.fov import field_of_view, reaches_edge_rows
 
-__all__ = ["STEP_NEIGHBOURS", "MIN_STEPS", "START_MARGIN", "measure_steps", "predict"]
+__all__ = ["STEP_NEIGHBOURS", "MIN_STEPS", "START_MARGIN", "measure_steps", "predict", "flow_during"]
 
 #: Measured bubbles whose displacements give a bubble's predicted one (its nearest, itself included).
 STEP_NEIGHBOURS = 8
@@ -115,3 +115,40 @@ def predict(surfaces, steps):
     for k in known:
         ratios[k] = steps[k][ndim]
     return shifts, ratios
+
+
+def flow_during(steps, n_views, times=None, ndim=3):
+    """The foam's displacement at each projection of a subscan from its position at the subscan's mid-time.
+
+    A flowing foam moves between projections (on the flowing foam of ``bubsub bench dynamic``, 4 pixels over a
+    subscan of 40), and a fit of bubbles standing still spreads a thin cap at the detector's edge over the rows
+    it crossed. Its tracks' steps give the flow: the median of :func:`measure_steps`' displacements (the subscan
+    after this one's bubbles, measured at its warm fit: going backwards in time, so the foam moves by minus it
+    over a subscan forward), taken as uniform in space and steady over the subscan, which lasts from its first
+    projection to one projection interval past its last (subscans acquired back to back).
+
+    Parameters
+    ----------
+    steps : tuple
+        :func:`measure_steps` of the subscan after this one (empty: none known).
+    n_views : int
+        This subscan's projections.
+    times : (n_views,) float, optional
+        Their acquisition times (any unit); evenly spaced when None.
+    ndim : int
+
+    Returns
+    -------
+    (n_views, ndim) float or None
+        mm; None where fewer than :data:`MIN_STEPS` bubbles were measured.
+    """
+    measured = [st[:ndim] for st in steps if st is not None]
+    if len(measured) < MIN_STEPS or n_views < 2:
+        return None
+    step = np.median(np.asarray(measured, dtype=float), axis=0)
+    t = np.arange(n_views, dtype=float) if times is None else np.asarray(times, dtype=float)
+    span = (t.max() - t.min()) * n_views / (n_views - 1)
+    if not span > 0:
+        return None
+    fraction = (t - 0.5 * (t.min() + t.max())) / span
+    return -fraction[:, None] * step[None, :]

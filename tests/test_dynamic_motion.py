@@ -4,10 +4,12 @@ followed during a subscan."""
 import numpy as np
 import pytest
 
-from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings, _warm_starts
+from bubsub.clients.pipeline.dynamic4d.chain import BubbleState, DynamicSettings, _flow, _warm_starts
 from bubsub.clients.optimise.fit import fit
-from bubsub.clients.pipeline.dynamic4d.motion import MIN_STEPS, START_MARGIN, flow_during, measure_steps, predict
+from bubsub.clients.pipeline.dynamic4d.motion import (MIN_STEPS, START_MARGIN, flow_during, flow_in_data, measure_steps,
+                                                         predict)
 from bubsub.core import MeshProjector, ScanGeometry, sphere_surface
+from bubsub.core.io.scan import Scan
 from bubsub.core.projection.mesh import Mesh
 
 MU = -0.1
@@ -103,3 +105,53 @@ def test_a_bubble_moving_during_a_subscan_is_fitted_where_it_stands_at_the_mid_t
     np.testing.assert_allclose(followed.surfaces[0].fine().centroid, centre, atol=0.01)
     assert followed.surfaces[0].fine().equivalent_radius == pytest.approx(0.3, rel=0.03)
     assert followed.objective < 0.5 * still.objective  # standing still, the fit cannot explain the motion
+
+
+def _moving_foam(geometry, flow, centres, radii):
+    """Projections of icosphere bubbles displaced by ``flow[k]`` at projection ``k``, with fixed-seed noise."""
+    ico = __import__("trimesh").creation.icosphere(subdivisions=3)
+    balls = lambda d: [Mesh(np.asarray(ico.vertices) * r + c + d, np.asarray(ico.faces), MU)
+                       for c, r in zip(centres, radii)]
+    data = np.stack([MeshProjector(geometry[k:k + 1]).forward(balls(flow[k]))[0] for k in range(len(flow))])
+    return (data + np.random.default_rng(4).normal(0, 0.002, data.shape)).astype(np.float32)
+
+
+def test_the_flow_along_the_axis_is_measured_from_the_data_row_sums():
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 24, endpoint=False), pixel_size=0.05, cols=64, rows=32)
+    rng = np.random.default_rng(2)
+    centres = np.column_stack([rng.uniform(-0.8, 0.8, (10, 2)), rng.uniform(-0.9, 0.9, 10)])
+    radii = rng.uniform(0.12, 0.25, 10)
+    true = flow_during(((0.0, 0.0, -0.12, 1.0),) * MIN_STEPS, 24)  # 2.4 rows up over the subscan
+    data = _moving_foam(g, true, centres, radii)
+    measured = flow_in_data(data, g, MU)
+    np.testing.assert_allclose(measured[:, :2], 0.0, atol=1e-12)  # only the axial component is measured
+    np.testing.assert_allclose(measured[:, 2], true[:, 2], atol=0.06 * 0.12)
+    # a foam standing still measures about none
+    still = flow_in_data(_moving_foam(g, np.zeros((24, 3)), centres, radii), g, MU)
+    assert np.abs(still).max() < 0.05 * 0.12
+    # nothing where the row sums depend on the angle: a cone beam, signal at the detector's side
+    cone = ScanGeometry.cone(np.linspace(0, np.pi, 24, endpoint=False), source_origin=40.0, origin_detector=10.0,
+                             pixel_size=0.05, cols=64, rows=32)
+    assert flow_in_data(data, cone, MU) is None
+    wide = _moving_foam(g, true, np.vstack([centres, [[1.5, 0.0, 0.0]]]), np.append(radii, 0.3))
+    assert flow_in_data(wide, g, MU) is None
+
+
+def test_a_subscan_follows_its_tracks_flow_else_the_datas_else_none():
+    g = ScanGeometry.parallel(np.linspace(0, np.pi, 24, endpoint=False), pixel_size=0.05, cols=64, rows=32)
+    rng = np.random.default_rng(2)
+    centres = np.column_stack([rng.uniform(-0.8, 0.8, (10, 2)), rng.uniform(-0.9, 0.9, 10)])
+    true = flow_during(((0.0, 0.0, -0.12, 1.0),) * MIN_STEPS, 24)
+    scan = Scan(data=_moving_foam(g, true, centres, rng.uniform(0.12, 0.25, 10)), geometry=g, bubble_contrast=MU,
+                time=np.linspace(10.0, 12.3, 24))
+    settings = DynamicSettings(progress=False)
+    flow, source = _flow(scan, None, settings)  # the cold start: the data's row sums
+    assert source == "data"
+    np.testing.assert_allclose(flow[:, 2], true[:, 2], atol=0.06 * 0.12)
+    surfaces = _balls(centres, np.full(10, 0.1))
+    lateral = ((0.02, 0.0, -0.1, 1.0),) * 10
+    previous = BubbleState.from_surfaces(range(10), surfaces, MU, steps=lateral)
+    flow, source = _flow(scan, previous, settings)  # the tracks' steps first, across the axis too
+    assert source == "tracks"
+    np.testing.assert_allclose(flow[-1] - flow[0], np.array([-0.02, 0.0, 0.1]) * 23 / 24, atol=1e-9)
+    assert _flow(scan, previous, DynamicSettings(follow_flow=False, progress=False)) == (None, None)

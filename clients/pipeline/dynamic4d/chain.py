@@ -4,7 +4,9 @@ The last selected subscan is reconstructed as a static scan (voxel preview,
 centres, radius estimation, BFGS: :func:`bubsub.clients.pipeline.reconstruct.reconstruct`), and two of its
 bubbles on one cap at the detector's top or bottom edge made one
 (:func:`bubsub.clients.pipeline.dynamic4d.caps.merged_cold_caps`).
-Every earlier subscan starts from its successor's bubbles, each control mesh
+Each subscan is fitted in the frame of its foam's flow, measured by the tracks' steps or, before they have
+any, the data's row sums (:mod:`bubsub.clients.pipeline.dynamic4d.motion`), so that its bubbles stand where
+they are at its mid-time. Every earlier subscan starts from its successor's bubbles, each control mesh
 shrunk toward its centroid and remeshed (:func:`bubsub.core.projection.remesh.warm_start`),
 then BFGS. After the warm fit, a voxel preview of the data as the cold
 start's and the static pipeline's topology rounds look for what the fitted
@@ -59,7 +61,7 @@ from bubsub.core.validate import check_int
 
 from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, reaches_edge_rows, seen_by
-from bubsub.clients.pipeline.dynamic4d.motion import START_MARGIN, flow_during, measure_steps, predict
+from bubsub.clients.pipeline.dynamic4d.motion import START_MARGIN, flow_during, flow_in_data, measure_steps, predict
 from bubsub.clients.pipeline.regions.local import scene_objective
 from bubsub.clients.pipeline.static.preview import preview_voxel_size
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct, split_holdout
@@ -127,9 +129,11 @@ class DynamicSettings:
         :func:`~bubsub.clients.pipeline.regions.slabs.estimate_halo`, a warm start's
         :func:`~bubsub.clients.pipeline.regions.slabs.known_halo` of its successor's bubbles.
     follow_flow : bool
-        A warm subscan is fitted in the frame of its foam's flow
-        (:func:`~bubsub.clients.pipeline.dynamic4d.motion.flow_during`: the tracks' median step spread over the
-        projections; ``ScanGeometry.moved``), so that its bubbles stand where they are at its mid-time; False
+        Each subscan is fitted in the frame of its foam's flow, so that its bubbles stand where they are at its
+        mid-time (``ScanGeometry.moved``): the tracks' median step spread over the projections
+        (:func:`~bubsub.clients.pipeline.dynamic4d.motion.flow_during`), else, where the tracks measured none
+        (the cold start and the warm subscan after it), the flow along the axis that the data's row sums show
+        (:func:`~bubsub.clients.pipeline.dynamic4d.motion.flow_in_data`, parallel beam); False
         (``--no-follow-flow``): the foam taken to stand still during a subscan.
     """
 
@@ -517,6 +521,19 @@ def _survivors(ids, fitted, scan, settings, ended):
     return kept_ids, kept
 
 
+def _flow(scan, previous, settings):
+    """The foam's displacement at each projection from the mid-time (:func:`~.motion.flow_during` of the
+    successor's steps, else :func:`~.motion.flow_in_data`) and its source (``"tracks"``, ``"data"``), or
+    ``(None, None)``: not followed."""
+    if not settings.follow_flow:
+        return None, None
+    flow = flow_during(previous.steps, scan.n_angles, scan.time, scan.ndim) if previous is not None else None
+    if flow is not None:
+        return flow, "tracks"
+    flow = flow_in_data(scan.bubble_data, scan.geometry, scan.bubble_contrast, scan.time)
+    return (None, None) if flow is None else (flow, "data")
+
+
 def reconstruct_subscan(scan, previous, settings, index=0, time=0.0):
     """Reconstruct one subscan: cold (``previous`` None) or warm-started from its successor.
 
@@ -542,17 +559,18 @@ def reconstruct_subscan(scan, previous, settings, index=0, time=0.0):
     """
     t0, cpu0 = _time.perf_counter(), _time.process_time()
     preview = extent = None
+    flow, source = _flow(scan, previous, settings)
+    if flow is not None:  # the bubbles fitted where they stand at the mid-time
+        scan = dataclasses.replace(scan, geometry=scan.geometry.moved(flow))
     if previous is None:
         state, report, preview, extent = _cold(scan, settings)
         ended = {}
         report["diverged"] = False
     else:
-        flow = flow_during(previous.steps, scan.n_angles, scan.time, scan.ndim) if settings.follow_flow else None
-        if flow is not None:  # the bubbles fitted where they stand at the mid-time
-            scan = dataclasses.replace(scan, geometry=scan.geometry.moved(flow))
         state, report, ended = _warm(scan, previous, settings)
-        # the foam's displacement over a subscan forward in time, as followed (None: not followed)
-        report["flow_mm"] = None if flow is None else ((flow[-1] - flow[0]) * len(flow) / (len(flow) - 1)).tolist()
+    # the foam's displacement over a subscan forward in time, as followed (None: not followed), and whence
+    report["flow_mm"] = None if flow is None else ((flow[-1] - flow[0]) * len(flow) / (len(flow) - 1)).tolist()
+    report["flow_from"] = source
     _, _, g_val, d_val = _split(scan, settings.holdout)
     if g_val is not None and report.get("holdout_mse") is None:
         t1 = _time.perf_counter(), _time.process_time()

@@ -63,6 +63,8 @@ from bubsub.clients.pipeline.static.preview import axis_pixel, preview_voxel_siz
 from bubsub.clients.pipeline.static.topology import (MERGE_CONVEXITY, adapt_bubbles, add_at, points_inside,
                                                     split_step, unknowns_cost)
 from bubsub.core import MeshProjector
+from bubsub.core.malloc import release_free_memory
+from bubsub.core.projection.backends.raster import release_stores
 from bubsub.clients.pipeline.dynamic4d.caps import edge_seeds, merged_caps, new_bubble_like, refit_rtol
 from bubsub.clients.pipeline.dynamic4d.midtime import absent_at_midtime, merged_at_midtime
 from bubsub.clients.pipeline.dynamic4d.tracks import assign_tracks, reach_of, size_of
@@ -280,6 +282,10 @@ def detect_warm(geometry, data, ids, surfaces, settings, *, successor_sizes, nex
         # subscans 7 and 6 of the flowing foam the same bubbles found, missed and merged as one refit of all to
         # LOCAL_RTOL, for half its CPU seconds
         iterations = max(10, settings.iterations // 2)
+        # the detection's fits' crossing stores and freed arrays given back first: this refit can take most of the
+        # subscan's bubbles on the whole detector, the warm subscan's peak memory
+        release_stores()
+        release_free_memory()
         after, residual, _ = local_refit(projector, after, data, changed, iterations=iterations,
                                          touch=2 * max(reach_of(after[k]) for k in changed), residual=residual,
                                          rtol=refit_rtol(settings))

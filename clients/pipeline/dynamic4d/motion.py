@@ -1,4 +1,5 @@
-"""Each track's last step (displacement and growth), measured at its warm fit, and the warm start it predicts.
+"""Each track's last step (displacement and growth), measured at its warm fit, the warm start it predicts, and the
+foam's flow during a subscan.
 
 A flowing foam carries its bubbles a few pixels per subscan, and a
 coarsening or expanding one changes their sizes. A warm start that is the
@@ -12,6 +13,12 @@ warm start the median displacement of its nearest measured neighbours and
 its own radius ratio (else theirs). On the flowing foam of ``bubsub bench
 dynamic`` this lowers a warm fit's initial objective five to six times and
 its median iterations from 65 to 57.
+
+The foam also moves while a subscan is acquired. :func:`flow_during` spreads
+the tracks' median step over the subscan's projections, and
+:func:`flow_in_data` measures the flow along the rotation axis from the
+data's row sums where no step is known; the chain fits each subscan in that
+frame (``ScanGeometry.moved``).
 """
 
 from __future__ import annotations
@@ -19,9 +26,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bubsub.clients.pipeline.inputs.fov import field_of_view, reaches_edge_rows
+from bubsub.clients.pipeline.inputs.fov import field_of_view, reaches_edge_rows, sides_clear
 
-__all__ = ["STEP_NEIGHBOURS", "MIN_STEPS", "START_MARGIN", "measure_steps", "predict", "flow_during"]
+__all__ = ["STEP_NEIGHBOURS", "MIN_STEPS", "START_MARGIN", "measure_steps", "predict", "flow_during",
+           "flow_in_data"]
 
 #: Measured bubbles whose displacements give a bubble's predicted one (its nearest, itself included).
 STEP_NEIGHBOURS = 8
@@ -146,9 +154,64 @@ def flow_during(steps, n_views, times=None, ndim=3):
     if len(measured) < MIN_STEPS or n_views < 2:
         return None
     step = np.median(np.asarray(measured, dtype=float), axis=0)
+    fraction = _fractions(n_views, times)
+    return None if fraction is None else -fraction[:, None] * step[None, :]
+
+
+def _fractions(n_views, times):
+    """(n_views,) float: each projection's time from the subscan's mid-time, in subscans (one lasts from its
+    first projection to one projection interval past its last); None when the times do not advance."""
     t = np.arange(n_views, dtype=float) if times is None else np.asarray(times, dtype=float)
     span = (t.max() - t.min()) * n_views / (n_views - 1)
-    if not span > 0:
+    return (t - 0.5 * (t.min() + t.max())) / span if span > 0 else None
+
+
+def flow_in_data(data, geometry, contrast, times=None):
+    """The foam's displacement along the rotation axis at each projection from its position at the mid-time,
+    measured in the data: for a subscan whose tracks measured no steps (the cold start, the warm subscan after it).
+
+    In a parallel beam each projection's row sums are the sample's bubble signal integrated over a slice,
+    whatever the angle, so a foam that flows along the axis shifts them between projections and nothing else
+    does. Each projection's shift against the mean profile (Gauss-Newton on the profile's gradient, three
+    passes) is fitted by a line in the projections' times; its slope is the flow, taken as steady over the
+    subscan (:func:`flow_during`'s convention). The flow across the axis does not show in the row sums and is
+    not measured.
+
+    Parameters
+    ----------
+    data : ndarray, ``(views, rows, cols)``
+        The bubbles' signal (``data - background``).
+    geometry : ScanGeometry
+    contrast : float
+        Bubble contrast.
+    times : (views,) float, optional
+        The projections' acquisition times; evenly spaced when None.
+
+    Returns
+    -------
+    (views, 3) float or None
+        mm; None for a cone beam or 2D scan, fewer than 4 projections, bubble signal at a side of the detector
+        (a part of the sample out of view changes the row sums with the angle), or a profile without structure.
+    """
+    if geometry.ndim != 3 or geometry.is_cone or data.shape[0] < 4 or not sides_clear(data, contrast):
         return None
-    fraction = (t - 0.5 * (t.min() + t.max())) / span
-    return -fraction[:, None] * step[None, :]
+    profile = np.sign(contrast) * np.asarray(data, dtype=np.float64).sum(axis=2)  # (views, rows)
+    n_views, n_rows = profile.shape
+    rows = np.arange(n_rows, dtype=float)
+    shifts = np.zeros(n_views)
+    for _ in range(3):
+        # each profile moved back by its shift, their mean the reference
+        aligned = np.array([np.interp(rows + s, rows, p) for s, p in zip(shifts, profile)])
+        mean = aligned.mean(axis=0)
+        grad = np.gradient(mean)
+        inner = slice(4, n_rows - 4)  # rows a shift of a few pixels keeps inside the detector
+        g = grad[inner]
+        if not np.dot(g, g) > 0:
+            return None
+        shifts += np.array([np.dot(mean[inner] - a[inner], g) for a in aligned]) / np.dot(g, g)
+    fraction = _fractions(n_views, times)
+    if fraction is None:
+        return None
+    rows_per_subscan = np.polyfit(fraction, shifts, 1)[0]
+    row_vectors = geometry.vectors[:, 9:12]
+    return fraction[:, None] * rows_per_subscan * row_vectors

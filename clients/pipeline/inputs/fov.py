@@ -40,9 +40,10 @@ from bubsub.core.io.tables import FOV_COLUMN_INFO
 from bubsub.core.projection.mesh import volume_in_slab
 from bubsub.core.projection.masks import coverage, pixel_centres
 
-__all__ = ["field_of_view", "fov_report", "local_tomography", "truncated_flags", "reaches_edge_rows", "TRUNCATED_INFO",
-           "inside_fov", "preview_extension", "FOV_EXTEND", "LOCAL_EXTEND", "seen_by", "unobserved_control", "size_inside_fov", "fov_columns",
-           "FOV_COLUMN_INFO", "WHOLE_SIZE_COLUMNS", "fov_mask"]
+__all__ = ["field_of_view", "fov_report", "local_tomography", "sides_clear", "truncated_flags", "reaches_edge_rows",
+           "TRUNCATED_INFO", "inside_fov", "preview_extension", "FOV_EXTEND", "LOCAL_EXTEND", "seen_by",
+           "unobserved_control", "size_inside_fov", "fov_columns", "FOV_COLUMN_INFO", "WHOLE_SIZE_COLUMNS",
+           "fov_mask"]
 
 #: Radius of the voxel preview's grid over the field of view's radius when the boundary is modelled: a point
 #: at 1.25 times the radius of a 180-degree parallel scan is still seen by 59 % of the projections.
@@ -91,6 +92,12 @@ def _sides(data, contrast):
         return None
     left, right, level = side_bubble_signal(data, contrast)
     return max(np.count_nonzero(left > level), np.count_nonzero(right > level)) >= LOCAL_VIEWS * len(left)
+
+
+def sides_clear(data, contrast):
+    """Whether neither side of the detector sees bubble signal in any projection: each view's shadow of the
+    bubbles lies within the detector (``data``, ``contrast`` as :func:`local_tomography`'s)."""
+    return _sides(data, contrast) is None
 
 
 def local_tomography(data, contrast):

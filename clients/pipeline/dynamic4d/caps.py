@@ -15,15 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 from bubsub.core.projection.mesh import equivalent_radius
-from bubsub.core.projection.subdivision import circle_surface, sphere_surface
 from bubsub.clients.pipeline.inputs.fov import field_of_view, preview_extension, size_inside_fov
 from bubsub.clients.pipeline.static.initial import edge_centres, edge_slices, row_pixel
 from bubsub.clients.pipeline.static.preview import preview_grid
-from bubsub.clients.pipeline.static.resolution import levels_by_size
 from bubsub.clients.pipeline.regions.local import (LOCAL_RTOL, Footprints, footprint, local_fits, local_refit,
                                                    others_removed, scene_residual)
 from bubsub.clients.pipeline.static.topology import (merge_trial, points_inside, replace_by_one, replace_by_two,
-                                                    touching_pairs, unknowns_cost)
+                                                    round_bubble_maker, touching_pairs, unknowns_cost)
 from bubsub.clients.pipeline.dynamic4d.tracks import edge_side, size_of
 
 __all__ = ["LOCAL_ITERATIONS", "CAP_ITERATIONS", "edge_seeds", "unowned_discs", "disc_probes", "merged_caps",
@@ -39,14 +37,10 @@ CAP_ITERATIONS = 30
 
 
 def new_bubble_like(surfaces, geometry, settings):
-    """``new_bubble(centre, radius)``: a round bubble with ``surfaces``' control mesh (the fitted bubbles'),
-    subdivided by its size."""
-    contrast, k = surfaces[0].attenuation, len(surfaces[0].vertices)
-    if surfaces[0].ndim == 2:
-        return lambda c, r: circle_surface(c, r, contrast, control=k, levels=surfaces[0].levels)
-    k = k if k in (12, 42, 162) else 42
-    return lambda c, r: levels_by_size([sphere_surface(c, r, contrast, control=k, levels=settings.levels)], geometry,
-                                       settings.levels, settings.facet_pixels)[0]
+    """``new_bubble(centre, radius)``: a round bubble with ``surfaces``' control mesh and attenuation (the fitted
+    bubbles'), subdivided by its size (:func:`~bubsub.clients.pipeline.static.topology.round_bubble_maker` with
+    ``settings``' levels)."""
+    return round_bubble_maker(surfaces, geometry, surfaces[0].attenuation, settings.levels, settings.facet_pixels)
 
 
 def refit_rtol(settings):

@@ -58,7 +58,8 @@ from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, trunca
 from bubsub.clients.progress import phase
 
 __all__ = ["adapt_topology", "adapt_bubbles", "add_at", "split_step", "replace_by_one", "replace_by_two",
-           "unknowns_cost", "points_inside", "convexity", "touching_pairs", "merge_trial", "MERGE_CONVEXITY"]
+           "unknowns_cost", "points_inside", "convexity", "touching_pairs", "merge_trial", "round_bubble_maker",
+           "MERGE_CONVEXITY"]
 
 #: BB iterations of the 3D residual preview (half the data preview's 30): the residual's blobs are bright
 #: enough for the add step after 15 (a bubble left out of a fit is added at the same place as with 30),
@@ -586,6 +587,20 @@ def adapt_topology(projector, surfaces, data, *, preview, new_bubble, min_radius
     return surfaces, {"changes": changes, "objective": objective, "rounds": done, "refits": refits}
 
 
+def round_bubble_maker(surfaces, geometry, contrast, levels, facet_pixels):
+    """``new_bubble(centre, radius)``: a round bubble of ``contrast`` (1/mm) with ``surfaces``' control mesh (their
+    number of control points; in 3D 42 unless it is 12, 42 or 162), in 2D at their subdivision levels, in 3D
+    subdivided by its size as the fitted bubbles are (at most ``levels``, faces within ``facet_pixels``:
+    :func:`~bubsub.clients.pipeline.static.resolution.levels_by_size` on ``geometry``)."""
+    k = len(surfaces[0].vertices)
+    if surfaces[0].ndim == 2:
+        curve_levels = surfaces[0].levels
+        return lambda c, r: circle_surface(c, r, contrast, control=k, levels=curve_levels)
+    k = k if k in (12, 42, 162) else 42
+    return lambda c, r: levels_by_size([sphere_surface(c, r, contrast, control=k, levels=levels)], geometry, levels,
+                                       facet_pixels)[0]
+
+
 def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterations, levels, facet_pixels,
                   voxel_size=None, method="box", fov_model=True, image=None, extent=None, penalty=None,
                   progress=False, steps=("remove", "add", "merge", "split"), unexplained_only=False,
@@ -629,18 +644,7 @@ def adapt_bubbles(projector, surfaces, data, *, contrast, voxel, rounds, iterati
     """
     geometry = projector.geometry
     ndim = surfaces[0].ndim
-    k = len(surfaces[0].vertices)
-    if ndim == 2:
-        curve_levels = surfaces[0].levels
-
-        def new_bubble(c, r):
-            return circle_surface(c, r, contrast, control=k, levels=curve_levels)
-    else:
-        k = k if k in (12, 42, 162) else 42
-
-        def new_bubble(c, r):  # subdivided by its size, as the fitted bubbles (.resolution)
-            return levels_by_size([sphere_surface(c, r, contrast, control=k, levels=levels)], geometry, levels,
-                                  facet_pixels)[0]
+    new_bubble = round_bubble_maker(surfaces, geometry, contrast, levels, facet_pixels)
 
     # In 3D the residual is reconstructed, and blobs are searched, on voxels twice as large:
     # an added bubble is at least 3 preview voxels in radius, and a full-size residual

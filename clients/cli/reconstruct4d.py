@@ -72,8 +72,9 @@ def register(sub):
                         "lacks or for coalescences (lineage.csv then holds only the tracks that end), and the cold "
                         "start keeps two bubbles on one edge cap")
     p.add_argument("--no-follow-flow", action="store_true",
-                   help="fit each warm subscan as if its foam stood still during it (default: in the frame of the "
-                        "flow its tracks measured, so that its bubbles stand where they are at its mid-time)")
+                   help="fit each subscan as if its foam stood still during it (default: in the frame of the "
+                        "flow its tracks measured, else, before they have steps, of the flow along the axis that a "
+                        "parallel beam's row sums show, so that its bubbles stand where they are at its mid-time)")
     p.add_argument("--resume", action="store_true", help="continue from the complete subscan folders in --out")
     p.add_argument("--chunks", type=positive_int, default=1, metavar="K",
                    help="cut the subscan chain into K chunks run in parallel, each cold-started at its last "

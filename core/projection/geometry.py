@@ -356,12 +356,16 @@ class ScanGeometry:
         o = np.asarray(origin, dtype=float).reshape(-1)
         if o.shape != (nd,) or not np.all(np.isfinite(o)):
             raise ValueError(f"origin must be {nd} finite coordinates, got {origin!r}")
+        return self._shifted(o, f"{self!r}.translated({o.tolist()!r})")
+
+    def _shifted(self, offset, text):
+        """The rays of each view moved by ``-offset`` (``(ndim,)`` or ``(n_angles, ndim)`` mm), repr ``text``."""
+        nd = self.ndim
         v = np.array(self._vectors)
-        v[:, nd:2 * nd] -= o  # detector positions; a parallel ray direction does not move
+        v[:, nd:2 * nd] -= offset  # detector positions; a parallel ray direction does not move
         if self.is_cone:
-            v[:, :nd] -= o  # the source does
-        return ScanGeometry(self._kind, v, self._rows, self._cols,
-                            _repr=f"{self!r}.translated({o.tolist()!r})")
+            v[:, :nd] -= offset  # the source does
+        return ScanGeometry(self._kind, v, self._rows, self._cols, _repr=text)
 
     def moved(self, displacements):
         """The scan of a sample that moves between projections, seen from the sample: its position at projection
@@ -377,12 +381,7 @@ class ScanGeometry:
         d = np.asarray(displacements, dtype=float)
         if d.shape != (self.n_angles, nd) or not np.all(np.isfinite(d)):
             raise ValueError(f"displacements must be ({self.n_angles}, {nd}) finite mm, got shape {d.shape}")
-        v = np.array(self._vectors)
-        v[:, nd:2 * nd] -= d
-        if self.is_cone:
-            v[:, :nd] -= d
-        return ScanGeometry(self._kind, v, self._rows, self._cols,
-                            _repr=f"{self!r}.moved(<{self.n_angles} x {nd} displacements>)")
+        return self._shifted(d, f"{self!r}.moved(<{self.n_angles} x {nd} displacements>)")
 
     @staticmethod
     def window_of(projections, row_start, col_start, rows=None, cols=None):

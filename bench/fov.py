@@ -59,7 +59,8 @@ from skimage.feature import peak_local_max
 from skimage.filters import gaussian
 from skimage.segmentation import watershed
 
-from bubsub.bench.fov_local import print_inside, print_local, print_local_axis, print_local_background, print_local_ideal
+from bubsub.bench.fov_local import (LOCAL_FOAMS, print_inside, print_local, print_local_axis, print_local_background,
+                                    print_local_ideal)
 from bubsub.clients.pipeline.static.detector_term import DETECTOR_TERM_METHOD, DETECTOR_TERM_PASSES, TERM_METHODS
 from bubsub.bench.matching import column_truth, mesh_labels, truth_labels
 from bubsub.bench.reconstruct import cli_command as _cli
@@ -289,6 +290,12 @@ def main(argv=None):
     loc.add_argument("--local-contrast", choices=["again", "prepared"], default="again",
                      help="with --local: the contrast estimated again once the detector term is out (default), "
                           "or the prepared one kept")
+    loc.add_argument("--local-foam", choices=sorted(LOCAL_FOAMS), default="standard",
+                     help="with --local and --local-background: the simulated foam (bench/fov_local.py LOCAL_FOAMS: "
+                          "standard, large bubbles, small bubbles, a liquid twice the field of view)")
+    loc.add_argument("--local-reach", type=float, default=None, metavar="R",
+                     help="with --local: the field-of-view radii beyond which prepare takes the foam into the "
+                          "background (default core/prep/background.py FOAM_BEYOND_REACH; inf: the liquid alone)")
     loc.add_argument("--local-background", type=int, nargs="+", metavar="SEED",
                      help="the background alone against the liquid's exact projection (local_background_case)")
     loc.add_argument("--local-axis", type=int, nargs="+", metavar="SEED",

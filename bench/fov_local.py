@@ -20,9 +20,17 @@ the axis error.
 eliminated|alternated`` how it is fitted, and ``--local-contrast prepared`` keeps the prepared contrast where the
 default estimates it again once the term is out (:mod:`bubsub.clients.pipeline.static.detector_term`).
 
+``--local-foam large|small|wide`` varies the foam (:data:`LOCAL_FOAMS`: bubbles of 0.15-0.25 of the field of
+view's radius, of 0.05-0.09, or the liquid twice the field of view's radius, as densely filled).
+``--local-reach R`` sets the field-of-view radii beyond which ``prepare`` takes the foam into the background
+(:func:`bubsub.core.prep.background.foam_beyond`; ``inf``: the liquid alone, the alternative measured).
+
+``python -m bubsub.bench fov --local 0 1 2 3 4 5 6 7 8 9 --local-foam large [--local-reach inf]``
+
 ``--local-radius given`` passes the liquid cylinder's radius (``bubsub prepare --liquid-radius``, the container's
-inner radius a beamline user knows) instead of fitting it; ``--local-radius exact`` reconstructs with the liquid's
-exact projection as background and the true contrast (what the reconstruction reaches with a perfect background).
+inner radius a beamline user knows) instead of fitting it; ``--local-radius exact`` reconstructs with the exact
+background (the liquid's exact projection and the true bubbles' mean projection beyond the reach) and the true
+contrast (what the reconstruction reaches with a perfect background).
 
 ``--local-background SEED ...``: the background alone (:func:`local_background_case`): the liquid's projection
 that :func:`bubsub.core.prep.background.chord_background` fits to the prepared scan's row, its radius fitted,
@@ -71,7 +79,9 @@ from bubsub.core.io.scanfile import Scan, read_scan
 from bubsub.core.matching import match
 from bubsub.core.metrics import dice_dissimilarity
 from bubsub.core.prep import prepare, prepare_options
-from bubsub.core.prep.background import chord_background, detector_offsets
+from bubsub.core.prep import background as bgmod
+from bubsub.bench.local_truth import true_background, truth_gas
+from bubsub.core.prep.background import chord_background, detector_offsets, foam_beyond
 from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.projection.mesh import Polygon
 from bubsub.core.projection.masks import label_image
@@ -135,19 +145,32 @@ def inside_case(out, seed):
             "contrast": steps["contrast"]["bubble_contrast_per_mm"], "prepare_s": t1 - t0, "reconstruct_s": t2 - t1}
 
 
-def _local_raw(out, seed):
-    """Write the local-tomography case's raw simulation of ``seed`` under ``out``: its :class:`RawSettings`."""
+#: The foams of the local-tomography case (``--local-foam``): the bubbles' mean radii as fractions of the field of
+#: view's radius, the bubbles placed in the liquid's bounding square (those not wholly inside the liquid dropped),
+#: and the liquid cylinder's radius over the field of view's. ``standard`` is the case of the module docstring;
+#: ``large`` (a coarsened foam, a few bubbles across the field of view), ``small`` (bubbles of 1.5-3 binned pixels'
+#: radius) and ``wide`` (the liquid twice the field of view, as densely filled) vary it.
+LOCAL_FOAMS = {"standard": ((0.08, 0.15), 80, 1.5), "large": ((0.15, 0.25), 30, 1.5),
+               "small": ((0.05, 0.09), 220, 1.5), "wide": ((0.08, 0.15), 142, 2.0)}
+
+
+def _local_raw(out, seed, foam="standard"):
+    """Write the local-tomography case's raw simulation of ``seed`` and ``foam`` (:data:`LOCAL_FOAMS`) under
+    ``out``: its :class:`RawSettings`."""
+    if foam not in LOCAL_FOAMS:
+        raise ValueError(f"foam must be one of {sorted(LOCAL_FOAMS)}, got {foam!r}")
+    (small, large), placed, wider = LOCAL_FOAMS[foam]
     c = LOCAL_SCAN
     axis = c["cols"] / 2 - 0.5 + c["axis_offset"]
     half = min(axis + 0.5, c["cols"] - 0.5 - axis) * c["pixel_size"]
-    radius = 1.5 * half
+    radius = wider * half
     s = raw_settings(seed=seed, container_radius=radius, wall=0.0, wider_than_detector=True, **c)
-    write_raw_simulation(out, disc_foam(seed, radius, n_bubbles=80, radius_range=(0.08 * half, 0.15 * half)), s)
+    write_raw_simulation(out, disc_foam(seed, radius, n_bubbles=placed, radius_range=(small * half, large * half)), s)
     return s
 
 
 def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TERM_PASSES, term=DETECTOR_TERM_METHOD,
-               contrast_again=CONTRAST_AGAIN):
+               contrast_again=CONTRAST_AGAIN, foam="standard", reach=None):
     """Simulate, prepare, reconstruct and score one local-tomography scan (see the module docstring).
 
     ``passes``, ``term`` and ``contrast_again``: the refits of the detector's view-constant term, how it is
@@ -155,6 +178,10 @@ def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TER
     (:data:`~bubsub.clients.pipeline.static.detector_term.DETECTOR_TERM_PASSES`, 0: none;
     :data:`~bubsub.clients.pipeline.static.detector_term.DETECTOR_TERM_METHOD`,
     :data:`~bubsub.clients.pipeline.static.detector_term.CONTRAST_AGAIN`).
+
+    ``foam``: :data:`LOCAL_FOAMS`. ``reach``: the field-of-view radii beyond which ``prepare`` takes the foam into
+    the background (:data:`~bubsub.core.prep.background.FOAM_BEYOND_REACH` unless given; ``inf``: the liquid
+    alone).
 
     ``radius="given"`` passes the liquid cylinder's true radius to ``prepare`` (``liquid_radius``);
     ``radius="exact"`` reconstructs the prepared data with the liquid's exact projection as background and the
@@ -168,21 +195,24 @@ def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TER
         term by default), ``prepare_s``, ``reconstruct_s``; ``failed`` with the message where prepare stops.
     """
     out = Path(out)
-    s = _local_raw(out, seed)
+    s = _local_raw(out, seed, foam)
     t0 = time.perf_counter()
+    default_reach = bgmod.FOAM_BEYOND_REACH
+    bgmod.FOAM_BEYOND_REACH = default_reach if reach is None else reach
     try:
         report = prepare(out / "raw.h5", out / "scan.h5", prepare_options(
             roi="1:2,:", bin=2, delta_beta=1450, center="auto" if center == "auto" else s.axis_column,
             background="auto", liquid_radius=s.container_radius if radius == "given" else None), progress=False)
     except ValueError as exc:
         return {"failed": str(exc), "prepare_s": time.perf_counter() - t0}
+    finally:
+        bgmod.FOAM_BEYOND_REACH = default_reach
     t1 = time.perf_counter()
     step = next(x for x in report["steps"] if x["step"] == "center")
     scan = read_scan(out / "scan.h5")
     if radius == "exact":
-        offsets = detector_offsets(scan.geometry)
-        liquid = s.liquid_mu * 2 * np.sqrt(s.container_radius ** 2 - offsets ** 2)
-        scan = dataclasses.replace(scan, background=np.broadcast_to(liquid, scan.data.shape).astype(np.float32),
+        exact = sum(true_background(out, s, detector_offsets(scan.geometry), reach=reach))
+        scan = dataclasses.replace(scan, background=np.broadcast_to(exact, scan.data.shape).astype(np.float32),
                                    bubble_contrast=-s.liquid_mu)  # gas: no attenuation
     before = dtmod.DETECTOR_TERM_PASSES, dtmod.DETECTOR_TERM_METHOD, dtmod.CONTRAST_AGAIN
     dtmod.DETECTOR_TERM_PASSES, dtmod.DETECTOR_TERM_METHOD, dtmod.CONTRAST_AGAIN = passes, term, contrast_again
@@ -224,7 +254,7 @@ def local_axis_case(out, seed):
             "method": step["method"], "prepare_s": time.process_time() - t0}
 
 
-def local_background_case(out, seed):
+def local_background_case(out, seed, foam="standard"):
     """The local-tomography case's background alone, against the liquid's exact projection.
 
     The raw scan of :func:`local_case` prepared as there but with the true
@@ -248,28 +278,27 @@ def local_background_case(out, seed):
         offset leaves out).
     """
     out = Path(out)
-    s = _local_raw(out, seed)
+    s = _local_raw(out, seed, foam)
     prepare(out / "raw.h5", out / "scan.h5", prepare_options(
         roi="1:2,:", bin=2, delta_beta=1450, center=s.axis_column, background="none"), progress=False)
     scan = read_scan(out / "scan.h5")
     sino, geometry = scan.data, scan.geometry  # one row: 2D
     offsets = detector_offsets(geometry)
     r_true = s.container_radius
-    liquid = s.liquid_mu * 2 * np.sqrt(r_true ** 2 - offsets ** 2)
     axis = int(np.argmin(np.abs(offsets)))
+    r_fov = float(min(-offsets[0], offsets[-1]))
+    gas, r = truth_gas(out, s)
+    liquid, beyond_true = true_background(out, s, offsets, (gas, r))
+
+    def errors(err):
+        return {"axis_error": float(err[axis]), "shape_error": float(0.5 * (err[0] + err[-1]) - err[axis])}
+
     fits = {}
     for name, radius in (("fitted", None), ("given", r_true), ("given x0.95", 0.95 * r_true),
                          ("given x1.05", 1.05 * r_true)):
         bg, fit = chord_background(sino, geometry, radius=radius)
-        err = bg - liquid
-        fits[name] = {"fit": fit, "axis_error": float(err[axis]),
-                      "shape_error": float(0.5 * (err[0] + err[-1]) - err[axis])}
-    r_fov = float(min(-offsets[0], offsets[-1]))
-    pixels = 1200
-    extent = (-r_true, r_true, -r_true, r_true)
-    gas = label_image(read_polygons_json(out / "truth.json"), (pixels, pixels), extent) > 0
-    yy, xx = (np.mgrid[:pixels, :pixels] + 0.5) * (2 * r_true / pixels) - r_true
-    r = np.hypot(xx, yy)
+        fits[name] = {"fit": fit, **errors(bg - liquid),
+                      "with_foam_beyond": errors(bg + foam_beyond(fit, geometry) - liquid - beyond_true)}
     return {"true_radius_mm": r_true, "inner_gas_fraction": float(gas[r <= r_fov].mean()),
             "outer_gas_fraction": float(gas[(r > r_fov) & (r <= r_true)].mean()), "fits": fits}
 
@@ -354,16 +383,24 @@ def interior_scores(rec, truth, geometry, *, pixels=600):
             "ddi": float(dice_dissimilarity(r_lab[r <= r_int] > 0, t_lab[r <= r_int] > 0)), "reconstructed": len(rec)}
 
 
+def _case_dir(kind, args, seed):
+    """The folder of one case under ``args.out``: ``local3``, ``local-large3``, ``background3``..."""
+    foam = getattr(args, "local_foam", "standard")
+    return f"{kind}{seed}" if foam == "standard" else f"{kind}-{foam}{seed}"
+
+
 def print_local(args):
     """Print the table of :func:`local_case` for ``args.local`` (seeds), ``args.local_center``, ``args.out``."""
     print(f"| seed | centre | axis error (raw px) | contrast (1/mm): prepared, fitted | interior bubbles "
           f"| found (IoU >= 0.5) | spurious | DDI (interior) | prepare s | reconstruct s |")
     print("|---|---|---|---|---|---|---|---|---|---|", flush=True)
     for seed in args.local:
-        r = local_case(Path(args.out) / f"local{seed}", seed, center=args.local_center, radius=args.local_radius,
+        r = local_case(Path(args.out) / _case_dir("local", args, seed), seed, center=args.local_center,
+                       radius=args.local_radius,
                        passes=getattr(args, "local_passes", DETECTOR_TERM_PASSES),
                        term=getattr(args, "local_term", DETECTOR_TERM_METHOD),
-                       contrast_again=getattr(args, "local_contrast", "again") == "again")
+                       contrast_again=getattr(args, "local_contrast", "again") == "again",
+                       foam=getattr(args, "local_foam", "standard"), reach=getattr(args, "local_reach", None))
         if "failed" in r:
             print(f"| {seed} | {args.local_center} | prepare stopped: {r['failed']} | | | | | | "
                   f"{r['prepare_s']:.0f} | |", flush=True)
@@ -380,19 +417,24 @@ def print_local_background(args):
 
     One row per seed: the true gas fractions, then per radius (fitted, given, given 5 % small, 5 % large) the mean
     projection's residual (rms), the error at the axis and the shape error; the radius where fitted and the
-    outer gas fraction where given.
+    outer gas fraction where given; last, the axis and shape errors of the background that ``prepare`` writes (the
+    liquid and the foam beyond :data:`~bubsub.core.prep.background.FOAM_BEYOND_REACH` field-of-view radii) against
+    the liquid's exact projection and the true bubbles' mean projection beyond, the radius fitted and given.
     """
     print("| seed | true gas fraction inside / beyond | fitted: radius (mm), residual, axis, shape | given: gas "
-          "beyond, residual, axis, shape | given x0.95: residual, axis, shape | given x1.05: residual, axis, shape |")
-    print("|---|---|---|---|---|---|", flush=True)
+          "beyond, residual, axis, shape | given x0.95: residual, axis, shape | given x1.05: residual, axis, shape "
+          "| with the foam beyond, fitted: axis, shape | given: axis, shape |")
+    print("|---|---|---|---|---|---|---|---|", flush=True)
     for seed in args.local_background:
-        r = local_background_case(Path(args.out) / f"background{seed}", seed)
+        r = local_background_case(Path(args.out) / _case_dir("background", args, seed), seed,
+                                  getattr(args, "local_foam", "standard"))
         f = r["fits"]
         cell = lambda x: (f"{x['fit']['residual_rms']:.4f}, {x['axis_error']:+.4f}, {x['shape_error']:+.4f}")
+        whole = lambda x: f"{x['with_foam_beyond']['axis_error']:+.4f}, {x['with_foam_beyond']['shape_error']:+.4f}"
         print(f"| {seed} | {r['inner_gas_fraction']:.2f} / {r['outer_gas_fraction']:.2f} | "
               f"{f['fitted']['fit']['radius_mm']:.2f}, {cell(f['fitted'])} | "
               f"{f['given']['fit']['outer_gas_fraction']:.2f}, {cell(f['given'])} | {cell(f['given x0.95'])} | "
-              f"{cell(f['given x1.05'])} |", flush=True)
+              f"{cell(f['given x1.05'])} | {whole(f['fitted'])} | {whole(f['given'])} |", flush=True)
     return 0
 
 

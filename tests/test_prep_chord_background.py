@@ -114,30 +114,67 @@ def test_prepare_takes_the_liquids_radius_as_a_positive_length():
         prepare_options(liquid_radius=-1.0)
 
 
-def test_prepare_with_the_liquids_radius_given_on_a_raw_scan_of_a_foam_thinning_beyond_the_field_of_view(tmp_path):
-    # a simulated raw beamline scan (flats, darks, Fresnel propagation at 16 keV over 300 mm) of a liquid cylinder
-    # 1.5 times the field of view's radius, filled with bubbles out to its wall: its foam beyond the field of view
-    # holds less gas than inside, which a fitted radius takes for a wider cylinder
+@pytest.fixture(scope="module")
+def thinning_raw(tmp_path_factory):
+    """A simulated raw beamline scan (flats, darks, Fresnel propagation at 16 keV over 300 mm) of a liquid cylinder
+    1.5 times the field of view's radius, filled with bubbles out to its wall: its foam beyond the field of view
+    holds less gas than inside, which a fitted radius takes for a wider cylinder. ``(folder, settings)``."""
     from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
-    from bubsub.core.io.scanfile import read_scan
-    from bubsub.core.prep import prepare, prepare_options
 
+    out = tmp_path_factory.mktemp("thinning")
     c = {"cols": 128, "pixel_size": 0.024, "axis_offset": 2.3, "n_angles": 60, "rows": 2, "distance": 300.0}
     axis = c["cols"] / 2 - 0.5 + c["axis_offset"]
     fov = min(axis + 0.5, c["cols"] - 0.5 - axis) * c["pixel_size"]
     radius = 1.5 * fov
     s = raw_settings(seed=5, container_radius=radius, wall=0.0, wider_than_detector=True, supersample=2, **c)
-    write_raw_simulation(tmp_path, disc_foam(5, radius, n_bubbles=80, radius_range=(0.08 * fov, 0.15 * fov)), s)
+    write_raw_simulation(out, disc_foam(5, radius, n_bubbles=80, radius_range=(0.08 * fov, 0.15 * fov)), s)
+    return out, s
+
+
+def test_prepare_with_the_liquids_radius_given_on_a_raw_scan_of_a_foam_thinning_beyond_the_field_of_view(
+        thinning_raw, tmp_path):
+    from bubsub.bench.local_truth import true_background
+    from bubsub.core.io.scanfile import read_scan
+    from bubsub.core.prep import prepare, prepare_options
+
+    raw, s = thinning_raw
+    radius = s.container_radius
     errors = {}
     for given in (None, radius):
-        report = prepare(tmp_path / "raw.h5", tmp_path / "scan.h5", prepare_options(
+        report = prepare(raw / "raw.h5", tmp_path / "scan.h5", prepare_options(
             roi="1:2,:", delta_beta=1450, center=s.axis_column, background="auto", liquid_radius=given),
             progress=False)
         fit = next(x for x in report["steps"] if x["step"] == "background")["wider_than_detector"]
         scan = read_scan(tmp_path / "scan.h5")
         offsets = detector_offsets(scan.geometry)
-        liquid = s.liquid_mu * 2 * np.sqrt(radius ** 2 - offsets ** 2)  # the liquid's exact projection
-        errors[given] = np.abs(scan.background[0] - liquid).mean()
+        # the truth: the liquid's exact projection and the true bubbles' mean projection beyond the reach
+        truth = sum(true_background(raw, s, offsets))
+        errors[given] = np.abs(scan.background[0] - truth).mean()
     assert fit["radius_mm"] == pytest.approx(radius) and "radius given" in fit["method"]
+    assert "foam beyond" in fit["method"] and fit["foam_beyond_at_axis"] < 0  # gas: less than the liquid
     assert fit["outer_gas_fraction"] < fit["gas_fraction"] - 0.05  # 0.36 against 0.46
-    assert errors[radius] < 0.3 * errors[None]  # 0.026 against 0.113 (liquid's chord 0.44 at the axis)
+    assert errors[radius] < 0.5 * errors[None]  # 0.011 against 0.030 (liquid's chord 0.44 at the axis)
+
+
+def test_the_foam_beyond_the_reach_makes_the_background_nearly_independent_of_the_liquids_radius(thinning_raw,
+                                                                                                 tmp_path):
+    # the mean projection does not tell the liquid's radius from the outer foam's gas fraction: fitted, the radius
+    # comes out 25 % large; the liquid's profile then moves with it, the liquid and the foam beyond together far less
+    from bubsub.core.io.scanfile import read_scan
+    from bubsub.core.prep import prepare, prepare_options
+    from bubsub.core.prep.background import foam_beyond
+
+    raw, s = thinning_raw
+    prepare(raw / "raw.h5", tmp_path / "scan.h5", prepare_options(
+        roi="1:2,:", delta_beta=1450, center=s.axis_column, background="none"), progress=False)
+    scan = read_scan(tmp_path / "scan.h5")
+    (fitted, f1), (given, f2) = (chord_background(scan.data, scan.geometry, radius=x)
+                                 for x in (None, s.container_radius))
+    assert f1["radius_mm"] > 1.15 * s.container_radius
+    liquid = fitted - given
+    whole = fitted + foam_beyond(f1, scan.geometry) - given - foam_beyond(f2, scan.geometry)
+    assert abs(whole.mean()) < 0.3 * abs(liquid.mean())  # 0.019 against 0.087
+    assert whole.std() < 0.7 * liquid.std()  # the profile's shape: 0.0043 against 0.0080
+    with pytest.raises(ValueError, match="reach must exceed"):
+        foam_beyond(f1, scan.geometry, reach=1.0)
+    assert not foam_beyond(f2, scan.geometry, reach=3.0).any()  # the wall within 3 field-of-view radii: nothing beyond

@@ -37,7 +37,8 @@ from bubsub.core.projection.geometry import ScanGeometry
 from bubsub.core.voxel.astra2d import AstraProjector2D, reconstruct_2d
 
 __all__ = ["fbp_row", "row_geometry", "row_phases", "detector_offsets", "envelope_background", "radial_background", "reproject_background",
-           "liquid_and_gas", "noise_level", "sees_air", "chord_background", "NO_AIR_LEVEL"]
+           "liquid_and_gas", "noise_level", "sees_air", "chord_background", "foam_beyond", "FOAM_BEYOND_REACH",
+           "NO_AIR_LEVEL"]
 
 
 def noise_level(block):
@@ -399,3 +400,50 @@ def chord_background(sinogram, geometry, *, grid=256, max_angles=128, erode=2, r
                "gas_fraction": phi, "outer_gas_fraction": phi_o, "contrast": contrast,
                "residual_rms": float(np.sqrt(np.mean((m - model) ** 2)))}
     return (fit["liquid_attenuation"] * chord).astype(np.float32), fit
+
+
+#: Field-of-view radii beyond which :func:`foam_beyond` takes the foam into the background. The reconstruction
+#: fits bubbles out to 1.25 of them (``bubsub.clients.pipeline.inputs.fov.LOCAL_EXTEND``), and those cut by that
+#: circle reach a bubble further; from 1.25, the preview's seeds gained spurious bubbles on two of the 19 raw scans of
+#: ``python -m bubsub.bench fov --local`` measured (docs/prepare.md).
+FOAM_BEYOND_REACH = 1.5
+
+
+def foam_beyond(fit, geometry, reach=None):
+    """The mean projection over the angles of the foam beyond ``reach`` field-of-view radii, as
+    :func:`chord_background` models it: its gas fraction ``phi_o`` spread evenly out to the liquid's wall.
+
+    The reconstruction of a local-tomography scan fits the bubbles within and around the field of view; those
+    further out are each seen by a few projections only and are left to the fit's residual. Their mean over the
+    projections, ``C phi_o (c_R(s) - c_X(s))`` (``c_X`` the chord of the disc of ``reach`` field-of-view
+    radii), is the same in every projection, and left in the data it reads, in a reconstruction of the field of
+    view, as gas spread over the liquid (which is what the preview seeds the bubbles from). The mean projection
+    does not tell the liquid's radius from the outer foam's gas fraction (:func:`chord_background`): where the
+    fitted radius is too large, ``mu c_R`` is too high by what the too large outer foam here takes away again,
+    so the liquid and this together are what the data fix (:func:`bubsub.bench.fov_local.local_background_case`).
+
+    Parameters
+    ----------
+    fit : dict
+        :func:`chord_background`'s: ``radius_mm``, ``contrast``, ``outer_gas_fraction``.
+    geometry : ScanGeometry
+        2D parallel geometry of the row, axis at the origin.
+    reach : float, optional
+        Field-of-view radii from which the foam is taken (> 1; ``inf``: none); default
+        :data:`FOAM_BEYOND_REACH` (read at the call).
+
+    Returns
+    -------
+    (cols,) float32
+        0 where the liquid's wall lies within ``reach`` field-of-view radii.
+    """
+    reach = FOAM_BEYOND_REACH if reach is None else reach
+    if not reach > 1:
+        raise ValueError(f"reach must exceed the field of view's radius (1), got {reach!r}")
+    s = detector_offsets(geometry)
+    r_x = reach * float(min(-s[0], s[-1]))
+    radius = float(fit["radius_mm"])
+    if radius <= r_x:
+        return np.zeros(len(s), dtype=np.float32)
+    outer = 2 * np.sqrt(radius * radius - s * s) - 2 * np.sqrt(r_x * r_x - s * s)
+    return (fit["contrast"] * fit["outer_gas_fraction"] * outer).astype(np.float32)

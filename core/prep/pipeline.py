@@ -41,8 +41,10 @@ from tqdm.auto import tqdm
 from bubsub.core.contrast import contrast_sign_error, signal_masses
 from bubsub.core.io.atomic import atomic_path, atomic_write_text
 from bubsub.core.io.scanfile import create_scan_datasets, set_scan_attrs
-from bubsub.core.prep.background import (chord_background, envelope_background, noise_level, radial_background,
-                                         reproject_background, row_geometry, row_phases, sees_air)
+import bubsub.core.prep.background as backgrounds
+from bubsub.core.prep.background import (chord_background, detector_offsets, envelope_background,
+                                         foam_beyond, noise_level, radial_background, reproject_background,
+                                         row_geometry, row_phases, sees_air)
 from bubsub.core.prep.centre import (center_pair, center_seam, center_sharpest, center_sharpness, center_symmetry,
                                      center_vo, closest_pair)
 from bubsub.core.prep.flats import flat_model, minus_log, repair_pixels
@@ -512,6 +514,9 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
                     for r in range(block.shape[1]):
                         if mode == "auto" and not sees_air(block[:, r]):
                             bg[:, r], fit = chord_background(block[:, r], row_geom, radius=o.liquid_radius)
+                            beyond = foam_beyond(fit, row_geom)  # the foam the reconstruction leaves unmodelled
+                            bg[:, r] += beyond
+                            fit["foam_beyond_at_axis"] = float(beyond[np.argmin(np.abs(detector_offsets(row_geom)))])
                             fit["drift_range"] = drift_offsets(block[:, r], bg[:, r])
                             chords.append(fit)
                             stored = False
@@ -539,7 +544,9 @@ def _pass2(f, data_ds, bg_ds, geometry, o, steps, progress):
         if chords:
             entry["wider_than_detector"] = {
                 "rows": len(chords), "method": "liquid cylinder's chord profile fitted (chord_background)" + (
-                    ", its radius given (--liquid-radius)" if o.liquid_radius else ""),
+                    ", its radius given (--liquid-radius)" if o.liquid_radius else "") + (
+                    f", with the mean projection of the foam beyond {backgrounds.FOAM_BEYOND_REACH} field-of-view "
+                    "radii (foam_beyond)"),
                 **{k: float(np.median([c[k] for c in chords])) for k in chords[0]}}
         if liquids:
             entry["liquid_attenuation_per_mm"] = float(np.median(liquids))

@@ -18,9 +18,11 @@ clock, the report so far) with its options as keywords:
    the detector, refitted with the detector's view-constant term eliminated
    and the contrast estimated again without it (:mod:`.detector_term`); then
    :func:`prune`.
-4. :func:`topology_phase` (:mod:`.topology`), :func:`repair_phase` (the
-   validity check and repair, :mod:`.repair`), each refitting only the
-   bubbles it changed on detector windows (:mod:`.local`);
+4. :func:`topology_phase` (:mod:`.topology`; for a foam wider than the
+   detector, the bubbles it added then refitted with their neighbours and the
+   term eliminated, :func:`~.detector_term.added_bubbles_phase`),
+   :func:`repair_phase` (the validity check and repair, :mod:`.repair`), each
+   refitting only the bubbles it changed on detector windows (:mod:`.local`);
    :func:`refine_phase`: one coarse-to-fine step in the control meshes, kept
    when it explains the data better (:mod:`.refine`), and its check and
    repair; :func:`edge_phase`: slivers at the detector's edge;
@@ -53,7 +55,7 @@ from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.optimise.separation import separation_penalty, separation_weight
 from bubsub.clients.pipeline.inputs.checks import check_bubble_signal, check_setting_values, check_settings
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, inside_fov, size_inside_fov, unobserved_control
-from bubsub.clients.pipeline.static.detector_term import detector_term_phase
+from bubsub.clients.pipeline.static.detector_term import added_bubbles_phase, detector_term_phase
 from bubsub.clients.pipeline.static.initial import default_detector
 from bubsub.clients.pipeline.regions.local import scene_objective
 from bubsub.clients.pipeline.phase_report import PhaseClock, REMOTE_PHASES, merged_projector_report, projector_report
@@ -215,6 +217,10 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signa
                               enabled=not interrupted, iterations=s.iterations, levels=s.levels,
                               facet_pixels=s.facet_pixels, voxel_size=s.voxel_size, method=s.preview,
                               fov_model=s.fov_model, penalty=penalty, progress=s.progress)
+        if run.report["topology"]:  # local tomography: what the rounds added, refitted with the term eliminated
+            kept, step = added_bubbles_phase(run, kept, run.report["topology"]["changes"], iterations=s.iterations,
+                                             penalty=penalty, progress=s.progress)
+            term = term + step
         repair = partial(check_and_repair, projector=run.projector, data=run.data, repair=s.repair and not interrupted,
                          iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
         will_refine = s.refine and init is None and not interrupted

@@ -404,8 +404,8 @@ def chord_background(sinogram, geometry, *, grid=256, max_angles=128, erode=2, r
 
 #: Field-of-view radii beyond which :func:`foam_beyond` takes the foam into the background. The reconstruction
 #: fits bubbles out to 1.25 of them (``bubsub.clients.pipeline.inputs.fov.LOCAL_EXTEND``), and those cut by that
-#: circle reach a bubble further; from 1.25, the preview's seeds gained spurious bubbles on two of the 19 raw scans of
-#: ``python -m bubsub.bench fov --local`` measured (docs/prepare.md).
+#: circle reach a bubble further: from 1.25, seeds 11 and 56 of ``python -m bubsub.bench fov --local`` gained 2 and
+#: 4 spurious bubbles, and the wider foam's DDI rose on three of four seeds (docs/prepare.md, ``--local-reach``).
 FOAM_BEYOND_REACH = 1.5
 
 

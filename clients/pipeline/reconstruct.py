@@ -217,6 +217,7 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signa
                               enabled=not interrupted, iterations=s.iterations, levels=s.levels,
                               facet_pixels=s.facet_pixels, voxel_size=s.voxel_size, method=s.preview,
                               fov_model=s.fov_model, penalty=penalty, progress=s.progress)
+        step = 0.0
         if run.report["topology"]:  # local tomography: what the rounds added, refitted with the term eliminated
             kept, step = added_bubbles_phase(run, kept, run.report["topology"]["changes"], iterations=s.iterations,
                                              penalty=penalty, progress=s.progress)
@@ -225,7 +226,8 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signa
                          iterations=s.repair_iterations, gap=0.25 * voxel, penalty=penalty)
         will_refine = s.refine and init is None and not interrupted
         # the coarse bubbles' data term before the repair: the refinement's trial discounts the repair's rise in it
-        topology = run.report["topology"]  # its final objective is the scene's when the rounds ran
+        # the rounds' final objective is the scene's when they ran and the added bubbles' refit changed nothing
+        topology = run.report["topology"] if np.isscalar(step) else None
         reached = (topology["objective"] if topology else scene_objective(run.projector, kept, run.data)) \
             if will_refine and kept else None
         kept = repair_phase(run, kept, repair)

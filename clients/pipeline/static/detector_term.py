@@ -58,6 +58,7 @@ import numpy as np
 
 from bubsub.clients.optimise.fit import fit
 from bubsub.clients.pipeline.inputs.fov import local_tomography
+from bubsub.clients.pipeline.regions.local import scene_residual
 from bubsub.core.prep.background import row_geometry, row_phases
 
 __all__ = ["DETECTOR_TERM_METHOD", "DETECTOR_TERM_PASSES", "FIRST_STEP", "TERM_METHODS", "CONTRAST_AGAIN",
@@ -175,6 +176,15 @@ def term_free_contrast(data, geometry):
     except ValueError:
         return None
     return gas - liquid
+
+
+def _view_mean_free(projector, surfaces, data):
+    """``0.5 ||(I - M)(P(x) - d)||^2`` (:class:`ViewMeanFree`'s objective, without its gradient) and the term
+    ``t(x) = mean_v (d - P(x))`` (:func:`view_constant_residual`'s, float32), from one projection."""
+    residual = scene_residual(projector, surfaces, data)
+    term = -residual.mean(axis=0)
+    residual += term[None]
+    return 0.5 * float(np.vdot(residual, residual)), term.astype(np.float32)
 
 
 def _rms(a):
@@ -343,22 +353,17 @@ def added_bubbles_phase(run, surfaces, changes, *, iterations, penalty=None, pro
     reach = NEIGHBOUR_REACH * float(np.median(radii))
     ids = sorted({j for k in new for j in range(len(surfaces))
                   if np.linalg.norm(centres[j] - centres[k]) < radii[j] + radii[k] + reach})
-    free = ViewMeanFree(run.projector)
-    others = [x for j, x in enumerate(surfaces) if j not in ids]
-    rest = np.asarray(run.data, dtype=np.float64)
-    if others:
-        rest = rest - np.asarray(run.projector.forward(others), dtype=np.float64)
-    rest = rest.astype(run.data.dtype)
-    before = free.objective(surfaces, run.data)[0]
-    result = fit(free, [surfaces[j] for j in ids], rest, iterations=iterations, penalty=penalty, progress=progress,
+    rest = -scene_residual(run.projector, [x for j, x in enumerate(surfaces) if j not in ids], run.data)
+    before, _ = _view_mean_free(run.projector, surfaces, run.data)
+    result = fit(ViewMeanFree(run.projector), [surfaces[j] for j in ids], rest.astype(run.data.dtype),
+                 iterations=iterations, penalty=penalty, progress=progress,
                  label="refit of the added bubbles, term eliminated")
     out = list(surfaces)
     for j, x in zip(ids, result.surfaces):
         out[j] = x
-    after = free.objective(out, run.data)[0]
+    after, step = _view_mean_free(run.projector, out, run.data)
     if not after < before:
         return surfaces, 0.0
-    step = view_constant_residual(run.projector, out, run.data)
     run.data = (run.data - step[None]).astype(run.data.dtype)
     entry["after_topology"] = {"refitted": len(ids), "added": len(new), "objective_before": float(before),
                                "objective_after": float(after), "term_step_rms": _rms(step)}

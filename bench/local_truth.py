@@ -39,11 +39,10 @@ def true_background(out, s, offsets, truth=None, reach=None):
 
 
 def mean_projection_beyond(gas, r, r_from, r_to, contrast, offsets):
-    """The mean over the angles of the projection of ``contrast`` times the ``gas`` raster (a disc's square
-    grid, ``r`` its pixels' distances from the axis) between ``r_from`` and ``r_to`` (mm), at the detector
-    ``offsets``: the Abel transform of the raster's ring means."""
-    step = float(r[0, 1] - r[0, 0]) if r.shape[1] > 1 else r_to
-    step = abs(step) or r_to / 600
+    """The mean over the angles of the projection of ``contrast`` times the ``gas`` raster (:func:`truth_gas`'s
+    square grid over the disc of radius ``r_to``, ``r`` its pixels' distances from the axis) between ``r_from`` and
+    ``r_to`` (mm), at the detector ``offsets``: the Abel transform of the raster's ring means, rings a pixel wide."""
+    step = 2 * r_to / gas.shape[-1]
     edges = np.arange(r_from, r_to + step, step)
     ring = np.digitize(r, edges) - 1
     inside = (ring >= 0) & (ring < len(edges) - 1)

@@ -246,12 +246,9 @@ def test_the_elimination_keeps_the_start_of_the_lower_objective(good):
     assert entry["starts"][good]["objective"] < 0.5 * entry["starts"][other]["objective"]
 
 
-def test_a_bubble_the_topology_adds_is_refitted_with_the_term_eliminated():
-    # the term was taken before the bubble nearest the axis was found, so it holds that bubble's view-mean; added
-    # small (as the topology rounds add it), fitted against the data less that term it stays small, refitted with
-    # the term eliminated it takes its size
-    from bubsub.clients.pipeline.static.detector_term import added_bubbles_phase
-
+def _added_near_the_axis():
+    """A local-tomography scan with column errors, its term taken without the bubble nearest the axis, and that
+    bubble added at 0.4 of its radius: ``(projector, data, term, others, small, centre, radius)``."""
     g, data, bubbles = _scan(1.5)
     seeds = _round_seeds(bubbles)
     near = int(np.argmin([np.hypot(*np.asarray(b.vertices).mean(axis=0)) for b in bubbles]))
@@ -260,7 +257,16 @@ def test_a_bubble_the_topology_adds_is_refitted_with_the_term_eliminated():
     projector = MeshProjector(g)
     data = (data + _column_error(g.det_count)[None]).astype(np.float32)
     term = view_constant_residual(projector, others, data)
-    small = circle_surface(centre, 0.4 * radius, C)
+    return projector, data, term, others, circle_surface(centre, 0.4 * radius, C), centre, radius
+
+
+def test_a_bubble_the_topology_adds_is_refitted_with_the_term_eliminated():
+    # the term was taken before the bubble nearest the axis was found, so it holds that bubble's view-mean; added
+    # small (as the topology rounds add it), fitted against the data less that term it stays small, refitted with
+    # the term eliminated it takes its size
+    from bubsub.clients.pipeline.static.detector_term import added_bubbles_phase
+
+    projector, data, term, others, small, centre, radius = _added_near_the_axis()
     run = SimpleNamespace(projector=projector, data=(data - term[None]).astype(np.float32),
                           report={"detector_term": {"passes": 1}})
     plain = fit_bubbles(projector, others + [small], run.data, iterations=60, progress=False).surfaces
@@ -279,3 +285,31 @@ def test_a_bubble_the_topology_adds_is_refitted_with_the_term_eliminated():
         same, none = added_bubbles_phase(run, others + [small], [{"change": change, "centre": centre.tolist()}],
                                          iterations=60)
         assert same[-1] is small and none == 0.0 and run.data is data
+
+
+def test_ctrl_c_in_the_added_bubbles_refit_reaches_the_pipeline_with_the_data_untouched():
+    # the pipeline catches KeyboardInterrupt around its later phases and reports the bubbles as they were; a refit
+    # that swallowed it would go on to the repair and the refinement as if nothing had been asked
+    from bubsub.clients.pipeline.static.detector_term import added_bubbles_phase
+
+    projector, data, term, others, small, centre, _ = _added_near_the_axis()
+
+    class Interrupted:
+        """The projector, until its third objective: Ctrl-C."""
+        def __init__(self, inner):
+            self.inner, self.calls = inner, 0
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def objective(self, *args, **kwargs):
+            self.calls += 1
+            if self.calls > 2:
+                raise KeyboardInterrupt
+            return self.inner.objective(*args, **kwargs)
+
+    held = (data - term[None]).astype(np.float32)
+    run = SimpleNamespace(projector=Interrupted(projector), data=held, report={"detector_term": {"passes": 1}})
+    with pytest.raises(KeyboardInterrupt):
+        added_bubbles_phase(run, others + [small], [{"change": "add", "centre": centre.tolist()}], iterations=60)
+    assert run.projector.calls == 3 and run.data is held and "after_topology" not in run.report["detector_term"]

@@ -356,8 +356,8 @@ def added_bubbles_phase(run, surfaces, changes, *, iterations, penalty=None, pro
     rest = -scene_residual(run.projector, [x for j, x in enumerate(surfaces) if j not in ids], run.data)
     before, _ = _view_mean_free(run.projector, surfaces, run.data)
     result = fit(ViewMeanFree(run.projector), [surfaces[j] for j in ids], rest.astype(run.data.dtype),
-                 iterations=iterations, penalty=penalty, progress=progress,
-                 label="refit of the added bubbles, term eliminated")
+                 iterations=iterations, penalty=penalty, progress=progress, catch_interrupt=False,
+                 label="refit of the added bubbles, term eliminated")  # Ctrl-C: the pipeline reports the bubbles
     out = list(surfaces)
     for j, x in zip(ids, result.surfaces):
         out[j] = x

@@ -37,7 +37,8 @@ The local-tomography cases (``--local``, ``--local-ideal``, ``--inside``):
 :mod:`bubsub.bench.fov_local`.
 
 ``python -m bubsub.bench fov --local 0 1 2 [--local-center auto|given] [--local-radius fitted|given|exact]
-[--local-passes N] [--local-term eliminated|alternated] [--local-contrast again|prepared] [--out DIR]``
+[--local-passes N] [--local-term eliminated|alternated] [--local-contrast again|prepared]
+[--local-final-refit on|off] [--local-double-flat auto|on|off] [--out DIR]``
 
 ``python -m bubsub.bench fov --local-background 0 1 2 3 4 5 6 7 [--out DIR]``
 
@@ -290,6 +291,12 @@ def main(argv=None):
     loc.add_argument("--local-contrast", choices=["again", "prepared"], default="again",
                      help="with --local: the contrast estimated again once the detector term is out (default), "
                           "or the prepared one kept")
+    loc.add_argument("--local-final-refit", choices=["on", "off"], default="on",
+                     help="with --local: every bubble refitted last with the detector term eliminated (default on; "
+                          "clients/pipeline/static/detector_term.py FINAL_REFIT)")
+    loc.add_argument("--local-double-flat", choices=["auto", "on", "off"], default="auto",
+                     help="with --local and --local-background: prepare's --double-flat (default auto: the pixel "
+                          "gains that the flats do not show divided out before phase retrieval)")
     loc.add_argument("--local-foam", choices=sorted(LOCAL_FOAMS), default="standard",
                      help="with --local and --local-background: the simulated foam (bench/fov_local.py LOCAL_FOAMS: "
                           "standard, large bubbles, small bubbles, a liquid twice the field of view)")

@@ -18,7 +18,9 @@ the axis error.
 
 ``--local-passes N`` sets the refits of the detector's view-constant term (0: none), ``--local-term
 eliminated|alternated`` how it is fitted, and ``--local-contrast prepared`` keeps the prepared contrast where the
-default estimates it again once the term is out (:mod:`bubsub.clients.pipeline.static.detector_term`).
+default estimates it again once the term is out, ``--local-final-refit off`` leaves out the last refit of every
+bubble with the term eliminated (:mod:`bubsub.clients.pipeline.static.detector_term`), ``--local-double-flat off``
+prepares without dividing out the pixel gains that the flats do not show (:mod:`bubsub.core.prep.gains`).
 
 ``--local-foam large|small|wide`` varies the foam (:data:`LOCAL_FOAMS`: bubbles of 0.15-0.25 of the field of
 view's radius, of 0.05-0.09, or the liquid twice the field of view's radius, as densely filled).
@@ -71,7 +73,8 @@ from bubsub.clients.pipeline.inputs.fov import field_of_view
 from bubsub.clients.pipeline.results.outputs import write_outputs
 from bubsub.clients.pipeline.reconstruct import ReconstructionSettings, reconstruct
 from bubsub.clients.pipeline.static import detector_term as dtmod
-from bubsub.clients.pipeline.static.detector_term import CONTRAST_AGAIN, DETECTOR_TERM_METHOD, DETECTOR_TERM_PASSES
+from bubsub.clients.pipeline.static.detector_term import (CONTRAST_AGAIN, DETECTOR_TERM_METHOD, DETECTOR_TERM_PASSES,
+                                                          FINAL_REFIT)
 from bubsub.core import MeshProjector
 from bubsub.core.foam.raw import disc_foam, raw_settings, write_raw_simulation
 from bubsub.core.io.meshio import read_polygons_json
@@ -148,7 +151,7 @@ def inside_case(out, seed):
 #: The foams of the local-tomography case (``--local-foam``): the bubbles' mean radii as fractions of the field of
 #: view's radius, the bubbles placed in the liquid's bounding square (those not wholly inside the liquid dropped),
 #: and the liquid cylinder's radius over the field of view's. ``standard`` is the case of the module docstring;
-#: ``large`` (a coarsened foam, a few bubbles across the field of view), ``small`` (bubbles of 1.5-3 binned pixels'
+#: ``large`` (a coarsened foam, a few bubbles across the field of view), ``small`` (bubbles of 3-5.5 binned pixels'
 #: radius) and ``wide`` (the liquid twice the field of view, as densely filled) vary it.
 LOCAL_FOAMS = {"standard": ((0.08, 0.15), 80, 1.5), "large": ((0.15, 0.25), 30, 1.5),
                "small": ((0.05, 0.09), 220, 1.5), "wide": ((0.08, 0.15), 142, 2.0)}
@@ -170,14 +173,17 @@ def _local_raw(out, seed, foam="standard"):
 
 
 def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TERM_PASSES, term=DETECTOR_TERM_METHOD,
-               contrast_again=CONTRAST_AGAIN, foam="standard", reach=None):
+               contrast_again=CONTRAST_AGAIN, foam="standard", reach=None, final_refit=FINAL_REFIT, double_flat="auto"):
     """Simulate, prepare, reconstruct and score one local-tomography scan (see the module docstring).
 
-    ``passes``, ``term`` and ``contrast_again``: the refits of the detector's view-constant term, how it is
-    fitted, and whether the contrast is estimated again without it
-    (:data:`~bubsub.clients.pipeline.static.detector_term.DETECTOR_TERM_PASSES`, 0: none;
+    ``passes``, ``term``, ``contrast_again`` and ``final_refit``: the refits of the detector's view-constant term,
+    how it is fitted, whether the contrast is estimated again without it, and whether every bubble is refitted
+    with it eliminated last (:data:`~bubsub.clients.pipeline.static.detector_term.DETECTOR_TERM_PASSES`, 0: none;
     :data:`~bubsub.clients.pipeline.static.detector_term.DETECTOR_TERM_METHOD`,
-    :data:`~bubsub.clients.pipeline.static.detector_term.CONTRAST_AGAIN`).
+    :data:`~bubsub.clients.pipeline.static.detector_term.CONTRAST_AGAIN`,
+    :data:`~bubsub.clients.pipeline.static.detector_term.FINAL_REFIT`).
+
+    ``double_flat``: ``prepare``'s (``auto``, ``on``, ``off``; :mod:`bubsub.core.prep.gains`).
 
     ``foam``: :data:`LOCAL_FOAMS`. ``reach``: the field-of-view radii beyond which ``prepare`` takes the foam into
     the background (:data:`~bubsub.core.prep.background.FOAM_BEYOND_REACH` unless given; ``inf``: the liquid
@@ -202,7 +208,8 @@ def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TER
     try:
         report = prepare(out / "raw.h5", out / "scan.h5", prepare_options(
             roi="1:2,:", bin=2, delta_beta=1450, center="auto" if center == "auto" else s.axis_column,
-            background="auto", liquid_radius=s.container_radius if radius == "given" else None), progress=False)
+            background="auto", liquid_radius=s.container_radius if radius == "given" else None,
+            double_flat=double_flat), progress=False)
     except ValueError as exc:
         return {"failed": str(exc), "prepare_s": time.perf_counter() - t0}
     finally:
@@ -214,12 +221,15 @@ def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TER
         exact = sum(true_background(out, s, detector_offsets(scan.geometry), reach=reach))
         scan = dataclasses.replace(scan, background=np.broadcast_to(exact, scan.data.shape).astype(np.float32),
                                    bubble_contrast=-s.liquid_mu)  # gas: no attenuation
-    before = dtmod.DETECTOR_TERM_PASSES, dtmod.DETECTOR_TERM_METHOD, dtmod.CONTRAST_AGAIN
-    dtmod.DETECTOR_TERM_PASSES, dtmod.DETECTOR_TERM_METHOD, dtmod.CONTRAST_AGAIN = passes, term, contrast_again
+    names = ("DETECTOR_TERM_PASSES", "DETECTOR_TERM_METHOD", "CONTRAST_AGAIN", "FINAL_REFIT")
+    before = [getattr(dtmod, name) for name in names]
+    for name, value in zip(names, (passes, term, contrast_again, final_refit)):
+        setattr(dtmod, name, value)
     try:
         rec = reconstruct(scan, ReconstructionSettings(progress=False))
     finally:
-        dtmod.DETECTOR_TERM_PASSES, dtmod.DETECTOR_TERM_METHOD, dtmod.CONTRAST_AGAIN = before
+        for name, value in zip(names, before):
+            setattr(dtmod, name, value)
     t2 = time.perf_counter()
     scores = interior_scores([x.fine() for x in rec.surfaces], read_polygons_json(out / "truth.json"), scan.geometry)
     contrast = scan.bubble_contrast  # prepare's estimate, or the truth with radius="exact"
@@ -254,7 +264,7 @@ def local_axis_case(out, seed):
             "method": step["method"], "prepare_s": time.process_time() - t0}
 
 
-def local_background_case(out, seed, foam="standard"):
+def local_background_case(out, seed, foam="standard", double_flat="auto"):
     """The local-tomography case's background alone, against the liquid's exact projection.
 
     The raw scan of :func:`local_case` prepared as there but with the true
@@ -263,6 +273,7 @@ def local_background_case(out, seed, foam="standard"):
     :func:`bubsub.core.prep.background.chord_background` run on it with the
     liquid's radius fitted, given, and given 5 % small or large; each
     against the liquid's exact projection ``mu 2 sqrt(R^2 - s^2)``.
+    ``double_flat``: ``prepare``'s.
 
     Returns
     -------
@@ -280,7 +291,8 @@ def local_background_case(out, seed, foam="standard"):
     out = Path(out)
     s = _local_raw(out, seed, foam)
     prepare(out / "raw.h5", out / "scan.h5", prepare_options(
-        roi="1:2,:", bin=2, delta_beta=1450, center=s.axis_column, background="none"), progress=False)
+        roi="1:2,:", bin=2, delta_beta=1450, center=s.axis_column, background="none", double_flat=double_flat),
+        progress=False)
     scan = read_scan(out / "scan.h5")
     sino, geometry = scan.data, scan.geometry  # one row: 2D
     offsets = detector_offsets(geometry)
@@ -400,7 +412,9 @@ def print_local(args):
                        passes=getattr(args, "local_passes", DETECTOR_TERM_PASSES),
                        term=getattr(args, "local_term", DETECTOR_TERM_METHOD),
                        contrast_again=getattr(args, "local_contrast", "again") == "again",
-                       foam=getattr(args, "local_foam", "standard"), reach=getattr(args, "local_reach", None))
+                       foam=getattr(args, "local_foam", "standard"), reach=getattr(args, "local_reach", None),
+                       final_refit=getattr(args, "local_final_refit", "on") == "on",
+                       double_flat=getattr(args, "local_double_flat", "auto"))
         if "failed" in r:
             print(f"| {seed} | {args.local_center} | prepare stopped: {r['failed']} | | | | | | "
                   f"{r['prepare_s']:.0f} | |", flush=True)
@@ -427,7 +441,7 @@ def print_local_background(args):
     print("|---|---|---|---|---|---|---|---|", flush=True)
     for seed in args.local_background:
         r = local_background_case(Path(args.out) / _case_dir("background", args, seed), seed,
-                                  getattr(args, "local_foam", "standard"))
+                                  getattr(args, "local_foam", "standard"), getattr(args, "local_double_flat", "auto"))
         f = r["fits"]
         cell = lambda x: (f"{x['fit']['residual_rms']:.4f}, {x['axis_error']:+.4f}, {x['shape_error']:+.4f}")
         whole = lambda x: f"{x['with_foam_beyond']['axis_error']:+.4f}, {x['with_foam_beyond']['shape_error']:+.4f}"

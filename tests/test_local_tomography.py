@@ -151,6 +151,8 @@ def test_prepare_finds_the_liquid_of_a_sample_wider_than_the_detector(prepared):
 
     out, steps, s, radius = prepared
     assert steps["phase_margin"]["cols_each_side"] > 0
+    # no air at the sides, phase retrieval: the pixel gains the flats do not show divided out (--double-flat auto)
+    assert 0 < steps["double_flat_field"]["log_gain_rms"] < steps["double_flat_field"]["log_gain_largest"] < 0.5
     fit = steps["background"]["wider_than_detector"]
     assert fit["radius_mm"] == pytest.approx(radius, rel=0.08)
     scan = read_scan(out / "scan.h5")

@@ -51,7 +51,8 @@ def cmd_prepare(args):
     background = args.background
     options = prepare_options(
         flat=args.flat, no_flat=args.no_flat, flats_before=args.flats_before, repair_pixels=not args.no_repair,
-        stripes=args.stripes, delta_beta=args.delta_beta, energy=args.energy, distance=args.distance,
+        stripes=args.stripes, double_flat=args.double_flat, delta_beta=args.delta_beta, energy=args.energy,
+        distance=args.distance,
         pixel_size=args.pixel_size, roi=args.roi, bin=args.bin, projections=args.projections, center=args.center,
         crop_to_axis=not args.no_crop_to_axis, background=background, foam_radius=args.foam_radius,
         liquid_radius=args.liquid_radius,
@@ -94,6 +95,9 @@ def register(sub):
     g.add_argument("--no-repair", action="store_true", help="keep dead/hot pixels as they are")
     g.add_argument("--stripes", choices=("none", "sort", "all"), default="none",
                    help="stripe/ring removal with algotom (default none)")
+    g.add_argument("--double-flat", choices=("auto", "on", "off"), default="auto",
+                   help="divide out the pixel gains the flats do not show, from the mean of the projections, before "
+                        "phase retrieval (default auto: on a sample wider than the detector with --delta-beta)")
     g = p.add_argument_group("phase retrieval")
     g.add_argument("--delta-beta", type=positive_float, help="Paganin phase retrieval with this delta/beta")
     g.add_argument("--energy", type=_quantity("energy", "--energy"), help="photon energy (default keV: 16 or 16keV)")

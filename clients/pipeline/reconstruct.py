@@ -25,7 +25,9 @@ clock, the report so far) with its options as keywords:
    refitting only the bubbles it changed on detector windows (:mod:`.local`);
    :func:`refine_phase`: one coarse-to-fine step in the control meshes, kept
    when it explains the data better (:mod:`.refine`), and its check and
-   repair; :func:`edge_phase`: slivers at the detector's edge;
+   repair; for a foam wider than the detector, every bubble refitted with the
+   term eliminated and checked again (:func:`~.detector_term.final_refit_phase`);
+   :func:`edge_phase`: slivers at the detector's edge;
    :func:`holdout_phase` with ``--holdout``. A tall parallel-beam scan is
    reconstructed slab by slab of detector rows (:mod:`.slabs`).
 5. Outputs, each written atomically: ``bubbles.ply`` (3D) or ``bubbles.json``
@@ -55,7 +57,7 @@ from bubsub.clients.optimise.levels import bin_factors, fit_levels
 from bubsub.clients.optimise.separation import separation_penalty, separation_weight
 from bubsub.clients.pipeline.inputs.checks import check_bubble_signal, check_setting_values, check_settings
 from bubsub.clients.pipeline.inputs.fov import field_of_view, fov_report, inside_fov, size_inside_fov, unobserved_control
-from bubsub.clients.pipeline.static.detector_term import added_bubbles_phase, detector_term_phase
+from bubsub.clients.pipeline.static.detector_term import added_bubbles_phase, detector_term_phase, final_refit_phase
 from bubsub.clients.pipeline.static.initial import default_detector
 from bubsub.clients.pipeline.regions.local import scene_objective
 from bubsub.clients.pipeline.phase_report import PhaseClock, REMOTE_PHASES, merged_projector_report, projector_report
@@ -234,6 +236,10 @@ def reconstruct(scan, settings=None, *, init=None, projector_factory=None, signa
         kept = refine_phase(run, kept, repair, enabled=will_refine, iterations=s.refine_iterations, penalty=penalty,
                             progress=s.progress, rtol=s.fit_rtol, coarse_rate=coarse_rate(fit.history),
                             reached=reached)
+        if not interrupted:  # local tomography: all bubbles refitted with the term eliminated, checked again
+            kept, step = final_refit_phase(run, kept, repair, iterations=s.iterations, penalty=penalty,
+                                           progress=s.progress)
+            term = term + step
         kept = edge_phase(run, kept, min_radius=voxel)
     except KeyboardInterrupt:  # in the topology rounds, the repair or the refinement: report the bubbles as they were
         interrupted = True

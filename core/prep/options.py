@@ -18,13 +18,16 @@ import numpy as np
 from bubsub.core.validate import check_int
 
 __all__ = ["PrepareOptions", "prepare_options", "parse_roi", "parse_projections", "check_against_raw",
-           "FLAT_MODES", "STRIPE_METHODS", "CENTER_METHODS", "parse_quantity"]
+           "FLAT_MODES", "STRIPE_METHODS", "DOUBLE_FLAT", "CENTER_METHODS", "parse_quantity"]
 
 #: Flat-field choices: the mean of all flats, linear interpolation in time between the flats
 #: taken before and after the scan, or the best-matching flat (group mean) per projection.
 FLAT_MODES = ("mean", "interp", "best")
 #: Stripe/ring removal (algotom): sorting-based, or algotom's combined "all stripes" method.
 STRIPE_METHODS = ("none", "sort", "all")
+#: Pixel gains the flats do not show, from the mean of the projections, divided out before phase retrieval
+#: (:mod:`bubsub.core.prep.gains`): ``auto`` on a sample wider than the detector with phase retrieval.
+DOUBLE_FLAT = ("auto", "on", "off")
 #: Rotation-centre search: Vo's Fourier method (algotom) on the middle sinogram, or the 0/180-degree pair.
 CENTER_METHODS = ("auto", "vo", "pair", "none")
 
@@ -48,6 +51,7 @@ class PrepareOptions:
     flats_before: int | None = None
     repair_pixels: bool = True
     stripes: str = "none"
+    double_flat: str = "auto"
     delta_beta: float | None = None
     energy: float | None = None
     distance: float | None = None
@@ -163,6 +167,8 @@ def prepare_options(**kw):
         raise ValueError(f"flat must be one of {FLAT_MODES}, got {o['flat']!r}")
     if o.get("stripes", "none") not in STRIPE_METHODS:
         raise ValueError(f"stripes must be one of {STRIPE_METHODS}, got {o['stripes']!r}")
+    if o.get("double_flat", "auto") not in DOUBLE_FLAT:
+        raise ValueError(f"double_flat must be one of {DOUBLE_FLAT}, got {o['double_flat']!r}")
     for name in ("delta_beta", "energy", "distance", "pixel_size", "foam_radius", "liquid_radius", "source_origin",
                  "origin_detector"):
         if name in o:

@@ -48,6 +48,7 @@ from bubsub.core.prep.background import (chord_background, detector_offsets, env
 from bubsub.core.prep.centre import (center_pair, center_seam, center_sharpest, center_sharpness, center_symmetry,
                                      center_vo, closest_pair)
 from bubsub.core.prep.flats import flat_model, minus_log, repair_pixels
+from bubsub.core.prep.gains import GAIN_MEDIAN_COLUMNS, stripe_gains
 from bubsub.core.prep.offsets import air_offsets, drift_offsets
 from bubsub.core.prep.options import check_against_raw, prepare_options
 from bubsub.core.prep.phase import paganin_filter, wavelength_mm
@@ -201,6 +202,9 @@ def prepare(raw, out, options=None, *, progress=True):
     nrows = rows[1] - rows[0]
     k = o.bin
     margin = _phase_margin(o, src, fm, rows, read_cols, index, pixel, phase, width, steps)
+    per = max(1, int(o.slab_mb * 1e6 // (nrows * width * 4 * 6)))  # projections a slab: it and its working copies
+    gains = _double_flat(o, src, fm, rows, read_cols, index, per, phase_margin=margin, steps=steps,
+                         progress=progress)
     out_rows, out_cols = max(1, nrows // k), (width - 2 * margin) // k
     two_d = out_rows == 1
     axis_out = None if axis is None else (axis - c_lo - margin + 0.5) / k - 0.5
@@ -217,14 +221,9 @@ def prepare(raw, out, options=None, *, progress=True):
         with h5py.File(tmp, "w") as f:
             chunks = (min(index.size, 16), out_cols) if two_d else (min(index.size, 16), min(out_rows, 8), out_cols)
             data_ds, bg_ds = create_scan_datasets(f, geometry, theta, background=bg_mode != "none", chunks=chunks)
-            per_proj = nrows * width * 4 * 6  # the slab and its working copies, bytes
-            per = max(1, int(o.slab_mb * 1e6 // per_proj))
-            step = o.projections[2]
             with _bar(index.size, "pass 1: flats, phase, -log", progress) as bar:
-                for a, b in _slabs(index.size, per):
-                    idx = index[a:b]
-                    counts = src.read("data", slice(int(idx[0]), int(idx[-1]) + 1, step), rows, read_cols)
-                    p = _line_integrals(counts, idx, fm, o, pixel, phase)
+                for a, b, idx, counts in _read_slabs(src, index, per, rows, read_cols, o.projections[2]):
+                    p = _line_integrals(counts, idx, fm, o, pixel, phase, gains)
                     p = _bin(p[..., margin:p.shape[-1] - margin], k)
                     data_ds[a:b] = p[:, 0] if two_d else p
                     bar.update(b - a)
@@ -318,10 +317,49 @@ def _phase_settings(o, src, pixel):
             "pixel_size_mm": list(pixel), "padding": "edge, 2x, fast FFT length"}
 
 
-def _line_integrals(counts, idx, fm, o, pixel, phase):
+def _read_slabs(src, index, per, rows, cols, step):
+    """The raw projections ``index`` in slabs of ``per``: ``(a, b, index[a:b], counts)`` for each."""
+    for a, b in _slabs(index.size, per):
+        idx = index[a:b]
+        yield a, b, idx, src.read("data", slice(int(idx[0]), int(idx[-1]) + 1, step), rows, cols)
+
+
+def _transmission(counts, idx, fm):
+    """Flat- and dark-corrected transmission of ``counts``, its bad pixels repaired."""
     t, _ = fm.transmission(counts, idx)
     if fm.bad.any():
         repair_pixels(t, fm.bad)
+    return t
+
+
+def _double_flat(o, src, fm, rows, read_cols, index, per, *, phase_margin, steps, progress):
+    """The pixel gains that the flats do not show (:func:`~bubsub.core.prep.gains.stripe_gains`), from a pass
+    over all projections, where ``o.double_flat`` asks for them: ``"on"``, or ``"auto"`` on a sample wider than
+    the detector with phase retrieval (``phase_margin`` > 0). Its reconstruction takes what is the same in every
+    view as a detector term, which a gain error is no longer once phase retrieval has spread it
+    (:mod:`bubsub.core.prep.gains`). None otherwise."""
+    if o.double_flat == "off" or (o.double_flat == "auto" and phase_margin == 0):
+        return None
+    total = 0.0
+    with _bar(index.size, "pixel gains (double flat-field)", progress) as bar:
+        for a, b, idx, counts in _read_slabs(src, index, per, rows, read_cols, o.projections[2]):
+            t = _transmission(counts, idx, fm)
+            total = total + np.log(np.clip(t, o.min_transmission, None)).sum(axis=0)
+            bar.update(b - a)
+    gains = stripe_gains(total / index.size)
+    log_gains = np.log(gains.astype(np.float64))
+    steps.append({"step": "double_flat_field", "median_columns": GAIN_MEDIAN_COLUMNS,
+                  "log_gain_rms": float(np.sqrt(np.mean(log_gains ** 2))),
+                  "log_gain_largest": float(np.max(np.abs(log_gains))),
+                  "why": "pixel gains the flats do not show, divided out before phase retrieval, which would "
+                         "spread them differently in each view" if o.double_flat == "auto" else "asked for"})
+    return gains
+
+
+def _line_integrals(counts, idx, fm, o, pixel, phase, gains=None):
+    t = _transmission(counts, idx, fm)
+    if gains is not None:
+        t /= gains
     if phase:
         t = paganin_filter(t, pixel_size=pixel, energy=phase["energy_kev"], distance=phase["distance_mm"],
                            delta_beta=phase["delta_beta"])

@@ -10,6 +10,9 @@ too flat or too curved (the fitted radius of
 field of view's mean gas; each adds the same amount ``t`` to a detector
 pixel in every projection. The fit can explain such a term only with
 bubbles, and swells or shifts those whose outline crosses the ring it makes.
+(A gain error stays the same in every view only without phase retrieval,
+which spreads it by each view's intensity: ``bubsub prepare`` divides such
+gains out before the retrieval on these scans, :mod:`bubsub.core.prep.gains`.)
 
 :func:`detector_term_phase` fits the bubbles ``x`` and the term ``t`` (one
 value per detector pixel) together. For given bubbles the best term is the

@@ -190,7 +190,8 @@ def local_case(out, seed, *, center="auto", radius="fitted", passes=DETECTOR_TER
     alone).
 
     ``radius="given"`` passes the liquid cylinder's true radius to ``prepare`` (``liquid_radius``);
-    ``radius="exact"`` reconstructs the prepared data with the liquid's exact projection as background and the
+    ``radius="exact"`` reconstructs the prepared data with the exact background (the liquid's exact projection and
+    the true bubbles' mean projection beyond ``reach``, :func:`~bubsub.bench.local_truth.true_background`) and the
     true contrast instead of the fitted ones (the reconstruction's share of the error).
 
     Returns

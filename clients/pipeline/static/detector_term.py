@@ -105,8 +105,7 @@ def view_constant_residual(projector, surfaces, data):
     ndarray float32, ``data.shape[1:]``
         Per detector pixel: ``(cols,)`` or ``(rows, cols)``.
     """
-    rest = np.asarray(data, dtype=np.float64) - np.asarray(projector.forward(surfaces), dtype=np.float64)
-    return rest.mean(axis=0).astype(np.float32)
+    return _view_mean_free(projector, surfaces, data)[1]
 
 
 class ViewMeanFree:
@@ -432,8 +431,8 @@ def _eliminated_refit(run, surfaces, ids, *, iterations, penalty, progress, labe
         ``refitted``, ``objective_before``, ``objective_after``, ``term_step_rms``; None where nothing changed.
     """
     ids = list(ids)
-    held = set(ids)
-    rest = -scene_residual(run.projector, [x for j, x in enumerate(surfaces) if j not in held], run.data)
+    refitted = set(ids)
+    rest = -scene_residual(run.projector, [x for j, x in enumerate(surfaces) if j not in refitted], run.data)
     before, _ = _view_mean_free(run.projector, surfaces, run.data)
     result = fit(ViewMeanFree(run.projector), [surfaces[j] for j in ids], rest.astype(run.data.dtype),
                  iterations=iterations, penalty=penalty, progress=progress, catch_interrupt=False, label=label)
